@@ -1,0 +1,1 @@
+"""Command-line interface (Typer). Holds no physics: it calls the public API."""
