@@ -75,3 +75,18 @@ def test_mixture_pdf_integrates_to_one():
     with pytest.raises(ValueError):
         GaussianMixture(weights=[0.5, 0.6], means_m_s=[1, 2], sigmas_m_s=[1, 1])
     json.dumps(gm.model_dump())
+
+
+def test_table_sizes_ascending_and_round_trip(tmp_path):
+    from msmill.stageparams import StageParameterTable
+
+    r1 = _run()
+    r2 = _run()
+    r2["design"] = {**r2["design"], "size_mm": 20}
+    t = StageParameterTable(runs=[RunStatistics.from_dict(r1), RunStatistics.from_dict(r2)])
+    p = tmp_path / "t.json"
+    t.to_json(p)
+    assert StageParameterTable.from_json(p) == t
+    assert list(t.sizes_mm) == [10, 20]
+    with pytest.raises(ValueError, match="ascending"):
+        StageParameterTable(runs=[RunStatistics.from_dict(r2), RunStatistics.from_dict(r1)])

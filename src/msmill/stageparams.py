@@ -227,3 +227,56 @@ class RunStatistics(_Frozen):
             return cls.model_validate(data)
         except ValidationError as exc:
             raise from_validation_error(exc, prefix=source) from None
+
+
+class StageParameterTable(_Frozen):
+    """Statistics of several DEM runs at one operating point, differing in rock size.
+
+    This is the shipped default source of stage parameters for the mill model
+    (``src/msmill/data/stage_parameters/*.json``) until the surrogate exists. The
+    model interpolates between runs in (log) rock size and clamps outside the
+    sizes covered, with a warning.
+    """
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    kind: Literal["stage_parameter_table"] = "stage_parameter_table"
+    runs: list[RunStatistics] = Field(min_length=1)
+    provenance: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _check(self) -> StageParameterTable:
+        sizes = [r.design.size_mm for r in self.runs]
+        if sizes != sorted(sizes) or len(set(sizes)) != len(sizes):
+            raise ValueError(f"runs must have distinct rock sizes in ascending order (got {sizes})")
+        n = {r.n_stages for r in self.runs}
+        if len(n) != 1:
+            raise ValueError(f"all runs must have the same number of stages (got {sorted(n)})")
+        return self
+
+    @property
+    def sizes_mm(self) -> np.ndarray:
+        """Rock sizes of the runs (mm), ascending."""
+        return np.array([r.design.size_mm for r in self.runs])
+
+    def to_json(self, path: str | Path | None = None) -> str:
+        """Serialise to JSON text (and write it to ``path`` if given)."""
+        text = self.model_dump_json(indent=2)
+        if path is not None:
+            Path(path).write_text(text + "\n", encoding="utf-8")
+        return text
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> StageParameterTable:
+        """Read and validate a table file; errors are one line naming the field."""
+        p = Path(path)
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise MsmillInputError(str(p), f"line {exc.lineno}", "valid JSON") from None
+        if not isinstance(data, dict) or data.get("schema_version") != SCHEMA_VERSION:
+            got = data.get("schema_version") if isinstance(data, dict) else type(data).__name__
+            raise MsmillInputError(f"{p.name}.schema_version", got, f"{SCHEMA_VERSION}")
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise from_validation_error(exc, prefix=p.name) from None
