@@ -1,0 +1,540 @@
+"""Per-stage impact and transport statistics of a mill DEM run.
+
+Everything here works on plain tables (the engine's event, removal, time-series
+and snapshot tables), so the statistics can be recomputed from saved raw data
+(``msmill dem stats DIR``) and tested on hand-made tables. All work is
+vectorised with numpy/pandas; there are no Python loops over particles or
+contacts.
+
+Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
+-------------------------------------------------------------------------
+* **Stage of a point**: the band of :meth:`msmill.machine.Machine.stage_band_m`
+  containing its height; ``0`` is the inlet zone above stage 1 and ``n + 1``
+  is below the outlet plane (left the mill). Rock-flinger contacts are
+  assigned to the stage of the flinger's rotor (``stage = group // 2 + 1``).
+* **Pass**: a maximal run of a rock's time-ordered record (its contacts and
+  its snapshot positions) spent in one stage. A pass ends when the rock is
+  seen in another stage.
+* **Primary impact**: the first contact of a rock with a flinger of a given
+  rotor within one pass (so at most two per stage pass, one per rotor).
+* **Secondary impacts** of a primary impact: the rock's later contacts (with
+  liners, gates, deflectors, hubs, the chute, other rocks, or further
+  flinger contacts) in the same pass, up to its next primary impact, with a
+  relative normal speed of at least ``min_secondary_speed_m_s`` (0.5 m/s by
+  default: slower touches are resting or rolling contacts that carry no
+  breakage energy, ``E = v^2/2 < 0.125 J/kg``). A rock-rock contact counts for
+  both rocks.
+* **Characteristic time** ``tau``: stage spacing / mean centre speed, the
+  mean of ``|v|`` over every rock inside the stages (1..n) in the
+  measurement snapshots; rounded to a whole number of snapshot intervals.
+* **Streams**: rocks in stage ``s`` at a snapshot time ``t`` (tags) are
+  located at ``t + tau``: higher stage or inlet zone = kickback, same stage =
+  refeed, lower stage or left through the outlet = pass-through. Mass weighted.
+* **Hit probability**: mass fraction of the tagged rocks of stage ``s`` that
+  receive at least one primary impact from a stage-``s`` rotor within
+  ``(t, t + tau]``.
+* **Sampling errors**: standard errors by batch means: the tag times (or
+  primary impacts, for the secondary statistics) are split into
+  ``n_batches`` consecutive blocks, the statistic is computed per block and
+  ``SE = std(blocks, ddof=1) / sqrt(n_batches)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.distributions import GaussianMixtureKLFit, PoissonKLFit
+from msmill.machine import Machine
+from msmill.stageparams import N_REGIONS, DesignPoint, GaussianMixture, RunStatistics, StageStatistics
+
+__all__ = [
+    "MillStatistics",
+    "StatsSettings",
+    "characteristic_time",
+    "compute_statistics",
+    "detect_steady_state",
+    "identify_impacts",
+    "snapshots_frame",
+    "stage_of_z",
+]
+
+_PLACEHOLDER = GaussianMixture.single(0.0, 1e-3)  # used (with n = 0 and kl None) when a stage has no sample
+
+
+@dataclass(frozen=True)
+class StatsSettings:
+    """Settings of the statistics.
+
+    Parameters
+    ----------
+    min_secondary_speed_m_s : float
+        Slowest contact counted as a secondary impact (m/s).
+    k_max : int
+        Largest number of Gaussian-mixture components (chosen by BIC).
+    n_batches : int
+        Batches for batch-means standard errors.
+    min_fit_samples : int
+        Fewer velocity samples than this: the mixture is a single Gaussian
+        from the sample mean and standard deviation (KL still reported).
+    """
+
+    min_secondary_speed_m_s: float = 0.5
+    k_max: int = 4
+    n_batches: int = 5
+    min_fit_samples: int = 20
+
+
+@dataclass
+class MillStatistics:
+    """Result of :func:`compute_statistics`: the schema object plus raw samples for plots."""
+
+    run: RunStatistics
+    samples: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
+    fits: dict[int, dict[str, Any]] = field(default_factory=dict)
+    streams_by_size: pd.DataFrame | None = None
+
+
+# --------------------------------------------------------------------------- basics
+def stage_of_z(machine: Machine, z_m: np.ndarray) -> np.ndarray:
+    """Stage index of each height: 0 inlet zone, 1..n stages, n + 1 below the outlet plane."""
+    edges = np.asarray(machine.stage_edges_z_m())  # ascending, n + 1 values: 0, top of n, ..., top of 1
+    k = np.searchsorted(edges, np.asarray(z_m, dtype=float), side="right")  # 0 below outlet .. n+1 inlet
+    return (machine.n_stages + 1 - k).astype(np.int64)
+
+
+def snapshots_frame(snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame) -> pd.DataFrame:
+    """Snapshots as one long table with ``time_s`` and ``snap`` (index) columns."""
+    if isinstance(snapshots, pd.DataFrame):
+        df = snapshots.copy()
+        if "snap" not in df:
+            df["snap"] = pd.factorize(df["time_s"], sort=True)[0]
+        return df
+    if not snapshots:
+        return pd.DataFrame(columns=["time_s", "snap", "particle_id", "x_m", "y_m", "z_m",
+                                     "vx_m_s", "vy_m_s", "vz_m_s", "radius_m"])
+    parts = [d.assign(time_s=t, snap=i) for i, (t, d) in enumerate(snapshots)]
+    return pd.concat(parts, ignore_index=True)
+
+
+def detect_steady_state(
+    time_s: np.ndarray, n_particles: np.ndarray, window_s: float = 0.4, rel_tol: float = 0.05,
+    trend_tol: float = 0.05,
+) -> tuple[float, float] | None:
+    """Onset of steady state from the number of particles in the mill (paper Fig. 3).
+
+    The count is resampled on a uniform grid; for every start time ``t0`` two
+    consecutive windows ``[t0, t0 + W)`` and ``[t0 + W, t0 + 2W)`` are
+    compared. Steady state holds at the first ``t0`` where (i) the relative
+    change of the window means ``|m2 - m1| / m2`` is below ``rel_tol`` and
+    (ii) the least-squares trend over both windows, times ``2W`` and divided by
+    the mean, is below ``trend_tol`` in magnitude.
+
+    Returns
+    -------
+    (onset_s, detected_at_s) or None
+        ``onset_s = t0`` and ``detected_at_s = t0 + 2W`` (the earliest time the
+        test could be evaluated), or None if the record never passes.
+    """
+    t = np.asarray(time_s, dtype=float)
+    n = np.asarray(n_particles, dtype=float)
+    if t.size < 4 or t[-1] - t[0] < 2 * window_s:
+        return None
+    dt = window_s / 20
+    grid = np.arange(t[0], t[-1] + 1e-12, dt)
+    y = np.interp(grid, t, n)
+    m = 20
+    if grid.size < 2 * m:
+        return None
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    i = np.arange(grid.size - 2 * m + 1)
+    m1 = (c[i + m] - c[i]) / m
+    m2 = (c[i + 2 * m] - c[i + m]) / m
+    # least-squares slope over 2m equally spaced points via cumulative sums
+    k = np.arange(grid.size, dtype=float)
+    ck = np.concatenate([[0.0], np.cumsum(k * y)])
+    n2 = 2 * m
+    sy = c[i + n2] - c[i]
+    sky = ck[i + n2] - ck[i] - i * sy  # sum of local index * y
+    kbar = (n2 - 1) / 2
+    skk = n2 * (n2 * n2 - 1) / 12
+    slope = (sky - kbar * sy) / skk  # per grid step
+    mean = sy / n2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.abs(m2 - m1) / m2
+        trend = np.abs(slope * n2) / mean
+    ok = (m2 > 0) & (rel < rel_tol) & (trend < trend_tol)
+    if not ok.any():
+        return None
+    j = int(np.argmax(ok))
+    return float(grid[j]), float(grid[j] + 2 * window_s)
+
+
+def characteristic_time(
+    machine: Machine, snaps: pd.DataFrame, snapshot_interval_s: float | None = None
+) -> tuple[float, float]:
+    """``(tau_s, mean_centre_speed_m_s)``: stage spacing / mean centre speed of rocks in the stages.
+
+    ``tau`` is rounded to a whole number (>= 1) of ``snapshot_interval_s`` if given.
+    """
+    st = stage_of_z(machine, snaps["z_m"].to_numpy())
+    inside = (st >= 1) & (st <= machine.n_stages)
+    v = np.sqrt(snaps["vx_m_s"] ** 2 + snaps["vy_m_s"] ** 2 + snaps["vz_m_s"] ** 2).to_numpy()[inside]
+    if v.size == 0 or not np.isfinite(v.mean()) or v.mean() <= 0:
+        raise ValueError("no moving rocks inside the stages: cannot compute the characteristic time")
+    speed = float(v.mean())
+    tau = machine.stage_spacing_m / speed
+    if snapshot_interval_s:
+        tau = max(1, round(tau / snapshot_interval_s)) * snapshot_interval_s
+    return float(tau), speed
+
+
+# --------------------------------------------------------------------------- impacts
+def _events_by_particle(events: pd.DataFrame) -> pd.DataFrame:
+    """One row per (rock, contact): rock-rock contacts appear once for each rock."""
+    cols = ["time_s", "particle_id", "partner_kind", "partner_id", "vn_m_s", "z_m", "partner_tag", "partner_group"]
+    ev = events.loc[:, [c for c in cols if c in events]].copy()
+    if "partner_tag" not in ev:
+        ev["partner_tag"] = np.where(ev["partner_kind"] == 0, "particle", "")
+    if "partner_group" not in ev:
+        ev["partner_group"] = -1
+    pp = ev[ev["partner_kind"] == 0]
+    mirror = pp.rename(columns={"particle_id": "partner_id", "partner_id": "particle_id"})
+    out = pd.concat([ev, mirror[ev.columns]], ignore_index=True)
+    out["partner_tag"] = out["partner_tag"].where(out["partner_kind"] != 0, "particle")
+    out["particle_id"] = out["particle_id"].astype(np.int64)
+    return out
+
+
+def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame) -> pd.DataFrame:
+    """Label every contact of every rock as primary / secondary (see module docstring).
+
+    Returns
+    -------
+    DataFrame
+        Per-rock contact table, sorted by rock and time, with columns
+        ``stage`` (of the contact), ``pass_id``, ``is_primary``, ``primary_row``
+        (row of the primary impact this contact follows in the same pass, -1
+        if none) and ``rotor`` (flinger contacts: rotor index, else -1).
+    """
+    ev = _events_by_particle(events)
+    is_fl = (ev["partner_kind"].to_numpy() != 0) & (ev["partner_tag"].to_numpy() == "flinger")
+    grp = ev["partner_group"].fillna(-1).to_numpy().astype(np.int64)
+    stage = np.where(is_fl, grp // 2 + 1, stage_of_z(machine, ev["z_m"].to_numpy()))
+    ev = ev.assign(stage=stage, rotor=np.where(is_fl, grp, -1), is_flinger=is_fl, kind=1)
+    if len(snaps):
+        sn = pd.DataFrame({
+            "time_s": snaps["time_s"].to_numpy(),
+            "particle_id": snaps["particle_id"].to_numpy().astype(np.int64),
+            "stage": stage_of_z(machine, snaps["z_m"].to_numpy()),
+            "kind": 0,
+        })
+        tl = pd.concat([sn, ev], ignore_index=True)
+    else:
+        tl = ev
+    tl = tl.sort_values(["particle_id", "time_s", "kind"], kind="stable", ignore_index=True)
+    pid = tl["particle_id"].to_numpy()
+    st = tl["stage"].to_numpy()
+    new_pass = np.ones(len(tl), dtype=bool)
+    new_pass[1:] = (pid[1:] != pid[:-1]) | (st[1:] != st[:-1])
+    tl["pass_id"] = np.cumsum(new_pass)
+    ev = tl[tl["kind"] == 1].reset_index(drop=True)
+    ev["is_flinger"] = ev["is_flinger"].astype(bool)
+    fl = ev["is_flinger"].to_numpy()
+    first = ~ev.duplicated(["pass_id", "rotor"])
+    is_primary = fl & first.to_numpy()
+    ev["is_primary"] = is_primary
+    idx = np.arange(len(ev))
+    last_primary = np.maximum.accumulate(np.where(is_primary, idx, -1)) if len(ev) else idx
+    ok = last_primary >= 0
+    lp = np.where(ok, last_primary, 0)
+    same = ok & (ev["particle_id"].to_numpy()[lp] == ev["particle_id"].to_numpy()) & (
+        ev["pass_id"].to_numpy()[lp] == ev["pass_id"].to_numpy()
+    )
+    ev["primary_row"] = np.where(same & ~is_primary, last_primary, -1)
+    return ev.drop(columns=["kind"])
+
+
+# --------------------------------------------------------------------------- streams
+def _tag_pairs(
+    machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, tag_times: np.ndarray, tau_s: float,
+    rock_density_kg_m3: float,
+) -> pd.DataFrame:
+    """Tagged rocks (stage 1..n at a tag time) with the stage they are in ``tau`` later."""
+    n = machine.n_stages
+    times = np.sort(snaps["time_s"].unique())
+    later = np.searchsorted(times, tag_times + tau_s - 1e-9)
+    valid = (later < times.size) & (np.abs(times[np.minimum(later, times.size - 1)] - (tag_times + tau_s)) < 1e-6)
+    tag_times = tag_times[valid]
+    to_times = times[later[valid]]
+    a = snaps[snaps["time_s"].isin(tag_times)][["time_s", "particle_id", "y_m", "z_m", "radius_m"]].copy()
+    a["stage_from"] = stage_of_z(machine, a["z_m"].to_numpy())
+    a = a[(a["stage_from"] >= 1) & (a["stage_from"] <= n)]
+    a["t_to"] = a["time_s"].map(dict(zip(tag_times, to_times, strict=True)))
+    b = snaps[snaps["time_s"].isin(to_times)][["time_s", "particle_id", "z_m"]].rename(
+        columns={"time_s": "t_to", "z_m": "z_to"})
+    m = a.merge(b, on=["t_to", "particle_id"], how="left")
+    m["stage_to"] = stage_of_z(machine, m["z_to"].fillna(0.0).to_numpy())
+    missing = m["z_to"].isna().to_numpy()
+    if missing.any():
+        rem = removed[["particle_id", "time_s"] + (["tag"] if "tag" in removed else [])].rename(
+            columns={"time_s": "t_removed"})
+        mm = m.loc[missing, ["particle_id", "t_to"]].merge(rem, on="particle_id", how="left")
+        t_rem = pd.to_numeric(mm["t_removed"], errors="coerce").to_numpy(dtype=float)
+        gone = np.nan_to_num(t_rem, nan=np.inf) <= mm["t_to"].to_numpy(dtype=float) + 1e-12
+        tag = mm["tag"].astype(str).to_numpy() if "tag" in mm else np.full(len(mm), "outlet")
+        st_to = np.where(~gone, -1, np.where(tag == "outlet", n + 1, 0))
+        m.loc[missing, "stage_to"] = st_to
+    m = m[m["stage_to"] >= 0].copy()
+    m["mass_kg"] = rock_density_kg_m3 * 4.0 / 3.0 * np.pi * m["radius_m"].to_numpy() ** 3
+    m["category"] = np.select(
+        [m["stage_to"] < m["stage_from"], m["stage_to"] == m["stage_from"]], [0, 1], default=2)
+    return m
+
+
+def _streams(pairs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """Mass fractions kickback / refeed / pass_through grouped by ``keys``."""
+    w = pairs.pivot_table(index=keys, columns="category", values="mass_kg", aggfunc="sum", fill_value=0.0)
+    w = w.reindex(columns=[0, 1, 2], fill_value=0.0)
+    tot = w.sum(axis=1)
+    f = w.div(tot, axis=0)
+    f.columns = ["kickback", "refeed", "pass_through"]
+    f["mass_kg"] = tot
+    return f
+
+
+def _batch_se(values: np.ndarray) -> float:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return float("nan")
+    return float(v.std(ddof=1) / np.sqrt(v.size))
+
+
+# --------------------------------------------------------------------------- main entry
+def compute_statistics(
+    machine: Machine,
+    design: DesignPoint,
+    events: pd.DataFrame,
+    removed: pd.DataFrame,
+    timeseries: pd.DataFrame,
+    snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame,
+    window_s: tuple[float, float],
+    mode: str = "slice",
+    rock_density_kg_m3: float = 2700.0,
+    characteristic_time_s: float | None = None,
+    steady_state_time_s: float | None = None,
+    settings: StatsSettings | None = None,
+    size_edges_m: np.ndarray | None = None,
+    provenance: dict[str, Any] | None = None,
+) -> MillStatistics:
+    """Per-stage statistics of one run over the measurement window.
+
+    Parameters
+    ----------
+    machine : Machine
+        Geometry (stage bands, rotor numbering).
+    design : DesignPoint
+        Operating point of the run.
+    events, removed, timeseries : DataFrame
+        Engine tables (``Simulation.events()``, ``removed()``, ``timeseries()``).
+    snapshots : list of (time_s, DataFrame) or DataFrame
+        Particle snapshots, regularly spaced, covering the window.
+    window_s : (float, float)
+        Measurement window ``(t0, t1)`` (s).
+    mode : {"slice", "full"}
+        Full mode adds the horizontal (6-region) statistics.
+    rock_density_kg_m3 : float
+        Rock density (for masses from radii).
+    characteristic_time_s : float, optional
+        Force ``tau`` instead of computing it.
+    steady_state_time_s : float, optional
+        Stored in the result.
+    settings : StatsSettings, optional
+    size_edges_m : array, optional
+        Radius-class edges (m) for streams per size class (PSD feeds).
+    provenance : dict, optional
+        Stored in ``RunStatistics.provenance``.
+    """
+    s_ = settings or StatsSettings()
+    n = machine.n_stages
+    t0, t1 = map(float, window_s)
+    snaps = snapshots_frame(snapshots)
+    snaps = snaps[(snaps["time_s"] >= t0 - 1e-9) & (snaps["time_s"] <= t1 + 1e-9)]
+    times = np.sort(snaps["time_s"].unique())
+    interval = float(np.median(np.diff(times))) if times.size > 1 else None
+    if characteristic_time_s is None:
+        tau, speed = characteristic_time(machine, snaps, interval)
+    else:
+        tau = float(characteristic_time_s)
+        speed = machine.stage_spacing_m / tau
+    tag_times = times[times + tau <= t1 + 1e-9]
+
+    # ---- transport
+    pairs = _tag_pairs(machine, snaps, removed, tag_times, tau, rock_density_kg_m3)
+    streams = _streams(pairs, ["stage_from"]) if len(pairs) else None
+    tag_batch = {t: b for b, chunk in enumerate(np.array_split(tag_times, s_.n_batches)) for t in chunk}
+    pairs["batch"] = pairs["time_s"].map(tag_batch)
+    bstreams = _streams(pairs, ["stage_from", "batch"]) if len(pairs) else None
+
+    # ---- impacts
+    ev = identify_impacts(machine, events, snapshots_frame(snapshots))
+    prim = ev[ev["is_primary"]]
+    # hit probability: tagged rock hit by a rotor of its stage within (t, t + tau]
+    hits = pd.Series(dtype=float)
+    hits_b = pd.DataFrame()
+    if len(pairs):
+        tags = pairs[["time_s", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
+            columns={"stage_from": "stage"}).sort_values("time_s")
+        p = prim[["time_s", "particle_id", "stage"]].rename(columns={"time_s": "t_hit"}).sort_values("t_hit")
+        p = p.astype({"particle_id": np.int64, "stage": np.int64})
+        tags = tags.astype({"particle_id": np.int64, "stage": np.int64})
+        nxt = pd.merge_asof(tags, p, left_on="time_s", right_on="t_hit", by=["particle_id", "stage"],
+                            direction="forward", allow_exact_matches=False)
+        nxt["hit"] = (nxt["t_hit"] - nxt["time_s"]) <= tau + 1e-12
+        nxt["mh"] = nxt["mass_kg"] * nxt["hit"]
+        g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
+        hits = g["mh"] / g["mass_kg"]
+        gb = nxt.groupby(["stage", "batch"])[["mh", "mass_kg"]].sum()
+        hits_b = (gb["mh"] / gb["mass_kg"]).rename("p").reset_index()
+
+    # secondary counts per primary impact (primaries inside the window with a full follow-up)
+    pr_rows = np.flatnonzero(ev["is_primary"].to_numpy())
+    t_ev = ev["time_s"].to_numpy()
+    in_win = (t_ev[pr_rows] >= t0) & (t_ev[pr_rows] <= t1 - tau)
+    pr_rows = pr_rows[in_win]
+    vn = ev["vn_m_s"].to_numpy()
+    sec = (ev["primary_row"].to_numpy() >= 0) & (vn >= s_.min_secondary_speed_m_s)
+    counts_all = np.bincount(ev["primary_row"].to_numpy()[sec], minlength=len(ev))
+    pr_stage = ev["stage"].to_numpy()[pr_rows]
+    counted = np.zeros(len(ev), dtype=bool)
+    counted[pr_rows] = True
+    sec_rows = np.flatnonzero(sec & counted[np.maximum(ev["primary_row"].to_numpy(), 0)])
+    sec_stage = ev["stage"].to_numpy()[ev["primary_row"].to_numpy()[sec_rows]]
+    pr_batch = np.minimum(((t_ev[pr_rows] - t0) / max(t1 - tau - t0, 1e-12) * s_.n_batches).astype(int),
+                          s_.n_batches - 1)
+
+    # ---- horizontal (full mode): solid-volume weights and streams of 6 regions along the shafts
+    regions = mode == "full"
+    if regions and len(pairs):
+        edges_y = np.linspace(0.0, machine.casing_length_m, N_REGIONS + 1)
+        sn_in = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
+                             region=np.clip(np.searchsorted(edges_y, snaps["y_m"].to_numpy(), side="right") - 1,
+                                            0, N_REGIONS - 1),
+                             vol=4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3)
+        vol = sn_in.pivot_table(index="stage", columns="region", values="vol", aggfunc="sum", fill_value=0.0)
+        vol = vol.reindex(columns=range(N_REGIONS), fill_value=0.0)
+        pairs["region"] = np.clip(np.searchsorted(edges_y, pairs["y_m"].to_numpy(), side="right") - 1,
+                                  0, N_REGIONS - 1)
+        rstreams = _streams(pairs, ["stage_from", "region"])
+
+    # ---- per stage
+    stages: list[StageStatistics] = []
+    samples: dict[int, dict[str, np.ndarray]] = {}
+    fits: dict[int, dict[str, Any]] = {}
+    holdup = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
+                          m=rock_density_kg_m3 * 4 / 3 * np.pi * snaps["radius_m"].to_numpy() ** 3)
+    holdup_kg = holdup.groupby("stage")["m"].sum() / max(times.size, 1)
+    for s in range(1, n + 1):
+        se: dict[str, float] = {}
+        if streams is not None and s in streams.index:
+            kick, ref, pt = (float(streams.at[s, c]) for c in ("kickback", "refeed", "pass_through"))
+            bs = bstreams.xs(s, level="stage_from")
+            for c in ("kickback", "refeed", "pass_through"):
+                se[c] = _batch_se(bs[c].to_numpy())
+            n_tr = int((pairs["stage_from"] == s).sum())
+        else:
+            kick, ref, pt, n_tr = 0.0, 1.0, 0.0, 0
+        tot = kick + ref + pt
+        kick, ref, pt = kick / tot, ref / tot, pt / tot
+        ph = float(hits.get(s, 0.0)) if len(hits) else 0.0
+        if len(hits_b):
+            se["primary_hit_probability"] = _batch_se(hits_b.loc[hits_b["stage"] == s, "p"].to_numpy())
+
+        v_prim = prim["vn_m_s"].to_numpy()[(prim["stage"].to_numpy() == s)
+                                           & (prim["time_s"].to_numpy() >= t0) & (prim["time_s"].to_numpy() <= t1)]
+        gm_p, kl_p, fit_p = _fit_velocity(v_prim, s_)
+        sel = pr_stage == s
+        cnt = counts_all[pr_rows[sel]]
+        v_sec = vn[sec_rows[sec_stage == s]]
+        if cnt.size:
+            pf = PoissonKLFit().fit(cnt)
+            lam, kl_l = pf.lambda_, pf.kl_
+            bl = [cnt[pr_batch[sel] == b].mean() for b in range(s_.n_batches) if np.any(pr_batch[sel] == b)]
+            se["secondary_lambda"] = _batch_se(np.asarray(bl))
+        else:
+            pf, lam, kl_l = None, 0.0, None
+        gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
+        if v_prim.size > 1:
+            se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
+        if v_sec.size > 1:
+            se["secondary_velocity_mean_m_s"] = float(v_sec.std(ddof=1) / np.sqrt(v_sec.size))
+        se = {k: v for k, v in se.items() if np.isfinite(v)}
+
+        rw = rs = None
+        if regions and len(pairs) and s in vol.index and vol.loc[s].sum() > 0:
+            w = vol.loc[s].to_numpy()
+            rw = list(map(float, w / w.sum()))
+            rs = []
+            for r in range(N_REGIONS):
+                if (s, r) in rstreams.index and rstreams.at[(s, r), "mass_kg"] > 0:
+                    row = rstreams.loc[(s, r), ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float)
+                    rs.append(list(map(float, row / row.sum())))
+                else:  # no tagged rock in this region: use the stage average
+                    rs.append([kick, ref, pt])
+        stages.append(StageStatistics(
+            stage=s, kickback=kick, refeed=ref, pass_through=pt,
+            region_weights=rw, region_streams=rs,
+            primary_hit_probability=min(max(ph, 0.0), 1.0),
+            primary_velocity=gm_p, primary_velocity_kl=kl_p,
+            secondary_lambda=float(lam), secondary_lambda_kl=kl_l,
+            secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
+            n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
+            n_transport_samples=n_tr, mean_holdup_kg=float(holdup_kg.get(s, 0.0)),
+            sampling_error=se,
+        ))
+        samples[s] = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
+        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf}
+
+    # ---- run level
+    rem = removed
+    if "tag" in rem:
+        rem = rem[rem["tag"].astype(str) == "outlet"]
+    rem_w = rem[(rem["time_s"] >= t0) & (rem["time_s"] <= t1)]
+    mass_col = rem_w["mass_kg"] if "mass_kg" in rem_w else rock_density_kg_m3 * 4 / 3 * np.pi * rem_w["radius_m"] ** 3
+    out_rate = float(mass_col.sum()) / (t1 - t0) if t1 > t0 else 0.0
+    ts = timeseries[(timeseries["time_s"] >= t0) & (timeseries["time_s"] <= t1)]
+    hold_total = float(ts["mass_kg"].mean()) if len(ts) else float(holdup_kg.sum())
+    residence = hold_total / out_rate if out_rate > 0 else None
+    prov = dict(provenance or {})
+    prov.setdefault("stats", {}).update({
+        "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
+        "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
+    })
+    by_size = None
+    if size_edges_m is not None and len(pairs):
+        pairs["size_class"] = np.searchsorted(np.asarray(size_edges_m), pairs["radius_m"].to_numpy(), side="right") - 1
+        by_size = _streams(pairs, ["stage_from", "size_class"]).reset_index()
+        prov["streams_by_size"] = by_size.to_dict(orient="records")
+    run = RunStatistics(
+        design=design, mode="full" if mode == "full" else "slice", characteristic_time_s=tau, stages=stages,
+        steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
+        mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
+        provenance=prov,
+    )
+    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+
+
+def _fit_velocity(v: np.ndarray, s_: StatsSettings) -> tuple[GaussianMixture, float | None, Any]:
+    """Mixture fit of a velocity sample; placeholder when empty."""
+    if v.size == 0:
+        return _PLACEHOLDER, None, None
+    if v.size < s_.min_fit_samples or np.ptp(v) == 0:
+        sd = float(v.std(ddof=1)) if v.size > 1 and np.ptp(v) > 0 else 1e-3
+        fit = GaussianMixtureKLFit(k_max=1, refine=False).fit(v) if v.size > 1 else None
+        return GaussianMixture.single(float(v.mean()), max(sd, 1e-3)), (float(fit.kl_) if fit else None), fit
+    fit = GaussianMixtureKLFit(k_max=s_.k_max).fit(v)
+    return fit.to_stageparams(), float(fit.kl_), fit
