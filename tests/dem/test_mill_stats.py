@@ -4,7 +4,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from msmill.dem.mill.stats import compute_statistics, detect_steady_state, identify_impacts, stage_of_z
+from msmill.dem.mill.stats import (
+    compute_statistics,
+    detect_steady_state,
+    identify_impacts,
+    stage_of_z,
+)
 from msmill.machine import Machine
 from msmill.stageparams import DesignPoint
 

@@ -49,7 +49,13 @@ import pandas as pd
 
 from msmill.distributions import GaussianMixtureKLFit, PoissonKLFit
 from msmill.machine import Machine
-from msmill.stageparams import N_REGIONS, DesignPoint, GaussianMixture, RunStatistics, StageStatistics
+from msmill.stageparams import (
+    N_REGIONS,
+    DesignPoint,
+    GaussianMixture,
+    RunStatistics,
+    StageStatistics,
+)
 
 __all__ = [
     "MillStatistics",
