@@ -1,0 +1,306 @@
+"""Expected-value solver: the mill as a linear system on (compartment, size, damage).
+
+State
+-----
+``x[c, i, d]``: tonnes of rock in compartment ``c`` (0 = inlet zone, 1..S =
+stages), size class ``i`` and damage class ``d``, flattened as
+``c * (N * n_d) + i * n_d + d``. Damage classes are nodes
+``D_d = d * D_th / n_d`` (``d = 0 .. n_d-1``); fresh rock and fragments are in
+class 0.
+
+One step (characteristic time) is ``x(t+1) = M x(t) + f`` and the product of
+the step is ``O x(t)`` (see docs/model.md for the semantics). Every impact is a
+linear operator averaged over the velocity distribution by Gauss-Hermite
+quadrature per mixture component (velocities clipped at 0); a Poisson number of
+secondary impacts is ``expm(lambda (T - I))`` on a state augmented with the
+fragments made so far (which are not hit again in that step) and two counters
+(number of impacts and energy delivered). The steady state solves
+``(I - M) x = f`` directly (sparse LU).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from msmill.errors import MsmillError
+from msmill.model.parameters import MixtureArrays
+from msmill.model.submodels import ImpactStatistics, specific_energy_kwh_t
+
+
+def quadrature(mix: MixtureArrays, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Hermite nodes and weights of a Gaussian mixture, per (..., size).
+
+    Parameters
+    ----------
+    mix : MixtureArrays
+        Arrays of shape (..., K).
+    n_nodes : int
+        Gauss-Hermite nodes per component.
+
+    Returns
+    -------
+    v_m_s, weights : ndarray, shape (..., K * n_nodes)
+        Velocities clipped at 0 (m/s) and weights (sum 1).
+    """
+    x, w = np.polynomial.hermite.hermgauss(n_nodes)
+    v = mix.means_m_s[..., None] + np.sqrt(2.0) * mix.sigmas_m_s[..., None] * x
+    ww = mix.weights[..., None] * (w / np.sqrt(np.pi))
+    shape = v.shape[:-2] + (v.shape[-2] * v.shape[-1],)
+    v = np.maximum(v.reshape(shape), 0.0)
+    ww = ww.reshape(shape)
+    ww = ww / ww.sum(axis=-1, keepdims=True)
+    return v, ww
+
+
+@dataclass(frozen=True)
+class ImpactOperator:
+    """One impact on rocks of every (size, damage) class, averaged over velocity.
+
+    Attributes
+    ----------
+    survive : ndarray (N, n_d, n_d)
+        ``survive[i, d2, d]``: fraction of (i, d) that survives in damage class d2.
+    fragments : ndarray (N, N, n_d)
+        ``fragments[k, i, d]``: fraction of (i, d) that breaks into class k.
+    mean_energy_kwh_t : ndarray (N,)
+        Mean specific impact energy per impact (kWh/t).
+    """
+
+    survive: np.ndarray
+    fragments: np.ndarray
+    mean_energy_kwh_t: np.ndarray
+
+
+def damage_nodes(n_classes: int, threshold: float) -> np.ndarray:
+    """Damage class nodes ``D_d = d * threshold / n_classes`` (dimensionless)."""
+    return np.arange(n_classes) * (threshold / n_classes)
+
+
+def split_damage(d_new: np.ndarray, n_classes: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower class index and upper weight of a damage value (mass-conservative linear split).
+
+    ``D`` between nodes ``D_lo`` and ``D_lo+1`` goes to them with weights
+    ``1 - frac`` and ``frac``; ``D`` above the last node (but below the
+    threshold) stays in the last class.
+    """
+    step = threshold / n_classes
+    pos = np.asarray(d_new, dtype=float) / step
+    lo = np.floor(pos).astype(int)
+    frac = pos - lo
+    top = lo >= n_classes - 1
+    lo = np.clip(lo, 0, n_classes - 1)
+    frac = np.where(top, 0.0, frac)
+    return lo, frac
+
+
+def impact_operator(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
+                    n_nodes: int) -> ImpactOperator:
+    """Build the one-impact operator of one stage (mixture arrays of shape (N, K))."""
+    mids = np.sqrt(edges_mm[:-1] * edges_mm[1:])
+    n = mids.size
+    th = float(damage.threshold)
+    dn = damage_nodes(n_damage, th)
+    v, w = quadrature(mix, n_nodes)  # (N, Q)
+    e = specific_energy_kwh_t(v)
+    L = mids[:, None, None]
+    pb = breakage.probability(e[..., None], L, dn[None, None, :])  # (N, Q, nd)
+    d_new = damage.after_impact(e[..., None], L, dn[None, None, :])
+    broke_thr = d_new >= th
+    pbr = pb + (1.0 - pb) * broke_thr
+    parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
+    cols = breakage.fragments(edges_mm, parent, pb)  # (N, Q, nd, N)
+    frag = np.einsum("iq,iqd,iqdk->kid", w, pbr, cols)
+    surv = w[..., None] * (1.0 - pbr)  # (N, Q, nd)
+    lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), n_damage, th)
+    classes = np.arange(n_damage)
+    onehot_lo = (lo[..., None] == classes)  # (N, Q, nd, nd2)
+    onehot_hi = ((lo + 1)[..., None] == classes)
+    S = np.einsum("iqd,iqde->ied", surv * (1.0 - frac), onehot_lo) + \
+        np.einsum("iqd,iqde->ied", surv * frac, onehot_hi)
+    mean_e = np.sum(w * e, axis=-1)
+    return ImpactOperator(S, frag, mean_e)
+
+
+@dataclass(frozen=True)
+class StageOperator:
+    """Everything one stage does to the mass it impacts in one step.
+
+    Attributes
+    ----------
+    G : ndarray (n_s, n_s)
+        Impacted mass -> mass after the step's impacts (columns sum to 1).
+    primary_count, primary_energy_kwh_t, secondary_count, secondary_energy_kwh_t : ndarray (n_s,)
+        Per tonne impacted: expected number of impacts and energy delivered (kWh/t).
+    """
+
+    G: np.ndarray
+    primary_count: np.ndarray
+    primary_energy_kwh_t: np.ndarray
+    secondary_count: np.ndarray
+    secondary_energy_kwh_t: np.ndarray
+
+
+def _block_diag(blocks: np.ndarray) -> np.ndarray:
+    n, m, _ = blocks.shape
+    out = np.zeros((n * m, n * m))
+    for i in range(n):
+        out[i * m:(i + 1) * m, i * m:(i + 1) * m] = blocks[i]
+    return out
+
+
+def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, breakage, damage,
+                   n_damage: int, n_nodes: int) -> StageOperator:
+    """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
+
+    ``stage`` is the 0-based stage index into the (S, N) arrays of ``stats``.
+    """
+    n = edges_mm.size - 1
+    nd = n_damage
+    ns = n * nd
+    h = np.repeat(stats.hit_probability[stage], nd)
+    sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
+    prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
+    sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
+    lam = stats.secondary_lambda[stage]  # (N,)
+    Sp = _block_diag(prim.survive)
+    Fp = prim.fragments.reshape(n, ns)
+    # Poisson series of secondary impacts = expm(lam (T - I)) on the state augmented with
+    # the fragments made so far and two counters. Survivors keep their size, so the
+    # survivor block is block-diagonal per size class i with A_i = lam_i (S_i - I);
+    # fragments and counters absorb, hence expm([[A, 0], [C, 0]]) = [[e^A, 0], [C phi1(A), I]]
+    # with phi1(A) = int_0^1 e^(tA) dt, both read off one batched expm of [[A, 0], [I, 0]].
+    A = lam[:, None, None] * (sec.survive - np.eye(nd)[None])
+    Z = np.zeros((n, 2 * nd, 2 * nd))
+    Z[:, :nd, :nd] = A
+    Z[:, nd:, :nd] = np.eye(nd)[None]
+    X = scipy.linalg.expm(Z) if np.any(lam > 0) else np.broadcast_to(np.eye(2 * nd), Z.shape)
+    eA = X[:, :nd, :nd]
+    phi = X[:, nd:, :nd]  # (N, nd, nd)
+    Es = _block_diag(eA)
+    # fragments: Ef[k, (i, d)] = lam_i sum_e Fs[k, i, e] phi_i[e, d]
+    Ef = np.einsum("kie,ied->kid", sec.fragments, phi * lam[:, None, None]).reshape(n, ns)
+    ones_phi = phi.sum(axis=1) * lam[:, None]  # (N, nd): expected secondary impacts
+    sec_count = ones_phi.reshape(ns)
+    sec_energy = (ones_phi * sec.mean_energy_kwh_t[:, None]).reshape(ns)
+    C = np.zeros((ns, n))
+    C[np.arange(n) * nd, np.arange(n)] = 1.0
+    after_hit = Es @ Sp + C @ (Fp + Ef @ Sp)
+    G = np.diag(1.0 - h) + after_hit * h[None, :]
+    return StageOperator(
+        G=G,
+        primary_count=h,
+        primary_energy_kwh_t=h * np.repeat(prim.mean_energy_kwh_t, nd),
+        secondary_count=(sec_count @ Sp) * h,
+        secondary_energy_kwh_t=(sec_energy @ Sp) * h,
+    )
+
+
+@dataclass(frozen=True)
+class LinearMill:
+    """The assembled linear system of one mill at one operating point.
+
+    Attributes
+    ----------
+    M : scipy.sparse.csr_matrix
+        Step operator on the flattened state.
+    O : scipy.sparse.csr_matrix (N, n)
+        Product of a step by size class (tonnes).
+    impacted : scipy.sparse.csr_matrix (n, n)
+        Mass impacted during a step (diagonal).
+    stages : list of StageOperator
+    n_stages, n_sizes, n_damage : int
+    """
+
+    M: sp.csr_matrix
+    O: sp.csr_matrix
+    impacted: sp.csr_matrix
+    stages: list[StageOperator]
+    n_stages: int
+    n_sizes: int
+    n_damage: int
+
+    @property
+    def n_state(self) -> int:
+        """Length of the flattened state vector."""
+        return self.M.shape[0]
+
+    def feed_vector(self, feed_fractions: np.ndarray, tonnes_per_step: float) -> np.ndarray:
+        """Fresh feed of one step (undamaged, into stage 1) as a state vector (t)."""
+        f = np.zeros(self.n_state)
+        ns = self.n_sizes * self.n_damage
+        f[ns + np.arange(self.n_sizes) * self.n_damage] = np.asarray(feed_fractions) * tonnes_per_step
+        return f
+
+    def steady_state(self, f: np.ndarray) -> np.ndarray:
+        """Steady state ``x = (I - M)^-1 f`` by one sparse direct solve."""
+        A = sp.identity(self.n_state, format="csc") - self.M.tocsc()
+        x = spla.spsolve(A, f)
+        if not np.all(np.isfinite(x)):
+            raise MsmillError("the mill never empties (no outflow for some rock); "
+                              "check the bottom stage's pass-through")
+        return np.maximum(x, 0.0)
+
+
+def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics, breakage, damage,
+             n_damage: int, n_nodes: int, impacted: str = "refeed") -> LinearMill:
+    """Assemble the step operator of the whole mill.
+
+    Parameters
+    ----------
+    edges_mm : ndarray (N+1,)
+        Size-class edges (mm).
+    streams : ndarray (S, N, 3)
+        ``[kickback, refeed, pass_through]`` per stage and size class.
+    stats : ImpactStatistics
+        Impact statistics (S, N).
+    breakage, damage
+        Sub-models.
+    n_damage : int
+        Number of damage classes.
+    n_nodes : int
+        Gauss-Hermite nodes per mixture component.
+    impacted : {"refeed", "all"}
+        Which mass is impacted in a step (see docs/model.md).
+    """
+    n_st = streams.shape[0]
+    n = edges_mm.size - 1
+    nd = n_damage
+    ns = n * nd
+    stage_ops = [stage_operator(edges_mm, stats, s, breakage, damage, nd, n_nodes) for s in range(n_st)]
+    K = [sp.diags(np.repeat(streams[s, :, 0], nd)) for s in range(n_st)]
+    R = [sp.diags(np.repeat(streams[s, :, 1], nd)) for s in range(n_st)]
+    P = [sp.diags(np.repeat(streams[s, :, 2], nd)) for s in range(n_st)]
+    G = [sp.csr_matrix(op.G) for op in stage_ops]
+    blocks: list[list] = [[None] * (n_st + 1) for _ in range(n_st + 1)]
+    blocks[1][0] = sp.identity(ns)
+    imp_blocks: list = [sp.csr_matrix((ns, ns))]
+    for s in range(n_st):
+        c = s + 1
+        if impacted == "refeed":
+            blocks[c][c] = G[s] @ R[s]
+            up, down = K[s], P[s]
+            imp_blocks.append(R[s])
+        elif impacted == "all":
+            blocks[c][c] = R[s] @ G[s]
+            up, down = K[s] @ G[s], P[s] @ G[s]
+            imp_blocks.append(sp.identity(ns))
+        else:  # pragma: no cover - validated by Mill
+            raise ValueError(impacted)
+        blocks[c - 1][c] = up
+        if c < n_st:
+            blocks[c + 1][c] = down
+        else:
+            last_down = down
+    for c in range(n_st + 1):
+        if blocks[c][c] is None:
+            blocks[c][c] = sp.csr_matrix((ns, ns))
+    M = sp.bmat(blocks, format="csr")
+    collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
+    O = sp.hstack([sp.csr_matrix((n, n_st * ns)), collapse @ last_down], format="csr")
+    return LinearMill(M=M, O=O, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
+                      n_stages=n_st, n_sizes=n, n_damage=nd)

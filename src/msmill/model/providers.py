@@ -1,0 +1,416 @@
+"""Stage-parameter providers: where the mill model gets its DEM statistics.
+
+A provider answers one question: for every stage and every size class of the
+model's grid, what are the transport streams and the primary / secondary
+impact statistics? It implements the small :class:`StageParameterProvider`
+protocol, so the Gaussian-process surrogate can be added later as one more
+provider.
+
+Providers shipped here
+----------------------
+:class:`TableProvider`
+    A :class:`msmill.stageparams.StageParameterTable` (runs at one operating
+    point, several rock sizes) read from JSON, or the simple TOML / CSV table
+    format defined in :func:`read_simple_table`. Values are interpolated
+    linearly in ``ln(size)`` between runs; velocity mixtures are interpolated
+    as a mixture of the two neighbouring mixtures (weights ``1 - w`` and
+    ``w``), which keeps every interpolated distribution valid.
+:class:`RunProvider`
+    The statistics of one DEM run (:class:`msmill.stageparams.RunStatistics`),
+    applied to every size.
+
+Sizes outside the sizes covered are clamped to the nearest run, with one
+:class:`msmill.errors.OutOfDomainWarning`. An operating point that differs
+from the one the statistics were measured at also warns.
+"""
+
+from __future__ import annotations
+
+import csv
+import tomllib
+import warnings
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
+from msmill.model.parameters import MixtureArrays, StageParameters
+from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
+
+__all__ = [
+    "RunProvider",
+    "StageParameterProvider",
+    "TableProvider",
+    "load_provider",
+    "read_simple_table",
+]
+
+_REL_TOL = 0.01  # relative difference of an operating value that triggers a warning
+
+
+@runtime_checkable
+class StageParameterProvider(Protocol):
+    """Anything that gives per-stage parameters at the model's size classes."""
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages the parameters describe."""
+        ...
+
+    def stage_parameters(
+        self, sizes_mm: np.ndarray, stage_speeds_rpm: list[float] | None = None,
+        feed_tph: float | None = None, gate_deg: float | None = None,
+    ) -> StageParameters:
+        """Parameters at ``sizes_mm`` (mm) for the given operating point (warns off-point)."""
+        ...
+
+
+def _check_operating_point(design, stage_speeds_rpm, feed_tph, gate_deg, source: str) -> None:
+    diffs = []
+    if stage_speeds_rpm is not None:
+        a = np.asarray(stage_speeds_rpm, dtype=float)
+        b = np.asarray(design.stage_speeds_rpm, dtype=float)
+        if a.shape != b.shape or np.any(np.abs(a - b) > _REL_TOL * np.maximum(b, 1.0)):
+            diffs.append(f"stage speeds {list(np.round(a, 1))} rpm vs {list(np.round(b, 1))} rpm")
+    if feed_tph is not None and abs(feed_tph - design.feed_tph) > _REL_TOL * design.feed_tph:
+        diffs.append(f"feed {feed_tph:g} t/h vs {design.feed_tph:g} t/h")
+    if gate_deg is not None and abs(gate_deg - design.gate_deg) > 0.5:
+        diffs.append(f"gate {gate_deg:g} deg vs {design.gate_deg:g} deg")
+    if diffs:
+        warnings.warn(
+            f"stage parameters from {source} were measured at another operating point ("
+            + "; ".join(diffs) + ")", OutOfDomainWarning, stacklevel=3)
+
+
+def _mixture_rows(stats: list[StageStatistics], attr: str) -> tuple[np.ndarray, ...]:
+    k = max(getattr(s, attr).n_components for s in stats)
+    w = np.zeros((len(stats), k))
+    m = np.zeros((len(stats), k))
+    sd = np.ones((len(stats), k))
+    for i, s in enumerate(stats):
+        g = getattr(s, attr)
+        n = g.n_components
+        w[i, :n], m[i, :n], sd[i, :n] = g.weights, g.means_m_s, g.sigmas_m_s
+    return w, m, sd
+
+
+def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
+    """Stack runs into arrays of shape (R, S, ...)."""
+    n_s = runs[0].n_stages
+    out: dict[str, Any] = {
+        "streams": np.array([[s.streams for s in r.stages] for r in runs]),
+        "hit": np.array([[s.primary_hit_probability for s in r.stages] for r in runs]),
+        "lam": np.array([[s.secondary_lambda for s in r.stages] for r in runs]),
+    }
+    for attr, key in (("primary_velocity", "pv"), ("secondary_velocity", "sv")):
+        k = max(getattr(s, attr).n_components for r in runs for s in r.stages)
+        arr = np.zeros((3, len(runs), n_s, k))
+        arr[2] = 1.0
+        for i, r in enumerate(runs):
+            w, m, sd = _mixture_rows(list(r.stages), attr)
+            arr[0, i, :, : w.shape[1]] = w
+            arr[1, i, :, : w.shape[1]] = m
+            arr[2, i, :, : w.shape[1]] = sd
+        out[key] = arr
+    has_regions = all(s.region_weights is not None and s.region_streams is not None
+                      for r in runs for s in r.stages)
+    if has_regions:
+        out["rw"] = np.array([[s.region_weights for s in r.stages] for r in runs])
+        out["rs"] = np.array([[s.region_streams for s in r.stages] for r in runs])
+    return out
+
+
+def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
+    run_sizes = np.array([r.design.size_mm for r in runs])
+    sizes = np.asarray(sizes_mm, dtype=float)
+    lo, hi = run_sizes[0], run_sizes[-1]
+    outside = (sizes < lo * (1 - 1e-9)) | (sizes > hi * (1 + 1e-9))
+    if np.any(outside):
+        warnings.warn(
+            f"{int(outside.sum())} of {sizes.size} size classes "
+            f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
+            f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
+            "to the nearest size", OutOfDomainWarning, stacklevel=3)
+    a = _run_arrays(runs)
+    x = np.log(np.clip(sizes, lo, hi))
+    xr = np.log(run_sizes)
+    if len(runs) == 1:
+        j = np.zeros(sizes.size, dtype=int)
+        w = np.zeros(sizes.size)
+        j1 = j
+    else:
+        j = np.clip(np.searchsorted(xr, x, side="right") - 1, 0, len(runs) - 2)
+        w = np.clip((x - xr[j]) / (xr[j + 1] - xr[j]), 0.0, 1.0)
+        j1 = j + 1
+
+    def lin(arr: np.ndarray) -> np.ndarray:
+        # arr (R, S, ...) -> (S, N, ...)
+        a0 = np.moveaxis(arr[j], 0, 1)
+        a1 = np.moveaxis(arr[j1], 0, 1)
+        ww = w.reshape((1, -1) + (1,) * (a0.ndim - 2))
+        return (1 - ww) * a0 + ww * a1
+
+    def mix(arr: np.ndarray) -> MixtureArrays:
+        # arr (3, R, S, K): concatenate neighbours' components with weights (1-w), w
+        p0 = np.moveaxis(arr[:, j], 1, 2)  # (3, S, N, K)
+        p1 = np.moveaxis(arr[:, j1], 1, 2)
+        ww = w[None, :, None]
+        weights = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
+        means = np.concatenate([p0[1], p1[1]], axis=-1)
+        sig = np.concatenate([p0[2], p1[2]], axis=-1)
+        return MixtureArrays(weights, means, sig)
+
+    streams = lin(a["streams"])
+    streams /= streams.sum(axis=-1, keepdims=True)
+    rw = rs = None
+    if "rw" in a:
+        rw = lin(a["rw"])
+        rs = lin(a["rs"])
+    times = np.array([r.characteristic_time_s for r in runs])
+    if np.ptp(times) > _REL_TOL * times.mean():
+        warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
+                      f"using their mean {times.mean():g} s as the time step", OutOfDomainWarning,
+                      stacklevel=3)
+    d = runs[0].design
+    return StageParameters(
+        sizes_mm=sizes.copy(),
+        characteristic_time_s=float(times.mean()),
+        streams=streams,
+        hit_probability=np.clip(lin(a["hit"]), 0.0, 1.0),
+        primary_velocity=mix(a["pv"]),
+        secondary_lambda=np.maximum(lin(a["lam"]), 0.0),
+        secondary_velocity=mix(a["sv"]),
+        design_stage_speeds_rpm=np.asarray(d.stage_speeds_rpm, dtype=float),
+        design_feed_tph=d.feed_tph,
+        design_gate_deg=d.gate_deg,
+        region_weights=rw,
+        region_streams=rs,
+        source=source,
+    )
+
+
+class TableProvider:
+    """Stage parameters from a :class:`~msmill.stageparams.StageParameterTable`.
+
+    Parameters
+    ----------
+    table : StageParameterTable
+        Runs at one operating point, ascending rock size.
+    source : str, optional
+        Description used in warnings (e.g. the file name).
+    """
+
+    def __init__(self, table: StageParameterTable, source: str = "stage-parameter table") -> None:
+        self.table = table
+        self.source = source
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages of the table's runs."""
+        return self.table.runs[0].n_stages
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> TableProvider:
+        """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
+        p = Path(path)
+        if not p.exists():
+            raise MsmillInputError("stage_parameters", str(p), "an existing table file")
+        if p.suffix.lower() in (".toml", ".csv"):
+            return cls(read_simple_table(p), source=p.name)
+        return cls(StageParameterTable.from_json(p), source=p.name)
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
+        """Parameters at ``sizes_mm`` (mm), interpolated in log size; see the module docstring."""
+        _check_operating_point(self.table.runs[0].design, stage_speeds_rpm, feed_tph, gate_deg,
+                               self.source)
+        return _interpolate(list(self.table.runs), sizes_mm, self.source)
+
+    def __repr__(self) -> str:
+        s = self.table.sizes_mm
+        return f"TableProvider({self.source}, {len(s)} runs, {s[0]:g}-{s[-1]:g} mm)"
+
+
+class RunProvider:
+    """Stage parameters from the statistics of one DEM run (one rock size).
+
+    Parameters
+    ----------
+    run : RunStatistics
+        The run's statistics.
+    source : str, optional
+        Description used in warnings.
+    """
+
+    def __init__(self, run: RunStatistics, source: str = "DEM run") -> None:
+        self.run = run
+        self.source = source
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages of the run."""
+        return self.run.n_stages
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> RunProvider:
+        """Read a :class:`RunStatistics` JSON file."""
+        p = Path(path)
+        if not p.exists():
+            raise MsmillInputError("stage_parameters", str(p), "an existing run-statistics file")
+        return cls(RunStatistics.from_json(p), source=p.name)
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
+        """The run's parameters at every size (other sizes are clamped, with a warning)."""
+        _check_operating_point(self.run.design, stage_speeds_rpm, feed_tph, gate_deg, self.source)
+        return _interpolate([self.run], sizes_mm, self.source)
+
+    def __repr__(self) -> str:
+        return f"RunProvider({self.source}, {self.run.design.size_mm:g} mm)"
+
+
+def load_provider(path: str | Path) -> TableProvider | RunProvider:
+    """Open a parameter file: a table (JSON / TOML / CSV) or one run's statistics (JSON)."""
+    import json
+
+    p = Path(path)
+    if p.suffix.lower() == ".json" and p.exists():
+        try:
+            kind = json.loads(p.read_text(encoding="utf-8")).get("kind")
+        except (json.JSONDecodeError, AttributeError):
+            kind = None
+        if kind != "stage_parameter_table":
+            return RunProvider.from_file(p)
+    return TableProvider.from_file(p)
+
+
+# ----------------------------------------------------------------- simple format
+class _SimpleRow(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    size_mm: float = Field(gt=0)
+    stage: int = Field(ge=1)
+    kickback: float = Field(ge=0, le=1)
+    refeed: float = Field(ge=0, le=1)
+    pass_through: float = Field(ge=0, le=1)
+    primary_hit_probability: float = Field(ge=0, le=1)
+    primary_velocity_mean_m_s: float
+    primary_velocity_sigma_m_s: float = Field(gt=0)
+    secondary_lambda: float = Field(ge=0)
+    secondary_velocity_mean_m_s: float
+    secondary_velocity_sigma_m_s: float = Field(gt=0)
+
+
+class _SimpleDesign(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    feed_tph: float = Field(gt=0)
+    speed_rpm: float = Field(ge=0)
+    gate_deg: float = Field(ge=0, le=90)
+    stage_speeds_rpm: list[float] = Field(min_length=1)
+
+
+class _SimpleTable(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    characteristic_time_s: float = Field(gt=0)
+    design: _SimpleDesign
+    rows: list[_SimpleRow] = Field(min_length=1)
+    provenance: dict[str, Any] = Field(default_factory=dict)
+
+
+_DESIGN_COLS = ("characteristic_time_s", "feed_tph", "speed_rpm", "gate_deg", "stage_speed_rpm")
+
+
+def read_simple_table(path: str | Path) -> StageParameterTable:
+    """Read the simple stage-parameter table format (TOML or CSV).
+
+    TOML layout::
+
+        characteristic_time_s = 0.06
+        [design]
+        feed_tph = 30.0
+        speed_rpm = 1500.0
+        gate_deg = 40.0
+        stage_speeds_rpm = [1500, 1500, 1500, 1500, 3000]
+        [[rows]]            # one per (size, stage)
+        size_mm = 10.0
+        stage = 1
+        kickback = 0.05
+        refeed = 0.45
+        pass_through = 0.50
+        primary_hit_probability = 0.4
+        primary_velocity_mean_m_s = 25.0
+        primary_velocity_sigma_m_s = 5.0
+        secondary_lambda = 2.0
+        secondary_velocity_mean_m_s = 6.0
+        secondary_velocity_sigma_m_s = 3.0
+
+    CSV layout: one row per (size, stage) with the ``[[rows]]`` columns above
+    plus ``characteristic_time_s, feed_tph, speed_rpm, gate_deg,
+    stage_speed_rpm`` (the design columns must be constant, except
+    ``stage_speed_rpm`` which is the speed of that row's stage). Velocity
+    distributions are single Gaussians in this format. Every size must list
+    every stage 1..n.
+
+    Returns
+    -------
+    StageParameterTable
+        Validated; errors are one line naming the file, row and field.
+    """
+    p = Path(path)
+    if p.suffix.lower() == ".toml":
+        try:
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as exc:
+            raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+    else:
+        with p.open(newline="", encoding="utf-8") as fh:
+            raw = [r for r in csv.DictReader(line for line in fh if not line.lstrip().startswith("#"))]
+        if not raw:
+            raise MsmillInputError(p.name, "no rows", "a CSV table with a header and rows")
+        missing = [c for c in _DESIGN_COLS if c not in raw[0]]
+        if missing:
+            raise MsmillInputError(f"{p.name}.{missing[0]}", None, "a column in the CSV table")
+        first = raw[0]
+        for i, r in enumerate(raw):
+            for c in _DESIGN_COLS[:-1]:
+                if r[c] != first[c]:
+                    raise MsmillInputError(f"{p.name}.rows.{i}.{c}", r[c], f"the same value in every row ({first[c]})")
+        speeds: dict[int, str] = {}
+        for r in raw:
+            speeds.setdefault(int(float(r["stage"])), r["stage_speed_rpm"])
+        data = {
+            "characteristic_time_s": first["characteristic_time_s"],
+            "design": {"feed_tph": first["feed_tph"], "speed_rpm": first["speed_rpm"],
+                       "gate_deg": first["gate_deg"],
+                       "stage_speeds_rpm": [speeds[k] for k in sorted(speeds)]},
+            "rows": [{k: v for k, v in r.items() if k not in _DESIGN_COLS} for r in raw],
+        }
+    try:
+        t = _SimpleTable.model_validate(data)
+    except ValidationError as exc:
+        raise from_validation_error(exc, prefix=p.name) from None
+    by_size: dict[float, list[_SimpleRow]] = {}
+    for r in t.rows:
+        by_size.setdefault(r.size_mm, []).append(r)
+    runs = []
+    for size in sorted(by_size):
+        rows = sorted(by_size[size], key=lambda r: r.stage)
+        stages = [{
+            "stage": r.stage, "kickback": r.kickback, "refeed": r.refeed,
+            "pass_through": r.pass_through,
+            "primary_hit_probability": r.primary_hit_probability,
+            "primary_velocity": {"weights": [1.0], "means_m_s": [r.primary_velocity_mean_m_s],
+                                 "sigmas_m_s": [r.primary_velocity_sigma_m_s]},
+            "secondary_lambda": r.secondary_lambda,
+            "secondary_velocity": {"weights": [1.0], "means_m_s": [r.secondary_velocity_mean_m_s],
+                                   "sigmas_m_s": [r.secondary_velocity_sigma_m_s]},
+        } for r in rows]
+        runs.append({
+            "design": {**t.design.model_dump(), "size_mm": size},
+            "characteristic_time_s": t.characteristic_time_s,
+            "stages": stages,
+        })
+    try:
+        return StageParameterTable.model_validate(
+            {"runs": runs, "provenance": {"source": p.name, **t.provenance}})
+    except ValidationError as exc:
+        raise from_validation_error(exc, prefix=p.name) from None

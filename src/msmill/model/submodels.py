@@ -1,0 +1,427 @@
+"""Swappable sub-models of the mill model: transport, impacts, breakage, damage.
+
+Each step of the paper's workflow (Section 3, Fig. 5) is one small interface
+(a :class:`typing.Protocol`). A sub-model declares the parameters it needs in
+``requires`` and is looked up by name in one table per step
+(:data:`SUBMODELS`); an unknown name raises a one-line
+:class:`~msmill.errors.MsmillInputError` with a "did you mean" suggestion.
+
+Both solvers use the same sub-model objects: the expected-value solver
+evaluates them on arrays over (quadrature node, size class, damage class), the
+Monte-Carlo solver on arrays over parcels. Every method is therefore a
+vectorised function of numpy arrays.
+
+Adding a sub-model: write a class with the protocol's attributes and methods,
+add it to the step's table in :data:`SUBMODELS` (or pass an instance to
+:class:`msmill.model.Mill`). See ARCHITECTURE.md, "Mill model: how to add a
+sub-model".
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from msmill.errors import MsmillInputError
+from msmill import breakage as _bk
+from msmill.model.parameters import MixtureArrays, StageParameters
+from msmill.psd import SizeGrid
+
+KWH_T_PER_J_KG = 1.0 / _bk.J_KG_PER_KWH_T  # 1 kWh/t = 3600 J/kg
+#: Tavares gamma used when the ore gives none (published values ~3-5.4).
+DEFAULT_GAMMA = 4.0
+#: Damage threshold used when the ore gives none (project default, docs/model.md).
+DEFAULT_DAMAGE_THRESHOLD = 0.7
+
+
+def specific_energy_kwh_t(v_m_s: np.ndarray) -> np.ndarray:
+    """Mass-specific impact energy ``E_cs = v**2 / 2`` (J/kg) in kWh/t; ``v`` clipped at 0."""
+    v = np.maximum(np.asarray(v_m_s, dtype=float), 0.0)
+    return 0.5 * v * v * KWH_T_PER_J_KG
+
+
+# --------------------------------------------------------------------- ore data
+@dataclass(frozen=True)
+class BreakageParameters:
+    """Ore breakage parameters used by the breakage and damage sub-models.
+
+    Attributes
+    ----------
+    name : str
+        Ore name.
+    A_pct : float
+        Pulverisability ``A`` (%), paper Eq. 12.
+    b_t_kwh : float
+        Breakability ``b`` (t/kWh), paper Eq. 11.
+    l_ref_mm : float
+        Reference size ``L_ref`` (mm), paper Eq. 11.
+    tn : msmill.breakage.TnConstants or None
+        Constants of ``t_n = k t10**s``; ``None`` uses the packaged default fit.
+    gamma : float
+        Tavares damage exponent (dimensionless).
+    damage_threshold : float
+        Accumulated damage at which a rock breaks (dimensionless, 0-1).
+    notes : tuple of str
+        Defaults in use (reported with the results).
+    """
+
+    name: str
+    A_pct: float
+    b_t_kwh: float
+    l_ref_mm: float
+    tn: Any = None
+    gamma: float = DEFAULT_GAMMA
+    damage_threshold: float = DEFAULT_DAMAGE_THRESHOLD
+    notes: tuple[str, ...] = ()
+    ore: Any = None
+
+    @classmethod
+    def from_ore(cls, ore: Any) -> BreakageParameters:
+        """Adapt an ``msmill.ore.Ore`` (or any object with the same attributes)."""
+        def pick(*names: str, default: Any = None) -> Any:
+            for n in names:
+                if hasattr(ore, n) and getattr(ore, n) is not None:
+                    return getattr(ore, n)
+            return default
+
+        tn = pick("tn", "tn_constants", default=None)
+        if tn is not None and not isinstance(tn, _bk.TnConstants):
+            tn = _bk.TnConstants.from_mapping(tn)
+        notes = []
+        if pick("l_ref_is_default", default=False):
+            notes.append(f"L_ref of {pick('name', default='ore')} is the default reference size")
+        return cls(
+            name=str(pick("name", default="ore")),
+            A_pct=float(pick("A_pct", "A", "a_pct")),
+            b_t_kwh=float(pick("b_t_kwh", "b", "b_t_per_kwh")),
+            l_ref_mm=float(pick("l_ref_mm", "L_ref_mm")),
+            tn=tn,
+            gamma=float(pick("gamma", "damage_gamma", default=DEFAULT_GAMMA)),
+            damage_threshold=float(pick("damage_threshold", "d_threshold", default=DEFAULT_DAMAGE_THRESHOLD)),
+            notes=tuple(notes),
+            ore=ore,
+        )
+
+
+# ------------------------------------------------------------------ interfaces
+@runtime_checkable
+class TransportModel(Protocol):
+    """Step (a): where the rock mass in a stage goes in one characteristic time."""
+
+    name: str
+    requires: tuple[str, ...]
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        """``[kickback, refeed, pass_through]`` per (stage, size class): shape (S, N, 3), rows sum 1."""
+        ...
+
+
+@dataclass(frozen=True)
+class ImpactStatistics:
+    """What the impact sub-model hands to the solvers (all arrays (S, N) or mixtures).
+
+    Attributes
+    ----------
+    hit_probability : ndarray (S, N)
+        Probability that an impacted-eligible rock gets one primary impact per step.
+    primary_velocity : MixtureArrays
+        Primary impact velocity (m/s), clipped at 0 when used.
+    secondary_lambda : ndarray (S, N)
+        Poisson mean of secondary impacts after a non-breaking primary impact.
+    secondary_velocity : MixtureArrays
+        Secondary impact velocity (m/s), clipped at 0 when used.
+    """
+
+    hit_probability: np.ndarray
+    primary_velocity: MixtureArrays
+    secondary_lambda: np.ndarray
+    secondary_velocity: MixtureArrays
+
+
+@runtime_checkable
+class ImpactModel(Protocol):
+    """Step (b): how often and how hard the rocks that stay in a stage are hit."""
+
+    name: str
+    requires: tuple[str, ...]
+
+    def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+        """Impact statistics at the given stage speeds (rpm)."""
+        ...
+
+
+@runtime_checkable
+class BreakageModel(Protocol):
+    """Steps (c)-(d): breakage probability of one impact and the fragments it makes."""
+
+    name: str
+    requires: tuple[str, ...]
+
+    def probability(self, ecs_kwh_t: np.ndarray, size_mm: np.ndarray, damage: np.ndarray) -> np.ndarray:
+        """Probability that one impact of specific energy ``ecs_kwh_t`` breaks the rock."""
+        ...
+
+    def fragments(self, edges_mm: np.ndarray, parent: np.ndarray, pb: np.ndarray) -> np.ndarray:
+        """Mass fractions per class (last axis) of the fragments of parents in class ``parent``."""
+        ...
+
+
+@runtime_checkable
+class DamageModel(Protocol):
+    """Step (c): damage accumulated by a rock that survives an impact."""
+
+    name: str
+    requires: tuple[str, ...]
+    threshold: float
+
+    def after_impact(self, ecs_kwh_t: np.ndarray, size_mm: np.ndarray, damage: np.ndarray) -> np.ndarray:
+        """Accumulated damage after surviving an impact (>= ``damage``); >= threshold breaks."""
+        ...
+
+
+# -------------------------------------------------------------- implementations
+class RegionWeightedTransport:
+    """DEM streams; when region data exist, the solid-fraction-weighted average over regions.
+
+    Paper Section 3.1.2: the stage's stream fractions are
+    ``sum_r w_r * streams_r`` with ``w_r`` the solid-fraction weights of the 6
+    horizontal regions. Without region data the bulk streams are used.
+    """
+
+    name = "regions"
+    requires = ("streams", "region_weights", "region_streams")
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        if params.region_weights is None or params.region_streams is None:
+            return params.streams
+        s = np.einsum("snr,snrk->snk", params.region_weights, params.region_streams)
+        return s / s.sum(axis=-1, keepdims=True)
+
+    def __repr__(self) -> str:
+        return "RegionWeightedTransport()"
+
+
+class BulkTransport:
+    """DEM bulk streams per stage (ignores any region data)."""
+
+    name = "bulk"
+    requires = ("streams",)
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        return params.streams
+
+    def __repr__(self) -> str:
+        return "BulkTransport()"
+
+
+class DemImpacts:
+    """Impact statistics exactly as measured by the DEM (no speed correction)."""
+
+    name = "dem"
+    requires = ("hit_probability", "primary_velocity", "secondary_lambda", "secondary_velocity")
+
+    def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+        return ImpactStatistics(params.hit_probability, params.primary_velocity,
+                                params.secondary_lambda, params.secondary_velocity)
+
+    def __repr__(self) -> str:
+        return "DemImpacts()"
+
+
+class SpeedScaledImpacts:
+    """DEM impact statistics with velocities scaled by the stage speed ratio.
+
+    Primary (flinger) and secondary velocities are multiplied by
+    ``speed / design_speed`` of their stage (flinger tip speed is proportional
+    to shaft speed); hit probabilities, Poisson means and the transport are
+    used as measured. A first-order correction for running off the design
+    point; the provider still warns that the statistics were measured elsewhere.
+    """
+
+    name = "speed_scaled"
+    requires = ("hit_probability", "primary_velocity", "secondary_lambda", "secondary_velocity",
+                "design_stage_speeds_rpm")
+
+    def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+        design = params.design_stage_speeds_rpm
+        speeds = np.asarray(stage_speeds_rpm, dtype=float) if stage_speeds_rpm is not None else design
+        ratio = np.where(design > 0, speeds / np.where(design > 0, design, 1.0), 1.0)
+        f = ratio[:, None, None]
+        return ImpactStatistics(params.hit_probability, params.primary_velocity.scaled(f),
+                                params.secondary_lambda, params.secondary_velocity.scaled(f))
+
+    def __repr__(self) -> str:
+        return "SpeedScaledImpacts()"
+
+
+class NoSecondaryImpacts(SpeedScaledImpacts):
+    """As ``speed_scaled`` but without secondary impacts (lambda = 0)."""
+
+    name = "primary_only"
+
+    def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+        s = super().impacts(params, stage_speeds_rpm)
+        return ImpactStatistics(s.hit_probability, s.primary_velocity,
+                                np.zeros_like(s.secondary_lambda), s.secondary_velocity)
+
+    def __repr__(self) -> str:
+        return "NoSecondaryImpacts()"
+
+
+class AbT10Breakage:
+    """Size-dependent Ab-t10 breakage (paper Eqs. 11-12) with damage.
+
+    ``P_b = 1 - exp(-b E_cs L / (L_ref (1 - D)))``; a broken rock's fragments
+    follow the t10-tn appearance function with ``t10 = A P_b``.
+
+    Parameters
+    ----------
+    ore : BreakageParameters
+        ``A_pct``, ``b_t_kwh``, ``l_ref_mm`` and the t10-tn constants ``tn``.
+    """
+
+    name = "ab_t10"
+    requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")
+
+    #: Breakage probabilities at which appearance columns are tabulated (``(k / 256)**2``).
+    TABLE_NODES = 257
+
+    def __init__(self, ore: BreakageParameters) -> None:
+        self.ore = ore
+        self._tables: dict[bytes, np.ndarray] = {}
+
+    def appearance_table(self, edges_mm: np.ndarray) -> np.ndarray:
+        """Appearance columns tabulated at ``pb_k = (k / 256)**2``: shape (257, N, N), cached per grid."""
+        edges = np.asarray(edges_mm, dtype=float)
+        key = edges.tobytes()
+        tab = self._tables.get(key)
+        if tab is None:
+            u = np.linspace(0.0, 1.0, self.TABLE_NODES) ** 2
+            t10 = self.ore.A_pct * u[:, None]  # (nodes, 1): one t10 for every parent
+            B = _bk.appearance_matrix(SizeGrid(edges), t10, self.ore.tn)  # (nodes, i, j)
+            tab = np.ascontiguousarray(np.swapaxes(B, -1, -2))  # (nodes, parent j, class i)
+            self._tables[key] = tab
+        return tab
+
+    def probability(self, ecs_kwh_t, size_mm, damage):
+        return np.asarray(_bk.breakage_probability(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
+                                                   self.ore.l_ref_mm, damage))
+
+    def fragments(self, edges_mm, parent, pb):
+        """Appearance columns at ``t10 = A pb``, linear in ``pb`` between tabulated nodes.
+
+        A convex combination of two valid columns, so mass is conserved exactly and
+        nothing lands above the parent class.
+        """
+        tab = self.appearance_table(edges_mm)
+        pos = np.sqrt(np.clip(np.asarray(pb, dtype=float), 0.0, 1.0)) * (self.TABLE_NODES - 1)
+        j = np.minimum(pos.astype(int), self.TABLE_NODES - 2)
+        frac = (pos - j)[..., None]
+        parent = np.broadcast_to(np.asarray(parent, dtype=int), pos.shape)
+        return (1.0 - frac) * tab[j, parent] + frac * tab[j + 1, parent]
+
+    def __repr__(self) -> str:
+        o = self.ore
+        return f"AbT10Breakage({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)"
+
+
+class TavaresDamage:
+    """Tavares damage of surviving rocks, consistent with Eq. 11 (domain notes Sec. 4).
+
+    Eq. 11 is the breakage probability of rocks whose fracture energies are
+    exponential with mean ``E_f = L_ref (1 - D) / (b L)`` (kWh/t). A rock that
+    survives an impact of energy ``E`` has, by the memoryless property,
+    expected fracture energy ``E + E_f``; its damage increment solves
+    Tavares' equation at the energy ratio ``r = E / (E + E_f)`` and the
+    accumulated damage combines as ``1 - D' = (1 - D)(1 - dD)``. A rock whose
+    damage reaches ``threshold`` breaks.
+
+    Parameters
+    ----------
+    ore : BreakageParameters
+        ``b_t_kwh``, ``l_ref_mm``, ``gamma`` and ``damage_threshold``.
+    """
+
+    name = "tavares"
+    requires = ("b_t_kwh", "l_ref_mm", "gamma", "damage_threshold")
+
+    def __init__(self, ore: BreakageParameters) -> None:
+        self.ore = ore
+        self.threshold = float(ore.damage_threshold)
+        # damage increment tabulated against the energy ratio (smooth, monotone)
+        r = np.linspace(0.0, 1.0, 4097)
+        r[-1] = np.nextafter(1.0, 0.0)
+        self._r = r
+        self._dd = np.asarray(_bk.damage_increment(r, ore.gamma))
+
+    def after_impact(self, ecs_kwh_t, size_mm, damage):
+        d = np.asarray(damage, dtype=float)
+        r = np.asarray(_bk.survivor_energy_ratio(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
+                                                 self.ore.l_ref_mm, d))
+        dd = np.interp(r, self._r, self._dd)  # tabulated damage_increment(r, gamma)
+        return np.minimum(1.0 - (1.0 - d) * (1.0 - dd), np.nextafter(1.0, 0.0))
+
+    def __repr__(self) -> str:
+        return f"TavaresDamage(gamma={self.ore.gamma:g}, threshold={self.threshold:g})"
+
+
+class NoDamage:
+    """Rocks that survive an impact are as strong as before (independent impacts)."""
+
+    name = "none"
+    requires: tuple[str, ...] = ()
+
+    def __init__(self, ore: BreakageParameters | None = None) -> None:
+        self.threshold = 1.0
+
+    def after_impact(self, ecs_kwh_t, size_mm, damage):
+        return np.broadcast_to(np.asarray(damage, dtype=float),
+                               np.broadcast(ecs_kwh_t, size_mm, damage).shape).copy()
+
+    def __repr__(self) -> str:
+        return "NoDamage()"
+
+
+# ------------------------------------------------------------------- registry
+#: One lookup table per step: name -> factory. Factories of breakage and damage
+#: models take the :class:`BreakageParameters`; the others take nothing.
+SUBMODELS: dict[str, dict[str, Any]] = {
+    "transport": {"regions": RegionWeightedTransport, "bulk": BulkTransport},
+    "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
+                "primary_only": NoSecondaryImpacts},
+    "breakage": {"ab_t10": AbT10Breakage},
+    "damage": {"tavares": TavaresDamage, "none": NoDamage},
+}
+DEFAULTS: dict[str, str] = {"transport": "regions", "impacts": "speed_scaled",
+                            "breakage": "ab_t10", "damage": "tavares"}
+_NEEDS_ORE = ("breakage", "damage")
+_PROTOCOLS = {"transport": TransportModel, "impacts": ImpactModel,
+              "breakage": BreakageModel, "damage": DamageModel}
+
+
+def did_you_mean(value: str, choices: list[str]) -> str:
+    """``"one of a, b (did you mean 'a'?)"`` for error messages."""
+    close = difflib.get_close_matches(str(value), choices, n=1, cutoff=0.4)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return "one of " + ", ".join(repr(c) for c in choices) + hint
+
+
+def resolve(step: str, spec: Any, ore: BreakageParameters | None) -> Any:
+    """Turn a name, an instance or ``None`` (the default) into a sub-model of ``step``."""
+    if step not in SUBMODELS:
+        raise MsmillInputError("model step", step, did_you_mean(step, list(SUBMODELS)))
+    if spec is None:
+        spec = DEFAULTS[step]
+    if isinstance(spec, str):
+        table = SUBMODELS[step]
+        if spec not in table:
+            raise MsmillInputError(f"model.{step}", spec, did_you_mean(spec, list(table)))
+        factory = table[spec]
+        return factory(ore) if step in _NEEDS_ORE else factory()
+    if not isinstance(spec, _PROTOCOLS[step]):
+        raise MsmillInputError(f"model.{step}", type(spec).__name__,
+                               f"a name or an object implementing {_PROTOCOLS[step].__name__}")
+    return spec
