@@ -26,7 +26,9 @@ app = typer.Typer(
 )
 
 # (module under msmill.cli, attribute holding a typer.Typer or a command function, name)
-SUBCOMMANDS: list[tuple[str, str, str]] = []
+SUBCOMMANDS: list[tuple[str, str, str]] = [
+    ("dem", "app", "dem"),
+]
 
 
 def _version_callback(value: bool) -> None:

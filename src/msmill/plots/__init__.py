@@ -1,0 +1,1 @@
+"""Matplotlib plots of msmill results (edges layer: no physics)."""
