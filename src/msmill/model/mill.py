@@ -1,0 +1,369 @@
+"""The :class:`Mill`: a chain of named, swappable sub-models and a solver.
+
+Modelled on pvlib's ``ModelChain``: every step (transport, impacts, breakage,
+damage) is chosen by name from one lookup table per step or given as an
+object implementing the step's protocol; anything left out gets the default.
+``repr(mill)`` lists the chosen models. :func:`simulate` is the one-call
+convenience wrapper.
+
+Example
+-------
+>>> mill = Mill("UG2", "table.json", damage="none")          # doctest: +SKIP
+>>> res = mill.run(feed_psd, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
+>>> res.p80_mm, res.timeseries                                 # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.errors import MsmillInputError
+from msmill.model import submodels as sm
+from msmill.model.expected_value import LinearMill, assemble
+from msmill.model.montecarlo import MonteCarloSolver
+from msmill.model.providers import StageParameterProvider, load_provider
+from msmill.model.result import MillResult, time_to_steady_state
+from msmill.psd import PSD, SizeGrid
+
+SOLVERS = ("expected_value", "monte_carlo")
+IMPACTED = ("refeed", "all")
+DEFAULT_PASSING_SIZES_MM = (0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0)
+DEFAULT_MIN_SIZE_MM = 0.038
+J_PER_KWH = 3.6e6
+#: Trailing moving-average window (steps) of the Monte-Carlo product rate for the
+#: time to steady state.
+MC_SMOOTHING_STEPS = 25
+
+
+def breakage_parameters(ore: Any) -> sm.BreakageParameters:
+    """Ore name (looked up with ``msmill.ore.get_ore``), ``Ore`` object or :class:`BreakageParameters`."""
+    if isinstance(ore, sm.BreakageParameters):
+        return ore
+    if isinstance(ore, str):
+        from msmill.ore import get_ore  # core layer; imported lazily
+
+        ore = get_ore(ore)
+    return sm.BreakageParameters.from_ore(ore)
+
+
+def _operating_point(op: Any, feed_tph: float | None = None) -> Any:
+    from msmill.machine import OperatingPoint
+
+    if op is None:
+        raise MsmillInputError("operating_point", None, "an OperatingPoint or a dict of its fields")
+    if isinstance(op, dict):
+        op = OperatingPoint.model_validate({**op, **({"feed_tph": feed_tph} if feed_tph else {})})
+    return op
+
+
+class Mill:
+    """A multi-shaft impact mill model: sub-models, stage parameters and a solver.
+
+    Parameters
+    ----------
+    ore : str or Ore or BreakageParameters
+        Rock to break (name looked up in the ore registry, or parameters).
+    stage_parameters : StageParameterProvider or path
+        DEM-derived per-stage statistics (a table or one run's statistics file).
+    machine : msmill.machine.Machine, optional
+        Mill geometry; only its ``n_stages`` is used (checked against the provider).
+    transport, impacts, breakage, damage : str or object, optional
+        Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
+        implementing the step's protocol. Defaults: ``regions``,
+        ``speed_scaled``, ``ab_t10``, ``tavares``.
+    solver : {"expected_value", "monte_carlo"}
+        How to solve (default expected value).
+    impacted : {"refeed", "all"}
+        Which mass is impacted in a step: the rocks that stay (paper step 5b,
+        default) or all rocks in the stage before transport (docs/model.md).
+    grid : msmill.psd.SizeGrid, optional
+        Model size classes; default the sqrt(2) series from 0.038 mm up to the
+        feed's top size.
+    damage_classes : int
+        Number of damage classes of the expected-value solver (default 8).
+    quadrature_nodes : int
+        Gauss-Hermite nodes per mixture component (default 12).
+    parcels_per_step : int
+        Monte-Carlo fresh parcels per step (default 2000).
+    mc_steps : int, optional
+        Monte-Carlo steps (default: twice the expected-value time to steady
+        state plus 200 collection steps).
+    seed : int, optional
+        Monte-Carlo seed.
+    passing_sizes_mm : sequence of float
+        Sizes at which the result reports % passing.
+    """
+
+    def __init__(self, ore: Any, stage_parameters: Any, machine: Any = None, *,
+                 transport: Any = None, impacts: Any = None, breakage: Any = None,
+                 damage: Any = None, solver: str = "expected_value", impacted: str = "refeed",
+                 grid: SizeGrid | None = None, damage_classes: int = 8, quadrature_nodes: int = 12,
+                 parcels_per_step: int = 2000, mc_steps: int | None = None, seed: int | None = None,
+                 passing_sizes_mm=DEFAULT_PASSING_SIZES_MM) -> None:
+        self.ore = breakage_parameters(ore)
+        if isinstance(stage_parameters, str | Path):
+            stage_parameters = load_provider(stage_parameters)
+        if not isinstance(stage_parameters, StageParameterProvider):
+            raise MsmillInputError("stage_parameters", type(stage_parameters).__name__,
+                                   "a provider (TableProvider, RunProvider, ...) or a file path")
+        self.provider = stage_parameters
+        self.machine = machine
+        if machine is not None and getattr(machine, "n_stages", self.provider.n_stages) != self.provider.n_stages:
+            raise MsmillInputError("machine.n_stages", machine.n_stages,
+                                   f"{self.provider.n_stages} (the stages of the stage parameters)")
+        self.transport = sm.resolve("transport", transport, self.ore)
+        self.impacts = sm.resolve("impacts", impacts, self.ore)
+        self.breakage = sm.resolve("breakage", breakage, self.ore)
+        self.damage = sm.resolve("damage", damage, self.ore)
+        if solver not in SOLVERS:
+            raise MsmillInputError("solver", solver, sm.did_you_mean(solver, list(SOLVERS)))
+        if impacted not in IMPACTED:
+            raise MsmillInputError("impacted", impacted, sm.did_you_mean(impacted, list(IMPACTED)))
+        for name, v, lo in (("damage_classes", damage_classes, 1), ("quadrature_nodes", quadrature_nodes, 1),
+                            ("parcels_per_step", parcels_per_step, 1)):
+            if not isinstance(v, int | np.integer) or v < lo:
+                raise MsmillInputError(name, v, f"an integer >= {lo}")
+        self.solver = solver
+        self.impacted = impacted
+        self.grid = grid
+        self.damage_classes = int(damage_classes)
+        self.quadrature_nodes = int(quadrature_nodes)
+        self.parcels_per_step = int(parcels_per_step)
+        self.mc_steps = mc_steps
+        self.seed = seed
+        self.passing_sizes_mm = tuple(float(s) for s in passing_sizes_mm)
+        self._cache: dict[tuple, tuple] = {}
+
+    # ------------------------------------------------------------------ display
+    def __repr__(self) -> str:
+        o = self.ore
+        lines = [
+            "Mill(",
+            f"  ore: {o.name} (A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)",
+            f"  stage_parameters: {self.provider!r}",
+            f"  transport: {self.transport!r}",
+            f"  impacts: {self.impacts!r}",
+            f"  breakage: {self.breakage!r}",
+            f"  damage: {self.damage!r}",
+            f"  solver: {self.solver} (impacted={self.impacted!r}, damage_classes={self.damage_classes}, "
+            f"quadrature_nodes={self.quadrature_nodes})",
+            ")",
+        ]
+        return "\n".join(lines)
+
+    def submodel_names(self) -> dict[str, str]:
+        """The sub-model chosen for each step, by name (or class name)."""
+        return {step: getattr(getattr(self, step), "name", type(getattr(self, step)).__name__)
+                for step in ("transport", "impacts", "breakage", "damage")}
+
+    # ------------------------------------------------------------------ building
+    def model_grid(self, feed: PSD) -> SizeGrid:
+        """The size grid used for ``feed`` (the user's grid or the default sqrt(2) series)."""
+        if self.grid is not None:
+            return self.grid
+        top = float(feed.grid.edges_mm[-1])
+        return SizeGrid.geometric(DEFAULT_MIN_SIZE_MM, max(top, 2 * DEFAULT_MIN_SIZE_MM))
+
+    def prepare(self, grid: SizeGrid, op: Any) -> tuple:
+        """Stage parameters, streams, impact statistics and the linear system (cached).
+
+        The cache key is the grid and the operating point, so repeated runs at
+        one point (e.g. several feeds) reuse the operators; warnings raised while
+        building are re-issued on every call.
+        """
+        speeds = op.stage_speeds(self.provider.n_stages)
+        key = (grid.edges_mm.tobytes(), tuple(speeds), float(op.feed_tph), float(op.gate_deg))
+        hit = self._cache.get(key)
+        if hit is None:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
+                streams = np.asarray(self.transport.streams(params), dtype=float)
+                stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+                lm = None
+                if self.solver == "expected_value" or self.mc_steps is None:
+                    lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage,
+                                  self.damage_classes, self.quadrature_nodes, self.impacted)
+            hit = (params, streams, stats, lm, [(w.message, w.category) for w in caught])
+            if len(self._cache) > 8:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = hit
+        for message, category in hit[4]:
+            warnings.warn(message, category, stacklevel=3)
+        return hit
+
+    # ------------------------------------------------------------------ running
+    def run(self, feed: PSD, operating_point: Any, *, timeseries: bool = True,
+            max_steps: int = 20000) -> MillResult:
+        """Predict the mill's response to ``feed`` at ``operating_point``.
+
+        Parameters
+        ----------
+        feed : msmill.psd.PSD
+            Feed size distribution (any grid; rebinned to the model grid).
+        operating_point : msmill.machine.OperatingPoint or dict
+            Feed rate (t/h), shaft speeds (rpm) and gate angle (deg).
+        timeseries : bool
+            March in time from an empty mill (Fig. 14 series, time to steady
+            state). The expected-value steady state itself always comes from the
+            direct solve.
+        max_steps : int
+            Cap on the number of time steps marched.
+        """
+        if not isinstance(feed, PSD):
+            raise MsmillInputError("feed", type(feed).__name__, "a msmill.psd.PSD")
+        op = _operating_point(operating_point)
+        grid = self.model_grid(feed)
+        feed_m = feed.rebin(grid) if feed.grid != grid else feed
+        params, streams, stats, lm, caught = self.prepare(grid, op)
+        dt = params.characteristic_time_s
+        tonnes_per_step = op.feed_tph * dt / 3600.0
+        notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        notes += [str(m) for m, _ in caught]
+        if self.solver == "expected_value":
+            return self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
+        return self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+
+    def _march(self, lm: LinearMill, f: np.ndarray, max_steps: int) -> tuple[np.ndarray, ...]:
+        x = np.zeros(lm.n_state)
+        fs = f.sum()
+        prod, held, err = [], [], []
+        cum_fed = cum_out = 0.0
+        min_steps = 5 * (lm.n_stages + 1)
+        for t in range(max_steps):
+            out = float((lm.O @ x).sum())
+            x = lm.M @ x + f
+            cum_fed += fs
+            cum_out += out
+            h = float(x.sum())
+            prod.append(out)
+            held.append(h)
+            err.append(abs(cum_fed - h - cum_out) / cum_fed)
+            if t >= min_steps and abs(out / fs - 1.0) < 1e-5:
+                break
+        return np.array(prod), np.array(held), np.array(err), x
+
+    def _run_ev(self, feed, op, grid, lm, dt, tps, timeseries, max_steps, notes) -> MillResult:
+        f = lm.feed_vector(feed.fractions, tps)
+        x = lm.steady_state(f)
+        if timeseries:
+            prod, held, err, _ = self._march(lm, f, max_steps)
+        else:
+            prod = held = err = np.zeros(0)
+        product = np.asarray(lm.O @ x)
+        ss_err = abs(product.sum() - tps) / tps
+        n, nd, n_st = lm.n_sizes, lm.n_damage, lm.n_stages
+        ns = n * nd
+        xs = x.reshape(n_st + 1, n, nd)
+        stage_mass = xs[1:].sum(axis=2)  # (S, N)
+        y = (lm.impacted @ x).reshape(n_st + 1, ns)[1:]
+        per = {
+            "primary_t": np.array([lm.stages[s].primary_count @ y[s] for s in range(n_st)]),
+            "primary_kwh": np.array([lm.stages[s].primary_energy_kwh_t @ y[s] for s in range(n_st)]),
+            "secondary_t": np.array([lm.stages[s].secondary_count @ y[s] for s in range(n_st)]),
+            "secondary_kwh": np.array([lm.stages[s].secondary_energy_kwh_t @ y[s] for s in range(n_st)]),
+        }
+        return self._result(feed, op, grid, product / product.sum(), stage_mass, float(xs[0].sum()),
+                            per, tps, dt, prod, held, max(float(err.max(initial=0.0)), ss_err), notes)
+
+    def _run_mc(self, feed, op, grid, streams, stats, lm, dt, tps, max_steps, notes) -> MillResult:
+        if self.mc_steps is not None:
+            n_steps = int(self.mc_steps)
+            warm = n_steps // 3
+        else:
+            f = lm.feed_vector(feed.fractions, tps)
+            prod, _, _, _ = self._march(lm, f, max_steps)
+            t_ss = time_to_steady_state(np.arange(1, prod.size + 1), prod / tps, 1.0, tol=0.001)
+            warm = int(2 * (t_ss if np.isfinite(t_ss) else prod.size)) + 10
+            n_steps = warm + 200
+        solver = MonteCarloSolver(self.parcels_per_step, self.seed)
+        run = solver.run(grid.edges_mm, streams, stats, self.breakage, self.damage, feed.fractions,
+                         tps, n_steps, warm, self.impacted)
+        coll = run.product[warm:].sum(axis=0)
+        per = {k: v / (n_steps - warm) for k, v in run.counts.items()}  # per step
+        notes = [*notes, f"Monte Carlo: {self.parcels_per_step} parcels/step, {n_steps} steps, "
+                 f"statistics over the last {n_steps - warm}, seed {self.seed}"]
+        return self._result(feed, op, grid, coll / coll.sum(), run.stage_mass, float("nan"), per, tps,
+                            dt, run.product.sum(axis=1), run.holdup,
+                            float(run.mass_balance_error.max()), notes, solver="monte_carlo")
+
+    def _result(self, feed, op, grid, product_frac, stage_mass, inlet_t, per, tps, dt, prod, held,
+                mb_err, notes, solver="expected_value") -> MillResult:
+        product = PSD(grid, np.clip(product_frac, 0.0, None) / np.clip(product_frac, 0.0, None).sum(),
+                      validate=False)
+        table = pd.DataFrame({
+            "lower_mm": grid.lower_mm, "upper_mm": grid.upper_mm, "mid_mm": grid.mids_mm,
+            "feed_mass_fraction": feed.fractions, "product_mass_fraction": product.fractions,
+            "feed_passing_pct": feed.passing_pct, "product_passing_pct": product.passing_pct,
+        })
+        sizes = np.array(self.passing_sizes_mm)
+        passing = pd.Series(np.atleast_1d(product.passing_at(sizes)), index=pd.Index(sizes, name="size_mm"),
+                            name="product_passing_pct")
+        t = (np.arange(prod.size) + 1) * dt
+        ts = pd.DataFrame({"time_s": t, "feed_tph": np.full(prod.size, op.feed_tph),
+                           "holdup_t": held, "product_tph": prod / dt * 3600.0})
+        rate = ts["product_tph"].to_numpy()
+        if solver == "monte_carlo" and rate.size >= MC_SMOOTHING_STEPS:
+            # parcel noise: judge steady state on a trailing moving average
+            k = MC_SMOOTHING_STEPS
+            c = np.cumsum(np.concatenate([[0.0], rate]))
+            rate = np.concatenate([np.full(k - 1, np.nan), (c[k:] - c[:-k]) / k])
+            rate = np.where(np.isnan(rate), 0.0, rate)
+        t_ss = time_to_steady_state(t, rate, op.feed_tph) if prod.size else float("nan")
+        n_st = stage_mass.shape[0]
+        hold = stage_mass.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            stage_frac = stage_mass / hold[:, None]
+        p80 = []
+        for s in range(n_st):
+            p80.append(PSD(grid, stage_frac[s], validate=False).p80_mm if hold[s] > 0 else float("nan"))
+        stages = pd.DataFrame({
+            "stage": np.arange(1, n_st + 1),
+            "holdup_t": hold,
+            "p80_mm": p80,
+            "primary_impacts_per_t": per["primary_t"] / tps,
+            "secondary_impacts_per_t": per["secondary_t"] / tps,
+            "impact_energy_kwh_t": (per["primary_kwh"] + per["secondary_kwh"]) / tps,
+            "flinger_energy_j_per_t": per["primary_kwh"] / tps * J_PER_KWH,
+        })
+        stage_psd = pd.DataFrame(stage_frac.T, index=pd.Index(grid.upper_mm, name="upper_mm"),
+                                 columns=[f"stage_{s + 1}" for s in range(n_st)])
+        f80 = feed.p80_mm
+        return MillResult(
+            feed_psd=feed, product_psd=product, psd_table=table,
+            p50_mm=product.p50_mm, p80_mm=product.p80_mm, f80_mm=f80,
+            reduction_ratio=f80 / product.p80_mm, passing_pct=passing, timeseries=ts,
+            time_to_steady_state_s=t_ss, stages=stages, stage_psd=stage_psd,
+            primary_impacts_per_t=float(stages["primary_impacts_per_t"].sum()),
+            secondary_impacts_per_t=float(stages["secondary_impacts_per_t"].sum()),
+            specific_impact_energy_kwh_t=float(stages["impact_energy_kwh_t"].sum()),
+            mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
+            solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
+        )
+
+
+def simulate(ore: Any, feed: PSD, operating_point: Any, stage_parameters: Any, machine: Any = None,
+             **options: Any) -> MillResult:
+    """One-call prediction: ``Mill(ore, stage_parameters, machine, **options).run(feed, operating_point)``.
+
+    Parameters
+    ----------
+    ore : str or Ore or BreakageParameters
+        Rock to break.
+    feed : msmill.psd.PSD
+        Feed size distribution.
+    operating_point : msmill.machine.OperatingPoint or dict
+        ``feed_tph``, ``speed_rpm`` or ``stage_speeds_rpm``, ``gate_deg``.
+    stage_parameters : provider or path
+        Per-stage DEM statistics.
+    machine : msmill.machine.Machine, optional
+        Mill geometry (stage count checked).
+    **options
+        Sub-model choices and solver options of :class:`Mill`.
+    """
+    return Mill(ore, stage_parameters, machine, **options).run(feed, operating_point)

@@ -1,0 +1,110 @@
+"""The result of a mill-model prediction: one frozen dataclass with pandas objects."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from msmill.psd import PSD
+
+
+@dataclass(frozen=True)
+class MillResult:
+    """Prediction of one mill at one operating point (units in every name).
+
+    Attributes
+    ----------
+    feed_psd, product_psd : msmill.psd.PSD
+        Feed and steady-state product PSDs on the model grid.
+    psd_table : pandas.DataFrame
+        Per size class: ``lower_mm, upper_mm, mid_mm, feed_mass_fraction,
+        product_mass_fraction, feed_passing_pct, product_passing_pct`` (passing
+        at ``upper_mm``).
+    p50_mm, p80_mm, f80_mm : float
+        Product P50, product P80 and feed F80 (mm).
+    reduction_ratio : float
+        ``F80 / P80``.
+    passing_pct : pandas.Series
+        Product % passing at the chosen sizes (index ``size_mm``).
+    timeseries : pandas.DataFrame
+        ``time_s, feed_tph, holdup_t, product_tph`` from an empty mill (paper
+        Fig. 14); ``holdup_t`` includes the inlet zone.
+    time_to_steady_state_s : float
+        First time after which the product rate stays within 1 % of the feed rate.
+    stages : pandas.DataFrame
+        Per stage at steady state: ``stage, holdup_t, p80_mm,
+        primary_impacts_per_t, secondary_impacts_per_t,
+        impact_energy_kwh_t, flinger_energy_j_per_t`` (per tonne of feed).
+    stage_psd : pandas.DataFrame
+        Mass fraction per size class (rows, index ``upper_mm``) of each stage's
+        hold-up (columns ``stage_1 ...``).
+    primary_impacts_per_t, secondary_impacts_per_t : float
+        Impacted tonnes per tonne of feed, i.e. the mean number of primary /
+        secondary impacts a unit mass of feed receives on its way through.
+    specific_impact_energy_kwh_t : float
+        Impact energy delivered to the rock per tonne of feed (kWh/t).
+    mass_balance_error : float
+        Largest relative mass-balance error over all steps (and of the steady state).
+    feed_tph : float
+        Feed rate (t/h).
+    characteristic_time_s : float
+        Model time step (s).
+    solver : str
+        ``"expected_value"`` or ``"monte_carlo"``.
+    submodels : dict
+        The sub-models used, by step.
+    notes : tuple of str
+        Defaults in use, providers' sources, other remarks.
+    """
+
+    feed_psd: PSD
+    product_psd: PSD
+    psd_table: pd.DataFrame
+    p50_mm: float
+    p80_mm: float
+    f80_mm: float
+    reduction_ratio: float
+    passing_pct: pd.Series
+    timeseries: pd.DataFrame
+    time_to_steady_state_s: float
+    stages: pd.DataFrame
+    stage_psd: pd.DataFrame
+    primary_impacts_per_t: float
+    secondary_impacts_per_t: float
+    specific_impact_energy_kwh_t: float
+    mass_balance_error: float
+    feed_tph: float
+    characteristic_time_s: float
+    solver: str
+    submodels: dict[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    def summary(self) -> pd.Series:
+        """Headline figures as a Series (index names carry the units)."""
+        return pd.Series({
+            "feed_tph": self.feed_tph,
+            "f80_mm": self.f80_mm,
+            "p80_mm": self.p80_mm,
+            "p50_mm": self.p50_mm,
+            "reduction_ratio": self.reduction_ratio,
+            "time_to_steady_state_s": self.time_to_steady_state_s,
+            "holdup_t": float(self.stages["holdup_t"].sum()),
+            "primary_impacts_per_t": self.primary_impacts_per_t,
+            "secondary_impacts_per_t": self.secondary_impacts_per_t,
+            "specific_impact_energy_kwh_t": self.specific_impact_energy_kwh_t,
+            "mass_balance_error": self.mass_balance_error,
+        })
+
+
+def time_to_steady_state(time_s: np.ndarray, product_tph: np.ndarray, feed_tph: float,
+                         tol: float = 0.01) -> float:
+    """First time after which ``|product - feed| <= tol * feed`` holds for all later times (s)."""
+    bad = np.abs(np.asarray(product_tph) - feed_tph) > tol * feed_tph
+    if not bad.any():
+        return float(time_s[0])
+    last = int(np.flatnonzero(bad)[-1])
+    if last + 1 >= len(time_s):
+        return float("nan")
+    return float(time_s[last + 1])
