@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
-from msmill.psd import SizeGrid
+from msmill.psd import PSD, SizeGrid
 
 __all__ = [
     "J_KG_PER_KWH_T",
@@ -45,6 +45,7 @@ __all__ = [
     "damage_increment",
     "default_tn_constants",
     "ecs_kwh_t_to_velocity",
+    "fragment_psd",
     "is_broken",
     "j_kg_to_kwh_t",
     "kwh_t_to_j_kg",
@@ -458,6 +459,35 @@ def appearance_matrix(
     if np.any(zero):
         B = np.where(zero, np.eye(n), B)
     return B
+
+
+def fragment_psd(
+    grid: SizeGrid,
+    parent_class: int,
+    t10_pct: float,
+    tn: TnConstants | Mapping[Any, Any] | None = None,
+) -> PSD:
+    """Fragment size distribution of one broken parent: column ``parent_class`` of the appearance matrix.
+
+    Parameters
+    ----------
+    grid : SizeGrid
+        Size grid; the parent size is ``grid.mids_mm[parent_class]``.
+    parent_class : int
+        Index of the parent's class (0 ... n-1).
+    t10_pct : float
+        ``t10`` (%) of the breakage event.
+    tn : TnConstants or mapping or None, optional
+        As in :func:`appearance_matrix`.
+    """
+    if not isinstance(grid, SizeGrid):
+        raise MsmillInputError("grid", grid, "a msmill.psd.SizeGrid")
+    if not isinstance(parent_class, int | np.integer) or not 0 <= int(parent_class) < grid.n_classes:
+        raise MsmillInputError("parent_class", parent_class, f"a class index in 0..{grid.n_classes - 1}")
+    t = np.zeros(grid.n_classes)
+    t[:] = float(np.asarray(_arr(t10_pct, "t10_pct")))
+    col = appearance_matrix(grid, t, tn)[:, int(parent_class)]
+    return PSD(grid, col, validate=False)
 
 
 # ------------------------------------------------------------------------ damage

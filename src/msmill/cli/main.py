@@ -28,6 +28,9 @@ app = typer.Typer(
 # (module under msmill.cli, attribute holding a typer.Typer or a command function, name)
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("dem", "app", "dem"),
+    ("ore", "app", "ore"),
+    ("psd", "app", "psd"),
+    ("breakage", "app", "breakage"),
 ]
 
 

@@ -1,0 +1,85 @@
+"""``msmill breakage``: one impact on one rock, tabulated (thin layer over msmill.breakage)."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from msmill.errors import MsmillInputError
+
+app = typer.Typer(help="Breakage of a single impact: energy, P_b, t10, t_n and fragment PSD.",
+                  no_args_is_help=True)
+
+
+@app.command("table")
+def table_cmd(
+    ore_name: Annotated[str, typer.Option("--ore", help="Ore name or ore TOML.")] = "UG2",
+    size_mm: Annotated[float, typer.Option("--size-mm", help="Rock size L (mm).")] = 10.0,
+    velocity: Annotated[float, typer.Option("--velocity", help="Relative normal impact speed (m/s).")] = 40.0,
+    damage: Annotated[float, typer.Option("--damage", help="Accumulated damage before the impact, [0, 1).")] = 0.0,
+    grid_min_mm: Annotated[float, typer.Option("--grid-min-mm", help="Finest sieve of the fragment PSD (mm).")] = 0.1,
+    grid_max_mm: Annotated[float | None, typer.Option(
+        "--grid-max-mm", help="Top of the fragment grid (mm); default: a sqrt(2) grid centred on the rock.")] = None,
+) -> None:
+    """Ecs, P_b, t10, t_n and the fragment PSD for one impact of a rock of an ore."""
+    from msmill import breakage as br
+    from msmill.cli.ore import resolve_ore
+    from msmill.psd import SizeGrid
+
+    ore = resolve_ore(ore_name)
+    if not (math.isfinite(velocity) and velocity >= 0):
+        raise MsmillInputError("--velocity", velocity, "a speed >= 0 m/s")
+    if not (math.isfinite(size_mm) and size_mm > 0):
+        raise MsmillInputError("--size-mm", size_mm, "a size > 0 mm")
+    if not (math.isfinite(grid_min_mm) and 0 < grid_min_mm < size_mm):
+        raise MsmillInputError("--grid-min-mm", grid_min_mm, f"a size in (0, {size_mm}) mm")
+    ecs_j = float(br.velocity_to_ecs_j_kg(velocity))
+    ecs_kwh = float(br.j_kg_to_kwh_t(ecs_j))
+    res = br.damage_after_impact(ecs_kwh, size_mm, ore.b_t_per_kwh, ore.l_ref_mm, ore.gamma,
+                                 damage=damage, damage_threshold=ore.damage_threshold)
+    pb = float(br.breakage_probability(ecs_kwh, size_mm, ore.b_t_per_kwh, ore.l_ref_mm, damage))
+    t10 = float(br.t10_pct(pb, ore.A_pct))
+    tn = ore.tn.tn_pct(t10)
+
+    if grid_max_mm is None:
+        # sqrt(2) series downwards from size * 2**0.25: the top class has mid = size exactly
+        r = math.sqrt(2.0)
+        n = max(1, math.ceil(math.log(size_mm * 2**0.25 / grid_min_mm) / math.log(r) - 1e-9))
+        grid = SizeGrid(size_mm * 2**0.25 / r ** np.arange(n, -1, -1))
+    else:
+        if not (math.isfinite(grid_max_mm) and grid_max_mm > size_mm):
+            raise MsmillInputError("--grid-max-mm", grid_max_mm, f"a size > --size-mm ({size_mm} mm)")
+        grid = SizeGrid.geometric(grid_min_mm, grid_max_mm)
+    parent = int(grid.class_of(size_mm))
+    frag = br.fragment_psd(grid, parent, t10, ore.tn)
+
+    con = Console(width=120)
+    head = Table(title=f"impact of a {size_mm:g} mm {ore.name} rock at {velocity:g} m/s")
+    head.add_column("quantity")
+    head.add_column("value")
+    head.add_row("E_cs", f"{ecs_j:.4g} J/kg = {ecs_kwh:.4g} kWh/t")
+    head.add_row("L_ref", f"{ore.l_ref_mm:g} mm" + (" (DEFAULT, not calibrated)" if ore.l_ref_is_default else ""))
+    head.add_row("damage before", f"{damage:g}")
+    head.add_row("P_b (Eq. 11)", f"{pb:.4g}")
+    head.add_row("t10 = A P_b (Eq. 12)", f"{t10:.4g} %")
+    for n, v in zip(br.TN_SIZES, tn, strict=True):
+        head.add_row(f"t{n}", f"{v:.4g} %")
+    head.add_row("damage of survivors", f"{float(res.damage):.4g} (Tavares, gamma = {ore.gamma:g})")
+    head.add_row("fragment P80 / P50", f"{frag.p80_mm:.4g} / {frag.p50_mm:.4g} mm "
+                 f"(parent class mid {grid.mids_mm[parent]:.4g} mm)")
+    con.print(head)
+    ft = Table(title="fragment PSD of a broken rock")
+    for col in ("class (mm)", "mass %", "passing % at upper edge"):
+        ft.add_column(col)
+    for i in range(parent, -1, -1):
+        lo = "0" if i == 0 else f"{grid.edges_mm[i]:.4g}"
+        ft.add_row(f"{lo}-{grid.edges_mm[i + 1]:.4g}", f"{100 * frag.fractions[i]:.3g}",
+                   f"{frag.passing_pct[i]:.4g}")
+    con.print(ft)
+    if ore.l_ref_is_default:
+        con.print(f"note: L_ref is the msmill default for {ore.name}; calibrate it with `msmill ore calibrate`.")

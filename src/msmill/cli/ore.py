@@ -1,0 +1,129 @@
+"""``msmill ore``: list, show and calibrate ore parameter sets (thin layer over msmill.ore)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from msmill.errors import MsmillInputError
+
+if TYPE_CHECKING:
+    from msmill.ore import Ore
+
+app = typer.Typer(help="Ore parameter sets: list, show, calibrate L_ref from drop-weight data.",
+                  no_args_is_help=True)
+
+
+def _console() -> Console:
+    return Console(width=140, soft_wrap=False)
+
+
+def resolve_ore(name_or_path: str) -> Ore:
+    """An ore by registry name, or loaded from a ``.toml`` path."""
+    from msmill.ore import Ore, get_ore
+
+    p = Path(name_or_path)
+    if name_or_path.lower().endswith(".toml"):
+        return Ore.from_toml(p)
+    return get_ore(name_or_path)
+
+
+def _l_ref_text(ore: Ore) -> str:
+    return f"{ore.l_ref_mm:.4g} mm" + (" (DEFAULT, not calibrated)" if ore.l_ref_is_default else "")
+
+
+@app.command("list")
+def list_cmd() -> None:
+    """List the registered ores."""
+    from msmill.ore import get_ore, list_ores
+
+    table = Table(title="ores")
+    for col in ("name", "A (%)", "b (t/kWh)", "A*b", "L_ref", "density (kg/m3)"):
+        table.add_column(col)
+    for name in list_ores():
+        o = get_ore(name)
+        table.add_row(o.name, f"{o.A_pct:g}", f"{o.b_t_per_kwh:g}", f"{o.ab:.1f}", _l_ref_text(o),
+                      f"{o.density_kg_m3:g}")
+    _console().print(table)
+
+
+@app.command("show")
+def show_cmd(
+    name: Annotated[str, typer.Argument(help="Ore name (case-insensitive) or path of an ore TOML file.")],
+) -> None:
+    """Show every parameter of an ore with its source."""
+    ore = resolve_ore(name)
+    con = _console()
+    table = Table(title=f"ore {ore.name}", show_lines=True)
+    table.add_column("parameter")
+    table.add_column("value")
+    table.add_column("source", overflow="fold", max_width=90)
+    s = ore.sources
+    table.add_row("A", f"{ore.A_pct:g} %", s.get("breakage", ""))
+    table.add_row("b", f"{ore.b_t_per_kwh:g} t/kWh", s.get("breakage", ""))
+    table.add_row("L_ref", _l_ref_text(ore), s.get("l_ref", ""))
+    table.add_row("density", f"{ore.density_kg_m3:g} kg/m3", s.get("physical", ""))
+    table.add_row("Young's modulus", f"{ore.youngs_modulus_pa:.3g} Pa", s.get("elastic", ""))
+    table.add_row("Poisson's ratio", f"{ore.poisson_ratio:g}", s.get("elastic", ""))
+    tn = ", ".join(f"t{n}: k={k:.4g} s={sv:.4g}" for n, (k, sv) in ore.tn.as_dict().items())
+    table.add_row("t_n = k t10^s", tn, ore.tn.source)
+    table.add_row("Tavares gamma", f"{ore.gamma:g}", s.get("damage", ""))
+    table.add_row("damage threshold", f"{ore.damage_threshold:g}", s.get("damage", ""))
+    con.print(table)
+    if ore.l_ref_is_default:
+        con.print(f"note: L_ref is the msmill default ({ore.l_ref_mm:g} mm), not calibrated for "
+                  f"{ore.name}; run `msmill ore calibrate <drop-weight.csv> --ore {ore.name}`.")
+
+
+@app.command("calibrate")
+def calibrate_cmd(
+    data: Annotated[Path, typer.Argument(help="Drop-weight CSV: size_mm, ecs_kwh_t, t10_pct.")],
+    ore_name: Annotated[str, typer.Option("--ore", help="Ore (name or TOML) for held/start values.")] = "UG2",
+    fit_ab: Annotated[bool, typer.Option(
+        "--fit-ab", help="Fit A and b with L_ref held (b and L_ref are not separately identifiable).")] = False,
+    fit_a: Annotated[bool, typer.Option("--fit-a", help="Fit A together with L_ref.")] = False,
+    l_ref_mm: Annotated[float | None, typer.Option(
+        "--l-ref-mm", help="L_ref held with --fit-ab (default: the ore's).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Write the calibrated ore as TOML.")] = None,
+    residuals: Annotated[bool, typer.Option("--residuals/--no-residuals", help="Print the residual table.")] = True,
+) -> None:
+    """Fit L_ref (optionally A, or A and b) of Eq. 11-12 to drop-weight data."""
+    from msmill.calibration import calibrate
+
+    if fit_ab and fit_a:
+        raise MsmillInputError("--fit-a/--fit-ab", "both", "one of --fit-a or --fit-ab")
+    ore = resolve_ore(ore_name)
+    fit = ("A_pct", "b_t_per_kwh") if fit_ab else (("A_pct", "l_ref_mm") if fit_a else ("l_ref_mm",))
+    res = calibrate(data, ore, fit=fit, l_ref_mm=l_ref_mm)
+    con = _console()
+    table = Table(title=f"calibration of {ore.name} on {data.name} (n = {res.n_points})")
+    for col in ("parameter", "value", "std. error", "status"):
+        table.add_column(col)
+    units = {"A_pct": "%", "b_t_per_kwh": "t/kWh", "l_ref_mm": "mm"}
+    for k, v in res.params.items():
+        if k in res.fitted:
+            table.add_row(k, f"{v:.4g} {units[k]}", f"{res.std_errors[k]:.2g}", "fitted")
+        else:
+            table.add_row(k, f"{v:.4g} {units[k]}", "-", "held")
+    con.print(table)
+    con.print(f"R^2 = {res.r_squared:.4f}   RMSE = {res.rmse_pct:.3g} % t10   "
+              f"converged: {res.success}")
+    if fit_ab:
+        con.print("note: b and L_ref enter Eq. 11 only as b/L_ref; b is fitted for the held L_ref.")
+    if residuals:
+        rt = Table(title="residuals")
+        for col in res.residuals.columns:
+            rt.add_column(col)
+        for row in res.residuals.itertuples(index=False):
+            rt.add_row(*(f"{x:.4g}" for x in row))
+        con.print(rt)
+    if out is not None:
+        import tomli_w
+
+        new = res.to_ore(ore)
+        out.write_text(tomli_w.dumps(new.to_dict()), encoding="utf-8")
+        con.print(f"wrote {out}")

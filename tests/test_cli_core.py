@@ -1,0 +1,115 @@
+"""CLI tests of ``msmill ore``, ``msmill psd`` and ``msmill breakage`` (via run() + capsys)."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from msmill.cli.main import run
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _ok(capsys, argv):
+    code = run(argv)
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return out.out
+
+
+def _bad(capsys, argv, field):
+    code = run(argv)
+    out = capsys.readouterr()
+    assert code == 2
+    lines = [ln for ln in out.err.splitlines() if ln.strip()]
+    assert len(lines) == 1, out.err
+    assert lines[0].startswith(f"error: {field}"), lines[0]
+    return lines[0]
+
+
+def test_ore_list(capsys):
+    out = _ok(capsys, ["ore", "list"])
+    assert "UG2" in out and "Platreef" in out and "71.8" in out and "0.5358" in out
+    assert "DEFAULT" in out
+
+
+def test_ore_show_flags_default_l_ref(capsys):
+    out = _ok(capsys, ["ore", "show", "ug2"])
+    assert "Table 1" in out
+    assert "DEFAULT" in out and "not calibrated" in out
+    assert "msmill ore calibrate" in out
+
+
+def test_ore_show_unknown(capsys):
+    _bad(capsys, ["ore", "show", "UG3"], "ore")
+
+
+def test_ore_calibrate_example(capsys, tmp_path):
+    out_toml = tmp_path / "ug2_cal.toml"
+    out = _ok(capsys, ["ore", "calibrate", str(EXAMPLES / "dropweight_synthetic.csv"), "--ore", "UG2",
+                       "--out", str(out_toml)])
+    assert "l_ref_mm" in out and "fitted" in out and "R^2" in out and "residuals" in out
+    data = tomllib.loads(out_toml.read_text())
+    assert 18.0 < data["breakage"]["l_ref_mm"] < 22.0
+    # the calibrated ore loads back and no longer reports a default L_ref
+    out = _ok(capsys, ["ore", "show", str(out_toml)])
+    assert "DEFAULT" not in out
+
+
+def test_ore_calibrate_fit_ab(capsys):
+    out = _ok(capsys, ["ore", "calibrate", str(EXAMPLES / "dropweight_synthetic.csv"), "--fit-ab",
+                       "--l-ref-mm", "20", "--no-residuals"])
+    assert "b_t_per_kwh" in out and "b/L_ref" in out
+
+
+def test_ore_calibrate_bad_csv(capsys, tmp_path):
+    p = tmp_path / "bad.csv"
+    p.write_text("size_mm,ecs_kwh_t,t10_pct\n10,0.1,5\n10,0.2,150\n")
+    _bad(capsys, ["ore", "calibrate", str(p)], "bad.csv.t10_pct[row 2]")
+    _bad(capsys, ["ore", "calibrate", str(tmp_path / "missing.csv")], "path")
+    _bad(capsys, ["ore", "calibrate", str(p), "--fit-a", "--fit-ab"], "--fit-a/--fit-ab")
+
+
+def test_psd_stats(capsys):
+    out = _ok(capsys, ["psd", "stats", str(EXAMPLES / "feed_example.csv"), "-p", "90"])
+    assert "P50" in out and "P80" in out and "P90" in out
+    assert "Rosin-Rammler" in out and "x63_mm = 15" in out and "Gates-Gaudin-Schuhmann" in out
+
+
+def test_psd_stats_bad(capsys, tmp_path):
+    p = tmp_path / "feed.csv"
+    p.write_text("size_mm,passing_pct\n1,50\n2,40\n")
+    _bad(capsys, ["psd", "stats", str(p)], "passing_pct")
+    p.write_text("size,passing_pct\n1,50\n2,100\n")
+    _bad(capsys, ["psd", "stats", str(p)], "columns")
+
+
+def test_breakage_table(capsys):
+    out = _ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "10", "--velocity", "40"])
+    # 40 m/s -> 800 J/kg = 0.2222 kWh/t; P_b = 1 - exp(-1.67*0.2222*10/29) = 0.1201; t10 = 8.625 %
+    assert "800 J/kg" in out and "0.2222 kWh/t" in out
+    assert "0.1201" in out and "8.625" in out
+    assert "t75" in out and "fragment PSD" in out and "DEFAULT" in out
+
+
+def test_breakage_table_custom_grid(capsys):
+    out = _ok(capsys, ["breakage", "table", "--ore", "platreef", "--size-mm", "20", "--velocity", "60",
+                       "--grid-min-mm", "0.5", "--grid-max-mm", "40"])
+    assert "Platreef" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "field"),
+    [
+        (["--velocity", "-1"], "--velocity"),
+        (["--size-mm", "0"], "--size-mm"),
+        (["--grid-min-mm", "50"], "--grid-min-mm"),
+        (["--grid-max-mm", "5"], "--grid-max-mm"),
+        (["--damage", "1.5"], "damage"),
+        (["--ore", "nope"], "ore"),
+    ],
+)
+def test_breakage_table_bad_input(capsys, argv, field):
+    _bad(capsys, ["breakage", "table", *argv], field)
