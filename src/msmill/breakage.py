@@ -543,27 +543,35 @@ def damage_increment(
         raise MsmillInputError("energy_ratio", energy_ratio, "E_k/E_f in [0, 1)")
     g = _check_gamma(gamma)
     r, g = np.broadcast_arrays(r, g)
-    r = r.astype(float, copy=True)
-    g = g.astype(float, copy=True)
-    lo = np.zeros_like(r)
-    hi = np.ones_like(r)
-    dd = np.zeros_like(r)
-    pos = r > 0
+    shape = r.shape
+    r = r.astype(float).ravel()
+    g = g.astype(float).ravel()
+    out = np.zeros_like(r)
+    # iterate only on the elements not converged yet (r = 0 gives D = 0 exactly)
+    idx = np.flatnonzero(r > 0)
+    rr, gg = r[idx], g[idx]
+    dd = np.zeros_like(rr)
+    lo = np.zeros_like(rr)
+    hi = np.ones_like(rr)
     for _ in range(max_iter):
-        rhs = _damage_rhs(dd, r, g)
+        if idx.size == 0:
+            break
+        rhs = _damage_rhs(dd, rr, gg)
         f = dd - rhs
         lo = np.where(f <= 0, dd, lo)
         hi = np.where(f > 0, dd, hi)
-        fp = 1.0 - 2.0 * g * rhs / (2.0 * g + 5.0 - 5.0 * dd)
+        fp = 1.0 - 2.0 * gg * rhs / (2.0 * gg + 5.0 - 5.0 * dd)
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = dd - f / fp
-        ok = np.isfinite(newton) & (newton > lo) & (newton < hi)
+        ok = np.isfinite(newton) & (newton >= lo) & (newton <= hi)
         new = np.where(ok, newton, 0.5 * (lo + hi))
-        new = np.where(pos, new, 0.0)
-        step = np.abs(new - dd)
+        done = (np.abs(new - dd) <= tol) | (hi - lo <= tol)
         dd = new
-        if np.all(step <= tol) or np.all(hi - lo <= tol):
-            break
+        out[idx[done]] = dd[done]
+        keep = ~done
+        idx, rr, gg, dd, lo, hi = idx[keep], rr[keep], gg[keep], dd[keep], lo[keep], hi[keep]
+    out[idx] = dd  # not converged within max_iter (not expected): best bracketed estimate
+    dd = out.reshape(shape)
     return _ret(np.clip(dd, 0.0, np.nextafter(1.0, 0.0)))
 
 
