@@ -9,7 +9,7 @@ stages), size class ``i`` and damage class ``d``, flattened as
 class 0.
 
 One step (characteristic time) is ``x(t+1) = M x(t) + f`` and the product of
-the step is ``O x(t)`` (see docs/model.md for the semantics). Every impact is a
+the step is ``out_op x(t)`` (see docs/model.md for the semantics). Every impact is a
 linear operator averaged over the velocity distribution by Gauss-Hermite
 quadrature per mixture component (velocities clipped at 0); a Poisson number of
 secondary impacts is ``expm(lambda (T - I))`` on a state augmented with the
@@ -50,7 +50,7 @@ def quadrature(mix: MixtureArrays, n_nodes: int) -> tuple[np.ndarray, np.ndarray
     x, w = np.polynomial.hermite.hermgauss(n_nodes)
     v = mix.means_m_s[..., None] + np.sqrt(2.0) * mix.sigmas_m_s[..., None] * x
     ww = mix.weights[..., None] * (w / np.sqrt(np.pi))
-    shape = v.shape[:-2] + (v.shape[-2] * v.shape[-1],)
+    shape = (*v.shape[:-2], v.shape[-2] * v.shape[-1])
     v = np.maximum(v.reshape(shape), 0.0)
     ww = ww.reshape(shape)
     ww = ww / ww.sum(axis=-1, keepdims=True)
@@ -167,8 +167,7 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
     prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
     sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
     lam = stats.secondary_lambda[stage]  # (N,)
-    Sp = _block_diag(prim.survive)
-    Fp = prim.fragments.reshape(n, ns)
+    Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
     # Poisson series of secondary impacts = expm(lam (T - I)) on the state augmented with
     # the fragments made so far and two counters. Survivors keep their size, so the
     # survivor block is block-diagonal per size class i with A_i = lam_i (S_i - I);
@@ -180,23 +179,26 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
     Z[:, nd:, :nd] = np.eye(nd)[None]
     X = scipy.linalg.expm(Z) if np.any(lam > 0) else np.broadcast_to(np.eye(2 * nd), Z.shape)
     eA = X[:, :nd, :nd]
-    phi = X[:, nd:, :nd]  # (N, nd, nd)
-    Es = _block_diag(eA)
-    # fragments: Ef[k, (i, d)] = lam_i sum_e Fs[k, i, e] phi_i[e, d]
-    Ef = np.einsum("kie,ied->kid", sec.fragments, phi * lam[:, None, None]).reshape(n, ns)
-    ones_phi = phi.sum(axis=1) * lam[:, None]  # (N, nd): expected secondary impacts
-    sec_count = ones_phi.reshape(ns)
-    sec_energy = (ones_phi * sec.mean_energy_kwh_t[:, None]).reshape(ns)
-    C = np.zeros((ns, n))
-    C[np.arange(n) * nd, np.arange(n)] = 1.0
-    after_hit = Es @ Sp + C @ (Fp + Ef @ Sp)
-    G = np.diag(1.0 - h) + after_hit * h[None, :]
+    phi = X[:, nd:, :nd] * lam[:, None, None]  # (N, nd, nd), lam_i phi1(A_i)
+    # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
+    surv = np.einsum("ide,ief->idf", eA, Sp)
+    frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))
+    hh = stats.hit_probability[stage]  # (N,)
+    G = np.zeros((n, nd, n, nd))
+    ii = np.arange(n)
+    G[ii, :, ii, :] = surv * hh[:, None, None]
+    G[:, 0, :, :] += frag * hh[None, :, None]
+    G = G.reshape(ns, ns)
+    G[np.arange(ns), np.arange(ns)] += 1.0 - h
+    cnt = np.einsum("ide,ief->if", phi, Sp)  # expected secondary impacts per primary survivor
+    sec_count = (cnt * hh[:, None]).reshape(ns)
+    sec_energy = (cnt * (sec.mean_energy_kwh_t * hh)[:, None]).reshape(ns)
     return StageOperator(
         G=G,
         primary_count=h,
         primary_energy_kwh_t=h * np.repeat(prim.mean_energy_kwh_t, nd),
-        secondary_count=(sec_count @ Sp) * h,
-        secondary_energy_kwh_t=(sec_energy @ Sp) * h,
+        secondary_count=sec_count,
+        secondary_energy_kwh_t=sec_energy,
     )
 
 
@@ -208,7 +210,7 @@ class LinearMill:
     ----------
     M : scipy.sparse.csr_matrix
         Step operator on the flattened state.
-    O : scipy.sparse.csr_matrix (N, n)
+    out_op : scipy.sparse.csr_matrix (N, n)
         Product of a step by size class (tonnes).
     impacted : scipy.sparse.csr_matrix (n, n)
         Mass impacted during a step (diagonal).
@@ -217,7 +219,7 @@ class LinearMill:
     """
 
     M: sp.csr_matrix
-    O: sp.csr_matrix
+    out_op: sp.csr_matrix
     impacted: sp.csr_matrix
     stages: list[StageOperator]
     n_stages: int
@@ -301,6 +303,6 @@ def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics,
             blocks[c][c] = sp.csr_matrix((ns, ns))
     M = sp.bmat(blocks, format="csr")
     collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
-    O = sp.hstack([sp.csr_matrix((n, n_st * ns)), collapse @ last_down], format="csr")
-    return LinearMill(M=M, O=O, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
+    out_op = sp.hstack([sp.csr_matrix((n, n_st * ns)), collapse @ last_down], format="csr")
+    return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
                       n_stages=n_st, n_sizes=n, n_damage=nd)

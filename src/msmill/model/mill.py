@@ -15,6 +15,7 @@ Example
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,21 @@ J_PER_KWH = 3.6e6
 #: Trailing moving-average window (steps) of the Monte-Carlo product rate for the
 #: time to steady state.
 MC_SMOOTHING_STEPS = 25
+
+
+@contextlib.contextmanager
+def _single_threaded_blas():
+    """Run BLAS single-threaded: the model's matrices are small (tens to hundreds of rows),
+    threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x.
+    Uses ``threadpoolctl`` when it is installed (it comes with scikit-learn); else a no-op.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    with threadpool_limits(1, user_api="blas"):
+        yield
 
 
 def breakage_parameters(ore: Any) -> sm.BreakageParameters:
@@ -218,6 +234,10 @@ class Mill:
         if not isinstance(feed, PSD):
             raise MsmillInputError("feed", type(feed).__name__, "a msmill.psd.PSD")
         op = _operating_point(operating_point)
+        with _single_threaded_blas():
+            return self._run(feed, op, timeseries, max_steps)
+
+    def _run(self, feed: PSD, op: Any, timeseries: bool, max_steps: int) -> MillResult:
         grid = self.model_grid(feed)
         feed_m = feed.rebin(grid) if feed.grid != grid else feed
         params, streams, stats, lm, caught = self.prepare(grid, op)
@@ -236,7 +256,7 @@ class Mill:
         cum_fed = cum_out = 0.0
         min_steps = 5 * (lm.n_stages + 1)
         for t in range(max_steps):
-            out = float((lm.O @ x).sum())
+            out = float((lm.out_op @ x).sum())
             x = lm.M @ x + f
             cum_fed += fs
             cum_out += out
@@ -255,7 +275,7 @@ class Mill:
             prod, held, err, _ = self._march(lm, f, max_steps)
         else:
             prod = held = err = np.zeros(0)
-        product = np.asarray(lm.O @ x)
+        product = np.asarray(lm.out_op @ x)
         ss_err = abs(product.sum() - tps) / tps
         n, nd, n_st = lm.n_sizes, lm.n_damage, lm.n_stages
         ns = n * nd

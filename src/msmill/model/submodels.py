@@ -25,8 +25,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from msmill.errors import MsmillInputError
 from msmill import breakage as _bk
+from msmill.errors import MsmillInputError
 from msmill.model.parameters import MixtureArrays, StageParameters
 from msmill.psd import SizeGrid
 
