@@ -163,6 +163,26 @@ def test_appearance_property(lo, span, ratio, t10, per_parent):
     _check_appearance(B)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    lo=st.floats(0.01, 2.0),
+    span=st.floats(5.0, 5000.0),
+    ratio=st.floats(1.1, 2.5),
+    velocities=st.lists(st.floats(0.0, 150.0), min_size=1, max_size=5),
+    b=st.floats(0.1, 3.0),
+    a=st.floats(20.0, 90.0),
+    l_ref=st.floats(5.0, 60.0),
+)
+def test_appearance_property_from_sizes_and_energies(lo, span, ratio, velocities, b, a, l_ref):
+    # t10 from Eq. 11-12 for every (energy, parent size) pair -> B[e, i, j]
+    grid = SizeGrid.geometric(lo, lo * span, ratio=ratio)
+    ecs = br.velocity_to_ecs_kwh_t(np.asarray(velocities))[:, None]
+    t10 = br.t10_pct(br.breakage_probability(ecs, grid.mids_mm[None, :], b, l_ref), a)
+    B = br.appearance_matrix(grid, t10)
+    assert B.shape == (len(velocities), grid.n_classes, grid.n_classes)
+    _check_appearance(B)
+
+
 @settings(max_examples=40, deadline=None)
 @given(edges=st.lists(st.floats(0.01, 500.0), min_size=2, max_size=25, unique=True),
        t10=st.floats(0.0, 100.0))
