@@ -1,0 +1,89 @@
+"""``msmill predict run.toml``: predict the product of a mill from a run file (no physics here).
+
+Validates the whole run file and runs the model before anything is written;
+then writes the product PSD table (CSV), the time series and per-stage tables,
+and the plots, and prints a summary table.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def predict(
+    run_file: Annotated[Path, typer.Argument(help="Run file (TOML); see msmill.model.runfile.")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: [output] dir).")] = None,
+    plots: Annotated[bool | None, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = None,
+    solver: Annotated[str | None, typer.Option(help="Override [model] solver.")] = None,
+) -> None:
+    """Predict the product PSD, hold-up and impact energy of a mill run file."""
+    from msmill.model.runfile import RunFile
+
+    rf = RunFile.from_toml(run_file)
+    if solver is not None:
+        rf = rf.model_copy(update={"model": rf.model.model_copy(update={"solver": solver})})
+    mill, feed, op = rf.build()
+    result = mill.run(feed, op)
+
+    # render everything in memory first: nothing is half-written on error
+    folder = out if out is not None else rf.path(rf.output.dir)
+    csv_name = Path(rf.output.csv)
+    stem = csv_name.stem
+    files: dict[str, bytes] = {
+        csv_name.name: result.psd_table.to_csv(index=False).encode(),
+        f"{stem}_timeseries.csv": result.timeseries.to_csv(index=False).encode(),
+        f"{stem}_stages.csv": result.stages.to_csv(index=False).encode(),
+    }
+    if plots if plots is not None else rf.output.plots:
+        from msmill.plots.model import png_bytes, prediction_figures
+
+        for key, fig in prediction_figures(result, title=rf.title).items():
+            files[f"{stem}_{key}.png"] = png_bytes(fig)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    _print_summary(rf, mill, result, folder, list(files))
+
+
+def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console(width=120, soft_wrap=False)
+    t = Table(title=rf.title or rf.name, show_header=True)
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    rows = [
+        ("feed rate (t/h)", f"{result.feed_tph:g}"),
+        ("F80 (mm)", f"{result.f80_mm:.3g}"),
+        ("P80 (mm)", f"{result.p80_mm:.3g}"),
+        ("P50 (mm)", f"{result.p50_mm:.3g}"),
+        ("reduction ratio F80/P80", f"{result.reduction_ratio:.3g}"),
+        *[(f"passing {s:g} mm (%)", f"{v:.3g}") for s, v in result.passing_pct.items()],
+        ("time to steady state (s)", f"{result.time_to_steady_state_s:.3g}"),
+        ("mass held in mill (kg)", f"{1000 * result.stages['holdup_t'].sum():.3g}"),
+        ("primary impacts per t", f"{result.primary_impacts_per_t:.3g}"),
+        ("secondary impacts per t", f"{result.secondary_impacts_per_t:.3g}"),
+        ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
+        ("mass-balance error", f"{result.mass_balance_error:.1e}"),
+    ]
+    for r in rows:
+        t.add_row(*r)
+    con.print(t)
+    s = Table(title="per stage", show_header=True)
+    for col in ("stage", "hold-up (kg)", "P80 (mm)", "primary /t", "secondary /t", "kWh/t",
+                "flinger J/t"):
+        s.add_column(col, justify="right")
+    for _, r in result.stages.iterrows():
+        s.add_row(f"{int(r['stage'])}", f"{1000 * r['holdup_t']:.3g}", f"{r['p80_mm']:.3g}",
+                  f"{r['primary_impacts_per_t']:.3g}", f"{r['secondary_impacts_per_t']:.3g}",
+                  f"{r['impact_energy_kwh_t']:.3g}", f"{r['flinger_energy_j_per_t']:.3g}")
+    con.print(s)
+    con.print(f"solver: {result.solver}; sub-models: "
+              + ", ".join(f"{k}={v}" for k, v in result.submodels.items()))
+    for note in result.notes:
+        con.print(f"note: {note}")
+    con.print(f"wrote {', '.join(names)} to {folder}")

@@ -1,0 +1,100 @@
+"""Plots of mill-model predictions: feed and product PSDs, and the Fig. 14 time series.
+
+Figures are built with :class:`matplotlib.figure.Figure` (Agg canvas, no
+pyplot state), so they can be rendered to bytes before anything is written.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+
+__all__ = ["plot_psds", "plot_timeseries", "png_bytes", "prediction_figures"]
+
+
+def _figure(width_in: float = 6.4, height_in: float = 4.2) -> Any:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in))
+    fig.subplots_adjust(left=0.12, right=0.88, bottom=0.13, top=0.91)
+    return fig
+
+
+def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
+    """Feed and product cumulative % passing against size (log axis).
+
+    Parameters
+    ----------
+    result : msmill.model.MillResult
+        A prediction.
+    ax : matplotlib Axes, optional
+        Draw there; a new figure otherwise.
+    title : str, optional
+        Axes title.
+
+    Returns
+    -------
+    matplotlib Axes
+    """
+    if ax is None:
+        ax = _figure().add_subplot()
+    for psd, label, style in ((result.feed_psd, f"feed (F80 {result.f80_mm:.3g} mm)", "--"),
+                              (result.product_psd, f"product (P80 {result.p80_mm:.3g} mm)", "-")):
+        x = np.concatenate([[psd.grid.edges_mm[0]], psd.sizes_mm])
+        y = np.concatenate([[0.0], psd.passing_pct])
+        ax.plot(x, y, style, marker=".", label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("size (mm)")
+    ax.set_ylabel("cumulative passing (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left")
+    ax.set_title(title or f"reduction ratio F80/P80 = {result.reduction_ratio:.2f}")
+    return ax
+
+
+def plot_timeseries(result: Any, ax: Any = None, title: str = "") -> Any:
+    """Feed rate, product rate and mass held in the mill against time (paper Fig. 14).
+
+    Rates (t/h) on the left axis, hold-up (kg) on the right axis; the time to
+    steady state is marked.
+    """
+    if ax is None:
+        ax = _figure().add_subplot()
+    ts = result.timeseries
+    ax.plot(ts["time_s"], ts["feed_tph"], "--", label="feed (t/h)")
+    ax.plot(ts["time_s"], ts["product_tph"], label="product (t/h)")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("mass flow (t/h)")
+    ax.set_ylim(bottom=0)
+    ax2 = ax.twinx()
+    ax2.plot(ts["time_s"], ts["holdup_t"] * 1000.0, color="tab:green", label="held in mill (kg)")
+    ax2.set_ylabel("held in mill (kg)")
+    ax2.set_ylim(bottom=0)
+    if np.isfinite(result.time_to_steady_state_s):
+        ax.axvline(result.time_to_steady_state_s, color="grey", lw=0.8, ls=":",
+                   label=f"steady state ({result.time_to_steady_state_s:.2f} s)")
+    lines = ax.get_legend_handles_labels()
+    lines2 = ax2.get_legend_handles_labels()
+    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="lower right")
+    ax.set_title(title or "mass in and out of the mill from start-up")
+    return ax
+
+
+def prediction_figures(result: Any, title: str = "") -> dict[str, Any]:
+    """Both figures of a prediction: ``{"psd": Figure, "timeseries": Figure}``."""
+    out = {}
+    for key, fn in (("psd", plot_psds), ("timeseries", plot_timeseries)):
+        fig = _figure()
+        fn(result, ax=fig.add_subplot(), title=title)
+        out[key] = fig
+    return out
+
+
+def png_bytes(fig: Any, dpi: int = 120) -> bytes:
+    """Render a figure to PNG bytes (Agg)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
