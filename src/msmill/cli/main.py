@@ -31,6 +31,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("ore", "app", "ore"),
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
+    ("predict", "predict", "predict"),
 ]
 
 
