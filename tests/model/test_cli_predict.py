@@ -1,0 +1,102 @@
+"""``msmill predict``: run files validated up front, one-line errors, nothing half-written."""
+
+from __future__ import annotations
+
+import pytest
+from synthetic import synthetic_table
+
+from msmill.cli.main import run
+
+pytestmark = pytest.mark.filterwarnings("ignore::msmill.errors.OutOfDomainWarning")
+
+GOOD = """
+title = "SYNTHETIC"
+[ore]
+name = "UG2"
+[feed]
+rate_tph = 30.0
+size_mm = [4.75, 9.5, 19.0, 37.5, 45.0]
+passing_pct = [3.0, 12.0, 45.0, 92.0, 100.0]
+[operating]
+speed_rpm = 1500.0
+gate_deg = 40.0
+[stage_parameters]
+file = "table.json"
+[output]
+dir = "out"
+plots = false
+"""
+
+
+@pytest.fixture
+def folder(tmp_path):
+    synthetic_table().to_json(tmp_path / "table.json")
+    return tmp_path
+
+
+def write(folder, text, name="run.toml"):
+    p = folder / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_predict_writes_outputs(folder, capsys):
+    p = write(folder, GOOD.replace("plots = false", "plots = true"))
+    assert run(["predict", str(p)]) == 0
+    out = folder / "out"
+    names = {f.name for f in out.iterdir()}
+    assert {"product.csv", "product_timeseries.csv", "product_stages.csv", "product_psd.png",
+            "product_timeseries.png"} <= names
+    text = (out / "product.csv").read_text()
+    assert text.splitlines()[0].startswith("lower_mm,upper_mm,mid_mm,feed_mass_fraction")
+    assert "reduction ratio" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("old,new,field", [
+    ("rate_tph = 30.0", "rate_tph = -3.0", "run.toml.feed.rate_tph"),
+    ('name = "UG2"', 'name = "UG3"', "run.toml.ore.name"),
+    ("gate_deg = 40.0", "gate_deg = 140.0", "run.toml.operating.gate_deg"),
+    ('file = "table.json"', 'file = "missing.json"', "run.toml.stage_parameters.file"),
+    ("[output]", '[model]\ndamage = "tavaress"\n[output]', "run.toml.model.damage"),
+    ("[output]", '[model]\nsolver = "montecarlo"\n[output]', "run.toml.model.solver"),
+    ("[output]", "[model]\ndamage_clases = 4\n[output]", "run.toml.model.damage_clases"),
+    ("passing_pct = [3.0, 12.0, 45.0, 92.0, 100.0]", "passing_pct = [3.0, 12.0, 45.0, 30.0, 100.0]",
+     "run.toml.feed.passing_pct"),
+    ("speed_rpm = 1500.0", "stage_speeds_rpm = [1500.0, 3000.0]", "run.toml.operating.stage_speeds_rpm"),
+])
+def test_bad_run_file_is_one_line_and_writes_nothing(folder, capsys, old, new, field):
+    assert old in GOOD
+    p = write(folder, GOOD.replace(old, new))
+    assert run(["predict", str(p)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    errors = [e for e in err if e.startswith("error:")]
+    assert len(errors) == 1, err
+    assert errors[0].startswith(f"error: {field}"), errors[0]
+    assert not (folder / "out").exists()
+
+
+def test_bad_toml_and_missing_file(folder, capsys):
+    p = write(folder, "title = ")
+    assert run(["predict", str(p)]) == 2
+    assert run(["predict", str(folder / "nope.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "valid TOML" in err and "existing TOML file" in err
+
+
+def test_default_table_missing_is_one_line(folder, capsys):
+    from importlib import resources
+
+    if resources.files("msmill").joinpath("data/stage_parameters/default.json").is_file():
+        pytest.skip("the DEM-derived default table is installed")
+    p = write(folder, GOOD.replace('file = "table.json"', 'file = "default"'))
+    assert run(["predict", str(p)]) == 2
+    assert "not installed yet" in capsys.readouterr().err
+
+
+def test_rosin_rammler_feed_and_solver_override(folder):
+    text = GOOD.replace("size_mm = [4.75, 9.5, 19.0, 37.5, 45.0]\npassing_pct = [3.0, 12.0, 45.0, 92.0, 100.0]",
+                        "[feed.rosin_rammler]\nsize_63_mm = 20.0\nspread = 1.5\ntop_mm = 45.0")
+    text = text.replace("[operating]", "\n[operating]")
+    p = write(folder, text)
+    assert run(["predict", str(p), "--out", str(folder / "o2")]) == 0
+    assert (folder / "o2" / "product.csv").is_file()
