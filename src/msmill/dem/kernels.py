@@ -1,0 +1,1032 @@
+"""All numba kernels of the DEM engine.
+
+Execution model (see docs/dem.md):
+
+* :func:`advance` runs up to ``nsteps`` time steps in compiled code; each step
+  updates the pose of rotating geometry, runs one force pass (one contact loop
+  over the full Verlet neighbour list plus the particle's geometry candidates,
+  parallel over particle chunks) and one integration pass (symplectic Euler,
+  paper Eqs. 2-3). It returns early when a rebuild is due (max displacement
+  since the last build > skin/2), a particle was flagged (sink, lost,
+  non-finite) or an event buffer is half full.
+* Every pair is evaluated by both partners (full list: no write races) in a
+  *canonical orientation* (lower particle id first), so both copies of the
+  tangential history and both forces are bitwise identical and opposite.
+* Contact history lives in per-particle slots keyed by partner id (particle
+  id or geometry id), so it moves with the particle through sorting,
+  insertion and deletion.
+* Events are written at contact onset by the owner (lower id, or the particle
+  for geometry) into the buffer of the chunk that processes it; the row
+  reference stored in the history slot is ``row * nchunks + chunk``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# geometry kinds (mirrors geometry.py)
+PLANE, BOX, CYL = 0, 1, 2
+
+# float event columns
+EV_T, EV_R, EV_PR, EV_X, EV_Y, EV_Z, EV_VN, EV_VT, EV_END, EV_PEAK, EV_DISS = range(11)
+N_EVF = 11
+# int event columns
+EVI_PID, EVI_KIND, EVI_PARTNER = range(3)
+N_EVI = 3
+
+# per-chunk diagnostics
+D_DISP2, D_OVER, D_SPEED2, D_HOVF, D_EVOVF, D_FLAGGED = range(6)
+N_DIAG = 6
+
+# advance() return reasons
+R_DONE, R_REBUILD, R_FLAGGED, R_EVFULL = 0, 1, 2, 3
+
+# particle flags
+F_OK, F_LOST, F_NONFINITE = 0, 1, -1  # sinks are 2 + sink index
+
+
+@njit(cache=True, fastmath=False)
+def chunk_bounds(n: int, nch: int, c: int) -> tuple[int, int]:
+    """Half-open particle range of chunk ``c``."""
+    return (c * n) // nch, ((c + 1) * n) // nch
+
+
+# --------------------------------------------------------------------------- geometry
+@njit(cache=True, fastmath=False)
+def update_geometry(gref, grot, gkind, t, gcur):
+    """Pose of every primitive at time ``t`` (rotating ones turned by omega t)."""
+    for g in range(gref.shape[0]):
+        for k in range(gref.shape[1]):
+            gcur[g, k] = gref[g, k]
+        if grot[g, 7] <= 0.0:
+            continue
+        th = grot[g, 6] * t
+        ux, uy, uz = grot[g, 3], grot[g, 4], grot[g, 5]
+        c = np.cos(th)
+        s = np.sin(th)
+        oc = 1.0 - c
+        q00 = c + ux * ux * oc
+        q01 = ux * uy * oc - uz * s
+        q02 = ux * uz * oc + uy * s
+        q10 = uy * ux * oc + uz * s
+        q11 = c + uy * uy * oc
+        q12 = uy * uz * oc - ux * s
+        q20 = uz * ux * oc - uy * s
+        q21 = uz * uy * oc + ux * s
+        q22 = c + uz * uz * oc
+        # first field is always a point
+        px = gref[g, 0] - grot[g, 0]
+        py = gref[g, 1] - grot[g, 1]
+        pz = gref[g, 2] - grot[g, 2]
+        gcur[g, 0] = grot[g, 0] + q00 * px + q01 * py + q02 * pz
+        gcur[g, 1] = grot[g, 1] + q10 * px + q11 * py + q12 * pz
+        gcur[g, 2] = grot[g, 2] + q20 * px + q21 * py + q22 * pz
+        nvec = 3 if gkind[g] == BOX else 1
+        for m in range(nvec):
+            o = 3 + 3 * m
+            dx, dy, dz = gref[g, o], gref[g, o + 1], gref[g, o + 2]
+            gcur[g, o] = q00 * dx + q01 * dy + q02 * dz
+            gcur[g, o + 1] = q10 * dx + q11 * dy + q12 * dz
+            gcur[g, o + 2] = q20 * dx + q21 * dy + q22 * dz
+
+
+@njit(cache=True, fastmath=False)
+def geom_contact(kind, gp, x, y, z, r):
+    """Overlap with one primitive.
+
+    Returns ``(ok, s, nx, ny, nz, cx, cy, cz)``: overlap ``s`` (m), unit normal
+    from the particle centre towards the wall and the contact point on the
+    wall surface.
+    """
+    if kind == PLANE:
+        d = (x - gp[0]) * gp[3] + (y - gp[1]) * gp[4] + (z - gp[2]) * gp[5]
+        if d >= r or d <= -r:
+            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return (True, r - d, -gp[3], -gp[4], -gp[5],
+                x - d * gp[3], y - d * gp[4], z - d * gp[5])
+    if kind == BOX:
+        rx = x - gp[0]
+        ry = y - gp[1]
+        rz = z - gp[2]
+        q0 = rx * gp[3] + ry * gp[4] + rz * gp[5]
+        q1 = rx * gp[6] + ry * gp[7] + rz * gp[8]
+        q2 = rx * gp[9] + ry * gp[10] + rz * gp[11]
+        h0, h1, h2 = gp[12], gp[13], gp[14]
+        p0 = min(max(q0, -h0), h0)
+        p1 = min(max(q1, -h1), h1)
+        p2 = min(max(q2, -h2), h2)
+        e0 = q0 - p0
+        e1 = q1 - p1
+        e2 = q2 - p2
+        dist2 = e0 * e0 + e1 * e1 + e2 * e2
+        if dist2 > 0.0:
+            if dist2 >= r * r:
+                return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            dist = np.sqrt(dist2)
+            l0 = -e0 / dist
+            l1 = -e1 / dist
+            l2 = -e2 / dist
+            s = r - dist
+        else:  # centre inside: push out through the nearest face
+            a0 = h0 - abs(q0)
+            a1 = h1 - abs(q1)
+            a2 = h2 - abs(q2)
+            l0 = 0.0
+            l1 = 0.0
+            l2 = 0.0
+            if a0 <= a1 and a0 <= a2:
+                sg = 1.0 if q0 >= 0 else -1.0
+                l0 = -sg
+                p0 = sg * h0
+                s = r + a0
+            elif a1 <= a2:
+                sg = 1.0 if q1 >= 0 else -1.0
+                l1 = -sg
+                p1 = sg * h1
+                s = r + a1
+            else:
+                sg = 1.0 if q2 >= 0 else -1.0
+                l2 = -sg
+                p2 = sg * h2
+                s = r + a2
+        nx = l0 * gp[3] + l1 * gp[6] + l2 * gp[9]
+        ny = l0 * gp[4] + l1 * gp[7] + l2 * gp[10]
+        nz = l0 * gp[5] + l1 * gp[8] + l2 * gp[11]
+        cx = gp[0] + p0 * gp[3] + p1 * gp[6] + p2 * gp[9]
+        cy = gp[1] + p0 * gp[4] + p1 * gp[7] + p2 * gp[10]
+        cz = gp[2] + p0 * gp[5] + p1 * gp[8] + p2 * gp[11]
+        return True, s, nx, ny, nz, cx, cy, cz
+    # cylinder
+    ux, uy, uz = gp[3], gp[4], gp[5]
+    ln = gp[6]
+    rc = gp[7]
+    rx = x - gp[0]
+    ry = y - gp[1]
+    rz = z - gp[2]
+    a = rx * ux + ry * uy + rz * uz
+    vx = rx - a * ux
+    vy = ry - a * uy
+    vz = rz - a * uz
+    rho = np.sqrt(vx * vx + vy * vy + vz * vz)
+    if gp[8] > 0.5:  # inside a tube (open ends)
+        if a < 0.0 or a > ln or rho <= rc - r or rho >= rc + r or rho == 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        nx = vx / rho
+        ny = vy / rho
+        nz = vz / rho
+        return (True, rho + r - rc, nx, ny, nz,
+                gp[0] + a * ux + rc * nx, gp[1] + a * uy + rc * ny, gp[2] + a * uz + rc * nz)
+    # outside a solid capped cylinder
+    if rho > 0.0:
+        ex = vx / rho
+        ey = vy / rho
+        ez = vz / rho
+    else:
+        ex, ey, ez = 0.0, 0.0, 0.0
+    if a >= 0.0 and a <= ln and rho <= rc:  # centre inside the solid
+        dside = rc - rho
+        if dside <= a and dside <= ln - a:
+            return (True, r + dside, -ex, -ey, -ez,
+                    gp[0] + a * ux + rc * ex, gp[1] + a * uy + rc * ey, gp[2] + a * uz + rc * ez)
+        if a <= ln - a:
+            return True, r + a, ux, uy, uz, x - a * ux, y - a * uy, z - a * uz
+        b = ln - a
+        return True, r + b, -ux, -uy, -uz, x + b * ux, y + b * uy, z + b * uz
+    ac = min(max(a, 0.0), ln)
+    rr = min(rho, rc)
+    cx = gp[0] + ac * ux + rr * ex
+    cy = gp[1] + ac * uy + rr * ey
+    cz = gp[2] + ac * uz + rr * ez
+    dx = cx - x
+    dy = cy - y
+    dz = cz - z
+    d2 = dx * dx + dy * dy + dz * dz
+    if d2 >= r * r or d2 == 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    d = np.sqrt(d2)
+    return True, r - d, dx / d, dy / d, dz / d, cx, cy, cz
+
+
+# --------------------------------------------------------------------------- contact law
+@njit(cache=True, fastmath=False)
+def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, strat, dt,
+                sx, sy, sz):
+    """Paper Eqs. 4-10 for one contact in canonical orientation.
+
+    ``n`` points from body a to body b, ``v`` is the velocity of a relative to
+    b at the contact point, ``(sx, sy, sz)`` the tangential displacement
+    history. Returns the force on a, the new history and ``F_n``.
+    """
+    vn = vx * nx + vy * ny + vz * nz  # > 0 approaching: ds/dt
+    tx = vx - vn * nx
+    ty = vy - vn * ny
+    tz = vz - vn * nz
+    kh = kfac * np.sqrt(rstar)
+    ch = 2.0 * etah * np.sqrt(mstar * kh)
+    sq = np.sqrt(s)
+    fn = kh * s * sq + ch * np.sqrt(sq) * vn
+    if fn < 0.0:
+        fn = 0.0
+    fx = -fn * nx
+    fy = -fn * ny
+    fz = -fn * nz
+    stmax = mu * s * strat
+    if stmax <= 0.0:
+        return fx, fy, fz, 0.0, 0.0, 0.0, fn
+    # keep the history in the current tangent plane (rotate, keep its length)
+    sn = sx * nx + sy * ny + sz * nz
+    if sn != 0.0:
+        old2 = sx * sx + sy * sy + sz * sz
+        sx -= sn * nx
+        sy -= sn * ny
+        sz -= sn * nz
+        new2 = sx * sx + sy * sy + sz * sz
+        if new2 > 0.0:
+            sc = np.sqrt(old2 / new2)
+            sx *= sc
+            sy *= sc
+            sz *= sc
+    sx += tx * dt
+    sy += ty * dt
+    sz += tz * dt
+    smag = np.sqrt(sx * sx + sy * sy + sz * sz)
+    if smag >= stmax:
+        sc = stmax / smag
+        sx *= sc
+        sy *= sc
+        sz *= sc
+        smag = stmax
+        zeta = 0.0
+    else:
+        zeta = 1.0 - smag / stmax
+    if smag > 0.0:
+        fe = mu * fn * (1.0 - zeta * np.sqrt(zeta)) / smag
+        fx -= fe * sx
+        fy -= fe * sy
+        fz -= fe * sz
+    if zeta > 0.0 and fn > 0.0:
+        cd = etat * np.sqrt(6.0 * mu * mstar * fn / stmax) * np.sqrt(np.sqrt(zeta))
+        fx -= cd * tx
+        fy -= cd * ty
+        fz -= cd * tz
+    return fx, fy, fz, sx, sy, sz, fn
+
+
+# --------------------------------------------------------------------------- force pass
+@njit(cache=True, fastmath=False)
+def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
+    row = evn[c]
+    if row >= evf.shape[0]:
+        diag[c, D_EVOVF] += 1.0
+        return -1
+    evn[c] = row + 1
+    evf[row, c, EV_T] = t
+    evf[row, c, EV_R] = r
+    evf[row, c, EV_PR] = pr
+    evf[row, c, EV_X] = cx
+    evf[row, c, EV_Y] = cy
+    evf[row, c, EV_Z] = cz
+    evf[row, c, EV_VN] = vn
+    evf[row, c, EV_VT] = vt
+    evf[row, c, EV_END] = np.nan
+    evf[row, c, EV_PEAK] = np.nan
+    evf[row, c, EV_DISS] = np.nan
+    evi[row, c, EVI_PID] = owner_pid
+    evi[row, c, EVI_KIND] = kind
+    evi[row, c, EVI_PARTNER] = partner
+    return row * evf.shape[1] + c
+
+
+@njit(cache=True, fastmath=False)
+def _close_event(evf, ref, t, peak, diss):
+    nch = evf.shape[1]
+    c = ref % nch
+    row = ref // nch
+    evf[row, c, EV_END] = t
+    evf[row, c, EV_PEAK] = peak
+    evf[row, c, EV_DISS] = diss
+
+
+@njit(cache=True, fastmath=False)
+def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
+    """Work of a contact force on the pair over one symplectic-Euler step (J).
+
+    Uses the mid-step relative velocity ``v + dv/2``, where ``dv`` is the
+    change the force itself produces (normal part through ``inv_m``, tangential
+    part through ``inv_m + inv_rot``), so the sum over a binary contact equals
+    the kinetic energy change exactly.
+    """
+    tfx = fx + fn * nx
+    tfy = fy + fn * ny
+    tfz = fz + fn * nz
+    it = inv_m + inv_rot
+    hx = vx + 0.5 * dt * (-fn * nx * inv_m + tfx * it)
+    hy = vy + 0.5 * dt * (-fn * ny * inv_m + tfy * it)
+    hz = vz + 0.5 * dt * (-fn * nz * inv_m + tfz * it)
+    return (fx * hx + fy * hy + fz * hz) * dt
+
+
+@njit(cache=True, fastmath=False)
+def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               gcur, grot, gkind, gmat, ptab, gravity,
+               h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+               g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
+               evf, evi, evn, diag):
+    """Forces and torques on the particles of chunk ``c`` (see module docstring)."""
+    n = pos.shape[0]
+    nch = diag.shape[0]
+    smax = h_pid.shape[1]
+    sgmax = g_gid.shape[1]
+    lx, ly, lz = box_len[0], box_len[1], box_len[2]
+    i0, i1 = chunk_bounds(n, nch, c)
+    ovmax = 0.0
+    for i in range(i0, i1):
+        mi = mass[i]
+        fx = mi * gravity[0]
+        fy = mi * gravity[1]
+        fz = mi * gravity[2]
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        ri = rad[i]
+        idi = pid[i]
+        xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+        # ---- particle-particle
+        for k in range(nb_start[i], nb_start[i + 1]):
+            j = nb_j[k]
+            rs = ri + rad[j]
+            dx = pos[j, 0] - xi + nb_sh[k, 0] * lx
+            dy = pos[j, 1] - yi + nb_sh[k, 1] * ly
+            dz = pos[j, 2] - zi + nb_sh[k, 2] * lz
+            if dx * dx + dy * dy + dz * dz >= rs * rs:
+                continue
+            idj = pid[j]
+            if idi < idj:
+                a = i
+                b = j
+                sgn = 1.0
+                shx, shy, shz = nb_sh[k, 0], nb_sh[k, 1], nb_sh[k, 2]
+            else:
+                a = j
+                b = i
+                sgn = -1.0
+                shx, shy, shz = -nb_sh[k, 0], -nb_sh[k, 1], -nb_sh[k, 2]
+            dx = (pos[b, 0] - pos[a, 0]) + shx * lx
+            dy = (pos[b, 1] - pos[a, 1]) + shy * ly
+            dz = (pos[b, 2] - pos[a, 2]) + shz * lz
+            d2 = dx * dx + dy * dy + dz * dz
+            ra = rad[a]
+            rb = rad[b]
+            d = np.sqrt(d2)
+            s = ra + rb - d
+            if s <= 0.0 or d == 0.0:
+                continue
+            nx = dx / d
+            ny = dy / d
+            nz = dz / d
+            la = ra - 0.5 * s
+            lb = rb - 0.5 * s
+            # relative velocity of a w.r.t. b at the contact point
+            wx = la * omg[a, 0] + lb * omg[b, 0]
+            wy = la * omg[a, 1] + lb * omg[b, 1]
+            wz = la * omg[a, 2] + lb * omg[b, 2]
+            vx = vel[a, 0] - vel[b, 0] + (wy * nz - wz * ny)
+            vy = vel[a, 1] - vel[b, 1] + (wz * nx - wx * nz)
+            vz = vel[a, 2] - vel[b, 2] + (wx * ny - wy * nx)
+            # history slot
+            slot = -1
+            for q in range(h_n[i]):
+                if h_pid[i, q] == idj:
+                    slot = q
+                    break
+            new = False
+            if slot < 0:
+                new = True
+                if h_n[i] < smax:
+                    slot = h_n[i]
+                    h_n[i] += 1
+                    h_pid[i, slot] = idj
+                    h_st[i, slot, 0] = 0.0
+                    h_st[i, slot, 1] = 0.0
+                    h_st[i, slot, 2] = 0.0
+                    h_ev[i, slot] = -1
+                    h_pk[i, slot] = 0.0
+                    h_ds[i, slot] = 0.0
+                else:
+                    diag[c, D_HOVF] += 1.0
+            if slot >= 0:
+                sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
+            else:
+                sx, sy, sz = 0.0, 0.0, 0.0
+            pr = ptab[mat[a], mat[b]]
+            rstar = ra * rb / (ra + rb)
+            mstar = 1.0 / (invm[a] + invm[b])
+            cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
+                s, nx, ny, nz, vx, vy, vz, rstar, mstar, pr[0], pr[1], pr[2], pr[3],
+                pr[4], dt, sx, sy, sz)
+            fx += sgn * cfx
+            fy += sgn * cfy
+            fz += sgn * cfz
+            li = la if a == i else lb
+            tx += li * (ny * cfz - nz * cfy)
+            ty += li * (nz * cfx - nx * cfz)
+            tz += li * (nx * cfy - ny * cfx)
+            frac = s / min(ra, rb)
+            if frac > ovmax:
+                ovmax = frac
+            if slot >= 0:
+                h_st[i, slot, 0] = sx
+                h_st[i, slot, 1] = sy
+                h_st[i, slot, 2] = sz
+                h_tch[i, slot] = 1
+                if a == i:
+                    if new:
+                        vn = vx * nx + vy * ny + vz * nz
+                        vtx = vx - vn * nx
+                        vty = vy - vn * ny
+                        vtz = vz - vn * nz
+                        h_ev[i, slot] = _record_onset(
+                            evf, evi, evn, c, t, idi, 0, idj, ri, rad[j],
+                            pos[a, 0] + nx * la, pos[a, 1] + ny * la, pos[a, 2] + nz * la,
+                            vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
+                    if s > h_pk[i, slot]:
+                        h_pk[i, slot] = s
+                    h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
+                                                invm[a] + invm[b],
+                                                la * la * invi[a] + lb * lb * invi[b], dt)
+        # ---- particle-geometry
+        for k in range(gc_start[i], gc_start[i + 1]):
+            g = gc_g[k]
+            ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur[g], xi, yi, zi, ri)
+            if not ok:
+                continue
+            li = ri - s
+            wvx = 0.0
+            wvy = 0.0
+            wvz = 0.0
+            if grot[g, 7] > 0.0:
+                om = grot[g, 6]
+                ax = om * grot[g, 3]
+                ay = om * grot[g, 4]
+                az = om * grot[g, 5]
+                px = cx - grot[g, 0]
+                py = cy - grot[g, 1]
+                pz = cz - grot[g, 2]
+                wvx = ay * pz - az * py
+                wvy = az * px - ax * pz
+                wvz = ax * py - ay * px
+            vx = vel[i, 0] + li * (omg[i, 1] * nz - omg[i, 2] * ny) - wvx
+            vy = vel[i, 1] + li * (omg[i, 2] * nx - omg[i, 0] * nz) - wvy
+            vz = vel[i, 2] + li * (omg[i, 0] * ny - omg[i, 1] * nx) - wvz
+            slot = -1
+            for q in range(g_n[i]):
+                if g_gid[i, q] == g:
+                    slot = q
+                    break
+            new = False
+            if slot < 0:
+                new = True
+                if g_n[i] < sgmax:
+                    slot = g_n[i]
+                    g_n[i] += 1
+                    g_gid[i, slot] = g
+                    g_st[i, slot, 0] = 0.0
+                    g_st[i, slot, 1] = 0.0
+                    g_st[i, slot, 2] = 0.0
+                    g_ev[i, slot] = -1
+                    g_pk[i, slot] = 0.0
+                    g_ds[i, slot] = 0.0
+                else:
+                    diag[c, D_HOVF] += 1.0
+            if slot >= 0:
+                sx, sy, sz = g_st[i, slot, 0], g_st[i, slot, 1], g_st[i, slot, 2]
+            else:
+                sx, sy, sz = 0.0, 0.0, 0.0
+            pr = ptab[mat[i], gmat[g]]
+            cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
+                s, nx, ny, nz, vx, vy, vz, ri, mi, pr[0], pr[1], pr[2], pr[3], pr[4], dt,
+                sx, sy, sz)
+            fx += cfx
+            fy += cfy
+            fz += cfz
+            tx += li * (ny * cfz - nz * cfy)
+            ty += li * (nz * cfx - nx * cfz)
+            tz += li * (nx * cfy - ny * cfx)
+            frac = s / ri
+            if frac > ovmax:
+                ovmax = frac
+            if slot >= 0:
+                g_st[i, slot, 0] = sx
+                g_st[i, slot, 1] = sy
+                g_st[i, slot, 2] = sz
+                g_tch[i, slot] = 1
+                if new:
+                    vn = vx * nx + vy * ny + vz * nz
+                    vtx = vx - vn * nx
+                    vty = vy - vn * ny
+                    vtz = vz - vn * nz
+                    g_ev[i, slot] = _record_onset(
+                        evf, evi, evn, c, t, idi, 1, g, ri, np.nan, cx, cy, cz, vn,
+                        np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
+                if s > g_pk[i, slot]:
+                    g_pk[i, slot] = s
+                g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
+                                            invm[i], li * li * invi[i], dt)
+        # ---- end of contacts: slots not touched this step
+        q = 0
+        while q < h_n[i]:
+            if h_tch[i, q] == 1:
+                h_tch[i, q] = 0
+                q += 1
+                continue
+            if h_ev[i, q] >= 0:
+                _close_event(evf, h_ev[i, q], t, h_pk[i, q], h_ds[i, q])
+            last = h_n[i] - 1
+            h_pid[i, q] = h_pid[i, last]
+            h_st[i, q, 0] = h_st[i, last, 0]
+            h_st[i, q, 1] = h_st[i, last, 1]
+            h_st[i, q, 2] = h_st[i, last, 2]
+            h_ev[i, q] = h_ev[i, last]
+            h_pk[i, q] = h_pk[i, last]
+            h_ds[i, q] = h_ds[i, last]
+            h_tch[i, q] = h_tch[i, last]
+            h_tch[i, last] = 0
+            h_n[i] = last
+        q = 0
+        while q < g_n[i]:
+            if g_tch[i, q] == 1:
+                g_tch[i, q] = 0
+                q += 1
+                continue
+            if g_ev[i, q] >= 0:
+                _close_event(evf, g_ev[i, q], t, g_pk[i, q], g_ds[i, q])
+            last = g_n[i] - 1
+            g_gid[i, q] = g_gid[i, last]
+            g_st[i, q, 0] = g_st[i, last, 0]
+            g_st[i, q, 1] = g_st[i, last, 1]
+            g_st[i, q, 2] = g_st[i, last, 2]
+            g_ev[i, q] = g_ev[i, last]
+            g_pk[i, q] = g_pk[i, last]
+            g_ds[i, q] = g_ds[i, last]
+            g_tch[i, q] = g_tch[i, last]
+            g_tch[i, last] = 0
+            g_n[i] = last
+        frc[i, 0] = fx
+        frc[i, 1] = fy
+        frc[i, 2] = fz
+        trq[i, 0] = tx
+        trq[i, 1] = ty
+        trq[i, 2] = tz
+    diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               gcur, grot, gkind, gmat, ptab, gravity,
+               h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+               g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
+               evf, evi, evn, diag):
+    """Force pass, parallel over particle chunks."""
+    for c in prange(diag.shape[0]):
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+
+
+@njit(cache=True, fastmath=False)
+def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               gcur, grot, gkind, gmat, ptab, gravity,
+               h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+               g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
+               evf, evi, evn, diag):
+    """Force pass, serial (small systems: no thread wake-up cost)."""
+    for c in range(diag.shape[0]):
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+
+
+@njit(cache=True, fastmath=False)
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+    """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
+    n = pos.shape[0]
+    nch = diag.shape[0]
+    nsink = sinks.shape[0]
+    i0, i1 = chunk_bounds(n, nch, c)
+    dmax = 0.0
+    vmax = 0.0
+    nflag = 0
+    for i in range(i0, i1):
+        im = invm[i]
+        ii = invi[i]
+        v0 = vel[i, 0] + frc[i, 0] * im * dt
+        v1 = vel[i, 1] + frc[i, 1] * im * dt
+        v2 = vel[i, 2] + frc[i, 2] * im * dt
+        vel[i, 0] = v0
+        vel[i, 1] = v1
+        vel[i, 2] = v2
+        omg[i, 0] += trq[i, 0] * ii * dt
+        omg[i, 1] += trq[i, 1] * ii * dt
+        omg[i, 2] += trq[i, 2] * ii * dt
+        x = pos[i, 0] + v0 * dt
+        y = pos[i, 1] + v1 * dt
+        z = pos[i, 2] + v2 * dt
+        pos[i, 0] = x
+        pos[i, 1] = y
+        pos[i, 2] = z
+        ex = x - x0[i, 0]
+        ey = y - x0[i, 1]
+        ez = z - x0[i, 2]
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 > dmax:
+            dmax = d2
+        sp = v0 * v0 + v1 * v1 + v2 * v2
+        if sp > vmax:
+            vmax = sp
+        if flag[i] != F_OK:
+            continue
+        if not (np.isfinite(d2) and np.isfinite(sp)):
+            flag[i] = F_NONFINITE
+            flag_t[i] = t_new
+            nflag += 1
+            continue
+        for k in range(nsink):
+            if (x >= sinks[k, 0] and x <= sinks[k, 3] and y >= sinks[k, 1]
+                    and y <= sinks[k, 4] and z >= sinks[k, 2] and z <= sinks[k, 5]):
+                flag[i] = 2 + k
+                flag_t[i] = t_new
+                nflag += 1
+                break
+        if flag[i] != F_OK:
+            continue
+        if ((periodic[0] == 0 and (x < lo[0] or x > hi[0]))
+                or (periodic[1] == 0 and (y < lo[1] or y > hi[1]))
+                or (periodic[2] == 0 and (z < lo[2] or z > hi[2]))):
+            flag[i] = F_LOST
+            flag_t[i] = t_new
+            nflag += 1
+    diag[c, D_DISP2] = max(diag[c, D_DISP2], dmax)
+    diag[c, D_SPEED2] = max(diag[c, D_SPEED2], vmax)
+    diag[c, D_FLAGGED] += nflag
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+    """Integration pass, parallel over chunks."""
+    for c in prange(diag.shape[0]):
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+
+
+@njit(cache=True, fastmath=False)
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+    """Integration pass, serial."""
+    for c in range(diag.shape[0]):
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+
+
+@njit(cache=True, fastmath=False)
+def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+            x0, flag, flag_t, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+            gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
+            h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+            g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
+    """Run up to ``nsteps`` steps from time ``t0``; return (steps done, reason).
+
+    ``parallel`` selects the threaded passes (worth it from a few thousand
+    particles; below that the thread wake-up per pass dominates).
+    """
+    half_skin2 = (0.5 * skin) ** 2
+    ev_limit = evf.shape[0] // 2
+    for step in range(nsteps):
+        t = t0 + step * dt
+        update_geometry(gref, grot, gkind, t, gcur)
+        if parallel:
+            force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+                nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag,
+                flag_t, lo, hi, periodic, sinks, diag)
+        else:
+            force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+                nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
+                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag,
+                flag_t, lo, hi, periodic, sinks, diag)
+        dmax = 0.0
+        nflag = 0.0
+        for c in range(diag.shape[0]):
+            dmax = max(dmax, diag[c, D_DISP2])
+            nflag += diag[c, D_FLAGGED]
+        if nflag > 0:
+            return step + 1, R_FLAGGED
+        if dmax > half_skin2:
+            return step + 1, R_REBUILD
+        for c in range(evn.shape[0]):
+            if evn[c] > ev_limit:
+                return step + 1, R_EVFULL
+    return nsteps, R_DONE
+
+
+# --------------------------------------------------------------------------- neighbour search
+@njit(cache=True, fastmath=False)
+def wrap_positions(pos, lo, box_len, periodic):
+    """Map positions into the periodic box along periodic axes."""
+    for i in range(pos.shape[0]):
+        for a in range(3):
+            if periodic[a] != 0:
+                L = box_len[a]
+                x = pos[i, a] - lo[a]
+                if x < 0.0 or x >= L:
+                    x -= np.floor(x / L) * L
+                    if x >= L:
+                        x -= L
+                    pos[i, a] = lo[a] + x
+
+
+@njit(cache=True, fastmath=False)
+def bin_cells(pos, lo, cell_len, ncell):
+    """Counting sort of particles into cells; return (cell of each, cell start, order)."""
+    n = pos.shape[0]
+    nx, ny, nz = ncell[0], ncell[1], ncell[2]
+    ntot = nx * ny * nz
+    cell = np.empty(n, np.int64)
+    for i in range(n):
+        cx = int(np.floor((pos[i, 0] - lo[0]) / cell_len[0]))
+        cy = int(np.floor((pos[i, 1] - lo[1]) / cell_len[1]))
+        cz = int(np.floor((pos[i, 2] - lo[2]) / cell_len[2]))
+        cx = min(max(cx, 0), nx - 1)
+        cy = min(max(cy, 0), ny - 1)
+        cz = min(max(cz, 0), nz - 1)
+        cell[i] = (cz * ny + cy) * nx + cx
+    start = np.zeros(ntot + 1, np.int64)
+    for i in range(n):
+        start[cell[i] + 1] += 1
+    for k in range(ntot):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    return cell, start, order
+
+
+@njit(cache=True, fastmath=False)
+def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+    pos.shape[0]
+    nx, ny, nz = ncell[0], ncell[1], ncell[2]
+    ci = cell[i]
+    cx = ci % nx
+    cy = (ci // nx) % ny
+    cz = ci // (nx * ny)
+    xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+    ri = rad[i]
+    cnt = 0
+    k = 0
+    if not count_only:
+        k = nb_start[i]
+    for oz in range(-1, 2):
+        qz = cz + oz
+        sz = 0
+        if qz < 0:
+            if periodic[2] == 0 or nz < 3:
+                continue
+            qz += nz
+            sz = -1
+        elif qz >= nz:
+            if periodic[2] == 0 or nz < 3:
+                continue
+            qz -= nz
+            sz = 1
+        for oy in range(-1, 2):
+            qy = cy + oy
+            sy = 0
+            if qy < 0:
+                if periodic[1] == 0 or ny < 3:
+                    continue
+                qy += ny
+                sy = -1
+            elif qy >= ny:
+                if periodic[1] == 0 or ny < 3:
+                    continue
+                qy -= ny
+                sy = 1
+            for ox in range(-1, 2):
+                qx = cx + ox
+                sx = 0
+                if qx < 0:
+                    if periodic[0] == 0 or nx < 3:
+                        continue
+                    qx += nx
+                    sx = -1
+                elif qx >= nx:
+                    if periodic[0] == 0 or nx < 3:
+                        continue
+                    qx -= nx
+                    sx = 1
+                q = (qz * ny + qy) * nx + qx
+                for p in range(start[q], start[q + 1]):
+                    j = order[p]
+                    if j == i:
+                        continue
+                    dx = pos[j, 0] + sx * box_len[0] - xi
+                    dy = pos[j, 1] + sy * box_len[1] - yi
+                    dz = pos[j, 2] + sz * box_len[2] - zi
+                    cut = ri + rad[j] + skin
+                    if dx * dx + dy * dy + dz * dz < cut * cut:
+                        if count_only:
+                            cnt += 1
+                        else:
+                            nb_j[k] = j
+                            nb_sh[k, 0] = sx
+                            nb_sh[k, 1] = sy
+                            nb_sh[k, 2] = sz
+                            k += 1
+    if count_only:
+        counts[i] = cnt
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+    for i in prange(pos.shape[0]):
+        _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+
+
+@njit(cache=True, fastmath=False)
+def _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+    for i in range(pos.shape[0]):
+        _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+
+
+@njit(cache=True, fastmath=False)
+def build_neighbours(pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel):
+    """Full Verlet list in CSR form: (start, partner index, periodic shift)."""
+    n = pos.shape[0]
+    counts = np.zeros(n, np.int64)
+    nb_start = np.zeros(n + 1, np.int64)
+    dummy_j = np.zeros(0, np.int32)
+    dummy_sh = np.zeros((0, 3), np.int8)
+    if parallel:
+        _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+                             nb_start, dummy_j, dummy_sh, True, counts)
+    else:
+        _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+                             nb_start, dummy_j, dummy_sh, True, counts)
+    for i in range(n):
+        nb_start[i + 1] = nb_start[i] + counts[i]
+    nb_j = np.empty(nb_start[n], np.int32)
+    nb_sh = np.empty((nb_start[n], 3), np.int8)
+    if parallel:
+        _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+                             nb_start, nb_j, nb_sh, False, counts)
+    else:
+        _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+                             nb_start, nb_j, nb_sh, False, counts)
+    return nb_start, nb_j, nb_sh
+
+
+@njit(cache=True, fastmath=False)
+def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
+    m = r + skin
+    if grot[g, 7] > 0.0:
+        if gkind[g] == PLANE:
+            return True
+        px = x - grot[g, 0]
+        py = y - grot[g, 1]
+        pz = z - grot[g, 2]
+        a = px * grot[g, 3] + py * grot[g, 4] + pz * grot[g, 5]
+        qx = px - a * grot[g, 3]
+        qy = py - a * grot[g, 4]
+        qz = pz - a * grot[g, 5]
+        rho = np.sqrt(qx * qx + qy * qy + qz * qz)
+        return (rho >= gbound[g, 0] - m and rho <= gbound[g, 1] + m
+                and a >= gbound[g, 2] - m and a <= gbound[g, 3] + m)
+    if (x < gbound[g, 0] - m or y < gbound[g, 1] - m or z < gbound[g, 2] - m
+            or x > gbound[g, 3] + m or y > gbound[g, 4] + m or z > gbound[g, 5] + m):
+        return False
+    ok = geom_contact(gkind[g], gcur[g], x, y, z, m)[0]
+    return ok
+
+
+@njit(cache=True, fastmath=False)
+def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
+    pos.shape[0]
+    ng = gkind.shape[0]
+    k = 0 if count_only else gc_start[i]
+    cnt = 0
+    for g in range(ng):
+        if _geom_candidate(g, pos[i, 0], pos[i, 1], pos[i, 2], rad[i], skin, gcur, grot,
+                           gkind, gbound):
+            if count_only:
+                cnt += 1
+            else:
+                gc_g[k] = g
+                k += 1
+    if count_only:
+        counts[i] = cnt
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
+    for i in prange(pos.shape[0]):
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts)
+
+
+@njit(cache=True, fastmath=False)
+def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
+    for i in range(pos.shape[0]):
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts)
+
+
+@njit(cache=True, fastmath=False)
+def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, parallel):
+    """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus."""
+    n = pos.shape[0]
+    counts = np.zeros(n, np.int64)
+    gc_start = np.zeros(n + 1, np.int64)
+    dummy = np.zeros(0, np.int32)
+    if parallel:
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, dummy, True, counts)
+    else:
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, dummy, True, counts)
+    for i in range(n):
+        gc_start[i + 1] = gc_start[i] + counts[i]
+    gc_g = np.empty(gc_start[n], np.int32)
+    if parallel:
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, False, counts)
+    else:
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, False, counts)
+    return gc_start, gc_g
+
+
+# --------------------------------------------------------------------------- diagnostics
+@njit(cache=True, fastmath=False)
+def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len, ptab,
+                             gc_start, gc_g, gcur, gkind, gmat):
+    """Elastic energy stored in normal contacts, sum of 2/5 K_H s^{5/2} (J)."""
+    e = 0.0
+    for i in range(pos.shape[0]):
+        for k in range(nb_start[i], nb_start[i + 1]):
+            j = nb_j[k]
+            if pid[j] < pid[i]:
+                continue
+            dx = pos[j, 0] - pos[i, 0] + nb_sh[k, 0] * box_len[0]
+            dy = pos[j, 1] - pos[i, 1] + nb_sh[k, 1] * box_len[1]
+            dz = pos[j, 2] - pos[i, 2] + nb_sh[k, 2] * box_len[2]
+            s = rad[i] + rad[j] - np.sqrt(dx * dx + dy * dy + dz * dz)
+            if s > 0:
+                rstar = rad[i] * rad[j] / (rad[i] + rad[j])
+                e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
+        for k in range(gc_start[i], gc_start[i + 1]):
+            g = gc_g[k]
+            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur[g], pos[i, 0], pos[i, 1],
+                                                         pos[i, 2], rad[i])
+            if ok:
+                e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5
+    return e
+
+
+@njit(cache=True, fastmath=False)
+def place_without_overlap(cand, radii, ex_pos, ex_rad):
+    """Pick, for each new particle, the first candidate position free of overlap.
+
+    ``cand`` has shape (n_new, n_try, 3). Returns the accepted positions and a
+    boolean mask (False when every try overlapped).
+    """
+    nnew, ntry = cand.shape[0], cand.shape[1]
+    out = np.empty((nnew, 3))
+    okm = np.zeros(nnew, np.bool_)
+    nex = ex_pos.shape[0]
+    for p in range(nnew):
+        r = radii[p]
+        for tr in range(ntry):
+            x, y, z = cand[p, tr, 0], cand[p, tr, 1], cand[p, tr, 2]
+            free = True
+            for j in range(nex):
+                dx = ex_pos[j, 0] - x
+                dy = ex_pos[j, 1] - y
+                dz = ex_pos[j, 2] - z
+                rr = ex_rad[j] + r
+                if dx * dx + dy * dy + dz * dz < rr * rr:
+                    free = False
+                    break
+            if free:
+                for q in range(p):
+                    if not okm[q]:
+                        continue
+                    dx = out[q, 0] - x
+                    dy = out[q, 1] - y
+                    dz = out[q, 2] - z
+                    rr = radii[q] + r
+                    if dx * dx + dy * dy + dz * dz < rr * rr:
+                        free = False
+                        break
+            if free:
+                out[p, 0] = x
+                out[p, 1] = y
+                out[p, 2] = z
+                okm[p] = True
+                break
+    return out, okm

@@ -1,0 +1,111 @@
+"""Event recorder: per-chunk onset buffers filled by the kernels, flushed to columns.
+
+The kernels write one row per new contact into ``evf`` (float columns) and
+``evi`` (int columns), both shaped ``(capacity, n_chunks, n_columns)``, and
+keep a reference ``row * n_chunks + chunk`` in the contact's history slot so
+the end fields (end time, peak overlap, dissipated energy) can be filled when
+the contact ends. :meth:`EventRecorder.flush` moves finished rows to growing
+column chunks and compacts the open ones (remapping the references held by
+the history slots), so memory holds only open contacts plus the finished
+columns.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from msmill.dem import kernels as K
+
+FLOAT_COLUMNS = ["time_s", "radius_m", "partner_radius_m", "x_m", "y_m", "z_m", "vn_m_s",
+                 "vt_m_s", "end_time_s", "peak_overlap_m", "dissipated_j"]
+INT_COLUMNS = ["particle_id", "partner_kind", "partner_id"]
+EVENT_COLUMNS = ["time_s", "particle_id", "partner_kind", "partner_id", "radius_m",
+                 "partner_radius_m", "x_m", "y_m", "z_m", "vn_m_s", "vt_m_s", "end_time_s",
+                 "peak_overlap_m", "dissipated_j"]
+
+
+class EventRecorder:
+    """Preallocated onset buffers plus finished-event columns.
+
+    Parameters
+    ----------
+    n_chunks : int
+        Number of particle chunks of the force pass (one buffer each).
+    capacity : int
+        Initial rows per chunk.
+    """
+
+    def __init__(self, n_chunks: int, capacity: int = 4096) -> None:
+        self.n_chunks = n_chunks
+        self.evf = np.zeros((capacity, n_chunks, K.N_EVF))
+        self.evi = np.zeros((capacity, n_chunks, K.N_EVI), np.int64)
+        self.evn = np.zeros(n_chunks, np.int64)
+        self._done_f: list[np.ndarray] = []
+        self._done_i: list[np.ndarray] = []
+        self.lost = 0
+
+    @property
+    def capacity(self) -> int:
+        """Rows per chunk."""
+        return self.evf.shape[0]
+
+    def flush(self, refs: list[np.ndarray]) -> None:
+        """Move finished rows out, compact open ones and remap ``refs`` in place.
+
+        Parameters
+        ----------
+        refs : list of int64 arrays
+            History-slot event references (``-1`` = none) to remap.
+        """
+        nch = self.n_chunks
+        cap = self.capacity
+        new_row = np.full((cap, nch), -1, np.int64)
+        n_open = np.zeros(nch, np.int64)
+        for c in range(nch):  # loop over a handful of chunks, not events
+            rows = int(self.evn[c])
+            f = self.evf[:rows, c]
+            i = self.evi[:rows, c]
+            closed = ~np.isnan(f[:, K.EV_END])
+            if closed.any():
+                self._done_f.append(f[closed].copy())
+                self._done_i.append(i[closed].copy())
+            op = ~closed
+            k = int(op.sum())
+            new_row[np.nonzero(op)[0], c] = np.arange(k)
+            self.evf[:k, c] = f[op]
+            self.evi[:k, c] = i[op]
+            self.evn[c] = k
+            n_open[c] = k
+        for r in refs:
+            m = r >= 0
+            if m.any():
+                v = r[m]
+                row = new_row[v // nch, v % nch]
+                r[m] = np.where(row >= 0, row * nch + v % nch, -1)
+        if n_open.max() > cap // 4:
+            self._grow(2 * cap)
+
+    def _grow(self, cap: int) -> None:
+        old = self.capacity
+        evf = np.zeros((cap, self.n_chunks, K.N_EVF))
+        evi = np.zeros((cap, self.n_chunks, K.N_EVI), np.int64)
+        evf[:old] = self.evf
+        evi[:old] = self.evi
+        self.evf, self.evi = evf, evi
+
+    def frame(self) -> pd.DataFrame:
+        """All events (finished and open) as a DataFrame sorted by onset time."""
+        fs = list(self._done_f)
+        is_ = list(self._done_i)
+        for c in range(self.n_chunks):
+            rows = int(self.evn[c])
+            fs.append(self.evf[:rows, c])
+            is_.append(self.evi[:rows, c])
+        f = np.concatenate(fs) if fs else np.zeros((0, K.N_EVF))
+        i = np.concatenate(is_) if is_ else np.zeros((0, K.N_EVI), np.int64)
+        data = {name: f[:, k] for k, name in enumerate(FLOAT_COLUMNS)}
+        data.update({name: i[:, k] for k, name in enumerate(INT_COLUMNS)})
+        data["partner_kind"] = data["partner_kind"].astype(np.int8)
+        df = pd.DataFrame({name: data[name] for name in EVENT_COLUMNS})
+        return df.sort_values(["time_s", "particle_id"], kind="stable").reset_index(drop=True)

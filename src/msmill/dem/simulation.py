@@ -1,0 +1,873 @@
+"""The DEM ``Simulation``: a Python front end that validates, packs and drives the kernels.
+
+See ARCHITECTURE.md ("DEM engine API") for the contract and docs/dem.md for
+the physics, the numerics and the checks.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.dem import kernels as K
+from msmill.dem.contact import hertz_contact_time, pair_table
+from msmill.dem.geometry import (
+    BOX,
+    CYL,
+    KIND_NAMES,
+    NG,
+    PLANE,
+    Rotation,
+    bound_row,
+    orthonormal_axes,
+    vec3,
+)
+from msmill.dem.io import write_parquet, write_vtu
+from msmill.dem.recorder import EventRecorder
+from msmill.errors import MsmillError, MsmillInputError
+
+
+class DemRuntimeWarning(UserWarning):
+    """A run-time check of the DEM failed softly (overlap, travel per step, lost particles)."""
+
+
+class DemRuntimeError(MsmillError, RuntimeError):
+    """The DEM state became invalid (non-finite values)."""
+
+
+# per-particle arrays and their trailing shapes; every one is permuted together
+_P_FLOAT3 = ("pos", "vel", "omg", "frc", "trq", "x0")
+_P_SCALAR = ("rad", "mass", "invm", "invi", "flag_t")
+
+
+def _pos_number(name: str, value: Any, *, allow_zero: bool = False, allow_inf: bool = False
+                ) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    ok = (v >= 0 if allow_zero else v > 0) and (math.isfinite(v) or (allow_inf and v > 0))
+    if not ok:
+        what = ">= 0" if allow_zero else "> 0"
+        raise MsmillInputError(name, value, f"a finite number {what}")
+    return v
+
+
+class Simulation:
+    """A DEM simulation of spheres with analytic (optionally rotating) geometry.
+
+    Parameters
+    ----------
+    domain_min_m, domain_max_m : sequence of 3 float
+        Corners of the simulation box (m). Along non-periodic axes particles
+        whose centre leaves the box are deleted as ``lost`` (with a warning).
+    periodic : sequence of 3 bool
+        Periodic axes.
+    gravity_m_s2 : sequence of 3 float
+        Gravitational acceleration (m/s^2).
+    neighbor_skin_m : float, optional
+        Verlet skin (m); default half the smallest particle radius at the
+        first run.
+    sort_every : int
+        Sort particles by cell every this many neighbour-list rebuilds.
+    n_chunks : int, optional
+        Particle chunks of the parallel loops (default 4 x numba threads).
+    max_contacts_per_particle, max_geometry_contacts : int
+        History slots per particle (particle and geometry partners).
+    parallel_min_particles : int
+        Use the threaded kernels from this many particles on (below, the
+        thread wake-up per pass costs more than it saves).
+    """
+
+    def __init__(self, domain_min_m=(0.0, 0.0, 0.0), domain_max_m=(1.0, 1.0, 1.0),
+                 periodic=(False, False, False), gravity_m_s2=(0.0, 0.0, -9.81), *,
+                 neighbor_skin_m: float | None = None, sort_every: int = 20,
+                 n_chunks: int | None = None, max_contacts_per_particle: int = 16,
+                 max_geometry_contacts: int = 8, parallel_min_particles: int = 3000) -> None:
+        self._lo = vec3("domain_min_m", domain_min_m)
+        self._hi = vec3("domain_max_m", domain_max_m)
+        if np.any(self._hi <= self._lo):
+            raise MsmillInputError("domain_max_m", domain_max_m, "every component > domain_min_m")
+        try:
+            per = [bool(p) for p in periodic]
+        except TypeError:
+            per = []
+        if len(per) != 3:
+            raise MsmillInputError("periodic", periodic, "three booleans")
+        self._periodic = np.array(per, np.int8)
+        self._gravity = vec3("gravity_m_s2", gravity_m_s2)
+        self._skin = (None if neighbor_skin_m is None
+                      else _pos_number("neighbor_skin_m", neighbor_skin_m))
+        if int(sort_every) < 1:
+            raise MsmillInputError("sort_every", sort_every, "an integer >= 1")
+        self._sort_every = int(sort_every)
+        import numba
+
+        self._nch = int(n_chunks) if n_chunks else 4 * numba.get_num_threads()
+        if self._nch < 1:
+            raise MsmillInputError("n_chunks", n_chunks, "an integer >= 1")
+        self._par_min = int(parallel_min_particles)
+        self._smax = int(max_contacts_per_particle)
+        self._sgmax = int(max_geometry_contacts)
+        if self._smax < 1 or self._sgmax < 1:
+            raise MsmillInputError("max_contacts_per_particle", (self._smax, self._sgmax),
+                                   "integers >= 1")
+        self._materials: list[dict] = []
+        self._mat_index: dict[str, int] = {}
+        self._interactions: dict[tuple[int, int], dict] = {}
+        self._geoms: list[dict] = []
+        self._sources: list[dict] = []
+        self._sinks: list[dict] = []
+        self._time = 0.0
+        self._dt: float | None = None
+        self._next_id = 0
+        self._p = self._empty_particles()
+        self._rec = EventRecorder(self._nch)
+        self._removed: list[dict[str, np.ndarray]] = []
+        self._ts: list[tuple] = []
+        self._snaps: list[tuple[float, pd.DataFrame]] = []
+        self._mass_out = 0.0
+        self._n_lost = 0
+        self._dirty = True  # geometry/material tables need packing
+        self._need_rebuild = True
+        self._n_rebuilds = 0
+        self._warned: set[str] = set()
+        self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
+
+    # ------------------------------------------------------------------ declaration
+    def add_material(self, name: str, *, youngs_modulus_pa: float, poisson_ratio: float,
+                     density_kg_m3: float) -> int:
+        """Declare a material; ``youngs_modulus_pa=inf`` makes a rigid wall material.
+
+        Returns
+        -------
+        int
+            Material index.
+        """
+        if not isinstance(name, str) or not name:
+            raise MsmillInputError("material name", name, "a non-empty string")
+        if name in self._mat_index:
+            raise MsmillInputError("material name", name, "a name not declared before")
+        e = _pos_number("youngs_modulus_pa", youngs_modulus_pa, allow_inf=True)
+        nu = float(poisson_ratio)
+        if not (-1.0 < nu < 0.5):
+            raise MsmillInputError("poisson_ratio", poisson_ratio, "a number in (-1, 0.5)")
+        rho = _pos_number("density_kg_m3", density_kg_m3)
+        self._mat_index[name] = len(self._materials)
+        self._materials.append({"name": name, "E": e, "nu": nu, "rho": rho})
+        self._dirty = True
+        return self._mat_index[name]
+
+    def _mat(self, name: str) -> int:
+        if name not in self._mat_index:
+            raise MsmillInputError("material", name, f"one of {sorted(self._mat_index)}")
+        return self._mat_index[name]
+
+    def set_interaction(self, material_a: str, material_b: str, *, restitution: float,
+                        friction: float, tangential_damping: float | None = None) -> None:
+        """Set restitution and friction of a material pair (order-free).
+
+        ``tangential_damping`` is ``eta_tau`` of paper Eq. 10 (default: equal
+        to the calibrated ``eta_H``).
+        """
+        a, b = self._mat(material_a), self._mat(material_b)
+        e = float(restitution)
+        if not (0.0 < e <= 1.0):
+            raise MsmillInputError("restitution", restitution, "a number in (0, 1]")
+        mu = float(friction)
+        if not (mu >= 0.0 and math.isfinite(mu)):
+            raise MsmillInputError("friction", friction, "a finite number >= 0")
+        if tangential_damping is not None:
+            tangential_damping = _pos_number("tangential_damping", tangential_damping,
+                                             allow_zero=True)
+        self._interactions[(min(a, b), max(a, b))] = {
+            "restitution": e, "friction": mu, "tangential_damping": tangential_damping}
+        self._dirty = True
+
+    def _add_geom(self, kind: int, ref: np.ndarray, material: str, tag: str, group: int,
+                  rotation: Rotation | None, thickness: float) -> int:
+        if rotation is not None and not isinstance(rotation, Rotation):
+            raise MsmillInputError("rotation", rotation, "a msmill.dem.Rotation or None")
+        if not isinstance(tag, str):
+            raise MsmillInputError("tag", tag, "a string")
+        rot = rotation.row() if rotation is not None else np.zeros(8)
+        row = np.zeros(NG)
+        row[: ref.size] = ref
+        gid = len(self._geoms)
+        self._geoms.append({"kind": kind, "ref": row, "rot": rot, "mat": self._mat(material),
+                            "tag": tag, "group": int(group), "thickness": thickness})
+        self._dirty = True
+        self._need_rebuild = True
+        return gid
+
+    def add_plane(self, point_m, normal, *, material: str, tag: str = "plane", group: int = 0,
+                  rotation: Rotation | None = None) -> int:
+        """Infinite plane; particles live on the side ``normal`` points to. Returns the geom id."""
+        ref = np.concatenate([vec3("point_m", point_m), vec3("normal", normal, unit=True)])
+        return self._add_geom(PLANE, ref, material, tag, group, rotation, np.inf)
+
+    def add_box(self, center_m, half_extents_m, axes=None, *, material: str, tag: str = "box",
+                group: int = 0, rotation: Rotation | None = None) -> int:
+        """Oriented box (solid); rows of ``axes`` are its local x, y, z axes. Returns the geom id.
+
+        A zero half extent gives a finite plate of zero thickness.
+        """
+        h = vec3("half_extents_m", half_extents_m)
+        if np.any(h < 0):
+            raise MsmillInputError("half_extents_m", half_extents_m, "three numbers >= 0")
+        ax = orthonormal_axes("axes", axes)
+        ref = np.concatenate([vec3("center_m", center_m), ax.ravel(), h])
+        return self._add_geom(BOX, ref, material, tag, group, rotation, 2 * float(h.min()))
+
+    def add_plate(self, center_m, half_size_m, axes=None, *, thickness_m: float = 0.0,
+                  material: str, tag: str = "plate", group: int = 0,
+                  rotation: Rotation | None = None) -> int:
+        """Finite plate in the local x-y plane of ``axes`` (a thin box). Returns the geom id."""
+        hs = np.asarray(half_size_m, float).reshape(-1)
+        if hs.size != 2 or np.any(~np.isfinite(hs)) or np.any(hs <= 0):
+            raise MsmillInputError("half_size_m", half_size_m, "two numbers > 0")
+        t = _pos_number("thickness_m", thickness_m, allow_zero=True)
+        return self.add_box(center_m, (hs[0], hs[1], 0.5 * t), axes, material=material, tag=tag,
+                            group=group, rotation=rotation)
+
+    def add_cylinder(self, p0_m, p1_m, radius_m: float, *, material: str, tag: str = "cylinder",
+                     group: int = 0, rotation: Rotation | None = None,
+                     inside: bool = False) -> int:
+        """Finite cylinder from ``p0_m`` to ``p1_m``. Returns the geom id.
+
+        ``inside=False``: solid capped cylinder (hub, shaft), particles outside.
+        ``inside=True``: open tube, particles inside (liner, drum).
+        """
+        p0 = vec3("p0_m", p0_m)
+        p1 = vec3("p1_m", p1_m)
+        ln = float(np.linalg.norm(p1 - p0))
+        if ln <= 0:
+            raise MsmillInputError("p1_m", p1_m, "a point different from p0_m")
+        rc = _pos_number("radius_m", radius_m)
+        ref = np.concatenate([p0, (p1 - p0) / ln, [ln, rc, 1.0 if inside else 0.0]])
+        return self._add_geom(CYL, ref, material, tag, group, rotation, np.inf)
+
+    def add_particles(self, positions_m, radii_m, velocities_m_s=None, *, material: str,
+                      angular_velocities_rad_s=None) -> np.ndarray:
+        """Add particles (no overlap check). Returns their ids (int64)."""
+        pos = np.asarray(positions_m, float)
+        if pos.ndim == 1 and pos.size == 3:
+            pos = pos.reshape(1, 3)
+        if pos.ndim != 2 or pos.shape[1] != 3 or not np.all(np.isfinite(pos)):
+            raise MsmillInputError("positions_m", positions_m, "an (n, 3) array of finite numbers")
+        n = pos.shape[0]
+        rad = np.broadcast_to(np.asarray(radii_m, float), (n,)).copy() if n else np.zeros(0)
+        if n and (not np.all(np.isfinite(rad)) or np.any(rad <= 0)):
+            raise MsmillInputError("radii_m", radii_m, "finite numbers > 0")
+        vel = self._vec_array("velocities_m_s", velocities_m_s, n)
+        omg = self._vec_array("angular_velocities_rad_s", angular_velocities_rad_s, n)
+        return self._append(pos, rad, vel, omg, self._mat(material))
+
+    @staticmethod
+    def _vec_array(name: str, value, n: int) -> np.ndarray:
+        if value is None:
+            return np.zeros((n, 3))
+        try:
+            v = np.broadcast_to(np.asarray(value, float), (n, 3)).copy()
+        except ValueError:
+            raise MsmillInputError(name, value, "an (n, 3) array or one 3-vector") from None
+        if not np.all(np.isfinite(v)):
+            raise MsmillInputError(name, value, "finite numbers")
+        return v
+
+    def add_source(self, region_min_m, region_max_m, mass_flow_kg_s: float, *, radii_m,
+                   velocity_m_s=(0.0, 0.0, 0.0), material: str, start_s: float = 0.0,
+                   stop_s: float | None = None, seed: int = 0,
+                   insert_interval_s: float = 1e-3, n_tries: int = 50) -> int:
+        """Insert particles at ``mass_flow_kg_s`` without overlap in a box region.
+
+        Parameters
+        ----------
+        radii_m : float, array or (values, weights)
+            A fixed radius, an empirical sample drawn from uniformly, or values
+            with number weights (m).
+        insert_interval_s : float
+            Particles are inserted in batches at this interval (s); the mass
+            owed accumulates, so the mean rate is exact.
+        """
+        lo = vec3("region_min_m", region_min_m)
+        hi = vec3("region_max_m", region_max_m)
+        if np.any(hi <= lo):
+            raise MsmillInputError("region_max_m", region_max_m, "every component > region_min_m")
+        rate = _pos_number("mass_flow_kg_s", mass_flow_kg_s)
+        if isinstance(radii_m, tuple) and len(radii_m) == 2:
+            vals = np.asarray(radii_m[0], float).reshape(-1)
+            w = np.asarray(radii_m[1], float).reshape(-1)
+            if vals.size != w.size or np.any(w < 0) or w.sum() <= 0:
+                raise MsmillInputError("radii_m", radii_m, "(values, weights) of equal length, "
+                                                           "weights >= 0 with positive sum")
+            w = w / w.sum()
+        else:
+            vals = np.asarray(radii_m, float).reshape(-1)
+            w = np.full(vals.size, 1.0 / max(vals.size, 1))
+        if vals.size == 0 or not np.all(np.isfinite(vals)) or np.any(vals <= 0):
+            raise MsmillInputError("radii_m", radii_m, "radii > 0 (m)")
+        if np.any(2 * vals.max() >= hi - lo):
+            raise MsmillInputError("radii_m", float(vals.max()), "a diameter smaller than the "
+                                                                 "source region")
+        stop = np.inf if stop_s is None else float(stop_s)
+        mi = self._mat(material)
+        self._sources.append({
+            "lo": lo, "hi": hi, "rate": rate, "vals": vals, "w": w,
+            "vel": vec3("velocity_m_s", velocity_m_s), "mat": mi,
+            "start": float(start_s), "stop": stop, "rng": np.random.default_rng(seed),
+            "interval": _pos_number("insert_interval_s", insert_interval_s),
+            "tries": int(n_tries), "debt": 0.0, "last": float(start_s),
+            "next": float(start_s), "pending": None, "inserted_kg": 0.0})
+        return len(self._sources) - 1
+
+    def add_sink(self, region_min_m, region_max_m, *, tag: str = "outlet") -> int:
+        """Delete particles whose centre enters the box region; recorded in :meth:`removed`."""
+        lo = vec3("region_min_m", region_min_m)
+        hi = vec3("region_max_m", region_max_m)
+        if np.any(hi <= lo):
+            raise MsmillInputError("region_max_m", region_max_m, "every component > region_min_m")
+        self._sinks.append({"lo": lo, "hi": hi, "tag": str(tag)})
+        return len(self._sinks) - 1
+
+    # ------------------------------------------------------------------ particle storage
+    def _empty_particles(self) -> dict[str, np.ndarray]:
+        p: dict[str, np.ndarray] = {k: np.zeros((0, 3)) for k in _P_FLOAT3}
+        p.update({k: np.zeros(0) for k in _P_SCALAR})
+        p["mat"] = np.zeros(0, np.int32)
+        p["pid"] = np.zeros(0, np.int64)
+        p["flag"] = np.zeros(0, np.int32)
+        s, sg = self._smax, self._sgmax
+        p["h_pid"] = np.zeros((0, s), np.int64)
+        p["h_st"] = np.zeros((0, s, 3))
+        p["h_ev"] = np.zeros((0, s), np.int64)
+        p["h_pk"] = np.zeros((0, s))
+        p["h_ds"] = np.zeros((0, s))
+        p["h_n"] = np.zeros(0, np.int32)
+        p["h_tch"] = np.zeros((0, s), np.uint8)
+        p["g_gid"] = np.zeros((0, sg), np.int32)
+        p["g_st"] = np.zeros((0, sg, 3))
+        p["g_ev"] = np.zeros((0, sg), np.int64)
+        p["g_pk"] = np.zeros((0, sg))
+        p["g_ds"] = np.zeros((0, sg))
+        p["g_n"] = np.zeros(0, np.int32)
+        p["g_tch"] = np.zeros((0, sg), np.uint8)
+        return p
+
+    def _append(self, pos, rad, vel, omg, mat: int) -> np.ndarray:
+        n = pos.shape[0]
+        rho = self._materials[mat]["rho"]
+        mass = rho * 4.0 / 3.0 * np.pi * rad**3
+        new = self._empty_particles()
+        for k, v in new.items():
+            new[k] = np.zeros((n, *v.shape[1:]), v.dtype)
+        new["pos"] = pos.copy()
+        new["x0"] = pos.copy()
+        new["vel"] = vel
+        new["omg"] = omg
+        new["rad"] = rad
+        new["mass"] = mass
+        new["invm"] = 1.0 / mass
+        new["invi"] = 1.0 / (0.4 * mass * rad**2)
+        new["mat"][:] = mat
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        new["pid"] = ids
+        for k in ("h_ev", "g_ev"):
+            new[k][:] = -1
+        for k in self._p:
+            self._p[k] = np.concatenate([self._p[k], new[k]])
+        self._need_rebuild = True
+        return ids
+
+    def _keep(self, keep: np.ndarray) -> None:
+        for k in self._p:
+            self._p[k] = self._p[k][keep]
+
+    # ------------------------------------------------------------------ packing
+    def _pack(self) -> None:
+        if not self._materials:
+            raise MsmillInputError("materials", [], "at least one add_material() call")
+        self._ptab = pair_table(self._materials, self._interactions)
+        g = self._geoms
+        self._gref = np.array([x["ref"] for x in g]).reshape(len(g), NG)
+        self._grot = np.array([x["rot"] for x in g]).reshape(len(g), 8)
+        self._gkind = np.array([x["kind"] for x in g], np.int32)
+        self._gmat = np.array([x["mat"] for x in g], np.int32)
+        self._gbound = np.array([bound_row(x["kind"], x["ref"], x["rot"]) for x in g]
+                                ).reshape(len(g), 6)
+        self._gcur = self._gref.copy()
+        self._sinkbox = np.array([np.concatenate([s["lo"], s["hi"]]) for s in self._sinks]
+                                 ).reshape(len(self._sinks), 6)
+        self._dirty = False
+
+    def _r_min_max(self) -> tuple[float, float]:
+        radii = [self._p["rad"]] + [s["vals"] for s in self._sources]
+        allr = np.concatenate(radii) if radii else np.zeros(0)
+        if allr.size == 0:
+            return math.nan, math.nan
+        return float(allr.min()), float(allr.max())
+
+    def _wall_speed_max(self) -> float:
+        v = 0.0
+        for k, g in enumerate(self._geoms):
+            if g["rot"][7] > 0:
+                rmax = self._gbound[k, 1]
+                if not math.isfinite(rmax):
+                    rmax = float(np.max(np.abs(self._hi - self._lo))) * 2
+                v = max(v, abs(g["rot"][6]) * rmax)
+        return v
+
+    def contact_time_s(self, max_relative_speed_m_s: float) -> float:
+        """Smallest Hertz contact time over all pairs at the given impact speed (s)."""
+        v = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
+        mats = {int(m) for m in np.unique(self._p["mat"])} | {s["mat"] for s in self._sources}
+        rmin = {}
+        for m in mats:
+            rs = [self._p["rad"][self._p["mat"] == m]] + [s["vals"] for s in self._sources
+                                                          if s["mat"] == m]
+            rmin[m] = float(np.concatenate(rs).min())
+        tc = math.inf
+        for a in mats:
+            ma = self._materials[a]["rho"] * 4 / 3 * np.pi * rmin[a] ** 3
+            for b in mats:
+                mb = self._materials[b]["rho"] * 4 / 3 * np.pi * rmin[b] ** 3
+                tc = min(tc, hertz_contact_time(ma * mb / (ma + mb),
+                                                rmin[a] * rmin[b] / (rmin[a] + rmin[b]),
+                                                self._ptab[a, b, 5], v))
+            for gm in {g["mat"] for g in self._geoms}:
+                tc = min(tc, hertz_contact_time(ma, rmin[a], self._ptab[a, gm, 5], v))
+        return tc
+
+    def _parallel(self) -> bool:
+        return self.n_particles >= self._par_min
+
+    # ------------------------------------------------------------------ rebuild
+    def _cells(self, rmax: float) -> None:
+        L = self._hi - self._lo
+        cut = 2 * rmax + self._skin
+        nc = np.maximum(np.floor(L / cut).astype(np.int64), 1)
+        while np.prod(nc) > max(4_000_000, 8 * len(self._p["rad"])):
+            nc = np.maximum(nc // 2, 1)
+        for a in range(3):
+            if self._periodic[a] and nc[a] < 3:
+                raise MsmillInputError(
+                    "domain_max_m", tuple(self._hi),
+                    f"a periodic length along axis {a} of at least 3 x (2 r_max + skin) "
+                    f"= {3 * cut:.4g} m")
+        self._ncell = nc
+        self._cell_len = L / nc
+        self._box_len = L.copy()
+
+    def _rebuild(self) -> None:
+        p = self._p
+        K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic)
+        rmax = float(p["rad"].max()) if p["rad"].size else 0.0
+        if rmax > self._rmax_cells:
+            self._rmax_cells = rmax
+            self._cells(rmax)
+        cell, start, order = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
+        if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
+            self._keep(order)
+            cell = cell[order]
+            order = np.arange(cell.size, dtype=np.int64)
+        self._nb = K.build_neighbours(p["pos"], p["rad"], self._skin, cell, start, order,
+                                      self._ncell, self._periodic, self._box_len,
+                                      self._parallel())
+        K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
+        self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
+                                           self._grot, self._gkind, self._gbound,
+                                           self._parallel())
+        p["x0"][:] = p["pos"]
+        self._n_rebuilds += 1
+        self.stats["rebuilds"] += 1
+        self._need_rebuild = False
+
+    # ------------------------------------------------------------------ removal / insertion
+    def _handle_flags(self) -> None:
+        p = self._p
+        flag = p["flag"]
+        bad = flag == K.F_NONFINITE
+        if bad.any():
+            k = int(np.nonzero(bad)[0][0])
+            raise DemRuntimeError(
+                f"non-finite position or velocity of particle {int(p['pid'][k])} at "
+                f"t = {p['flag_t'][k]:.6g} s; reduce dt_s or increase safety margins")
+        gone = flag != K.F_OK
+        if not gone.any():
+            return
+        tags = np.array(["lost"] + [s["tag"] for s in self._sinks], dtype=object)
+        code = np.where(flag[gone] == K.F_LOST, 0, flag[gone] - 1)
+        rec = {"particle_id": p["pid"][gone].copy(), "time_s": p["flag_t"][gone].copy(),
+               "radius_m": p["rad"][gone].copy(), "mass_kg": p["mass"][gone].copy(),
+               "tag": tags[code]}
+        self._removed.append(rec)
+        lost = int((flag[gone] == K.F_LOST).sum())
+        self._mass_out += float(p["mass"][gone][flag[gone] >= 2].sum())
+        if lost:
+            self._n_lost += lost
+            warnings.warn(f"{lost} particle(s) left the non-periodic domain and were deleted "
+                          f"(total lost {self._n_lost}); see removed(), tag 'lost'",
+                          DemRuntimeWarning, stacklevel=3)
+        # close events whose owner disappears
+        for ev, pk, ds in (("h_ev", "h_pk", "h_ds"), ("g_ev", "g_pk", "g_ds")):
+            refs = p[ev][gone]
+            m = refs >= 0
+            if m.any():
+                tt = np.broadcast_to(p["flag_t"][gone][:, None], refs.shape)[m]
+                r = refs[m]
+                nch = self._nch
+                self._rec.evf[r // nch, r % nch, K.EV_END] = tt
+                self._rec.evf[r // nch, r % nch, K.EV_PEAK] = p[pk][gone][m]
+                self._rec.evf[r // nch, r % nch, K.EV_DISS] = p[ds][gone][m]
+        self._keep(~gone)
+        self._need_rebuild = True
+
+    def _insert_sources(self) -> None:
+        t = self._time
+        for s in self._sources:
+            if t < s["next"] or t < s["start"]:
+                continue
+            s["next"] = t + s["interval"]
+            t_end = min(t, s["stop"])
+            if t_end > s["last"]:
+                s["debt"] += s["rate"] * (t_end - s["last"])
+                s["last"] = t_end
+            rho = self._materials[s["mat"]]["rho"]
+            mean_m = rho * 4 / 3 * np.pi * float(np.sum(s["w"] * s["vals"] ** 3))
+            nmax = int(s["debt"] / mean_m * 1.5) + 4
+            draw = s["rng"].choice(s["vals"], size=nmax, p=s["w"])
+            if s["pending"] is not None:
+                draw[0] = s["pending"]
+            masses = rho * 4 / 3 * np.pi * draw**3
+            cum = np.cumsum(masses)
+            n = int(np.searchsorted(cum, s["debt"], side="right"))
+            n = min(n, nmax - 1)
+            s["pending"] = draw[n]
+            if n == 0:
+                continue
+            radii = draw[:n]
+            lo, hi = s["lo"], s["hi"]
+            u = s["rng"].random((n, s["tries"], 3))
+            cand = lo + radii[:, None, None] + u * (hi - lo - 2 * radii[:, None, None])
+            pos = self._p["pos"]
+            reach = float(radii.max()) + (float(self._p["rad"].max()) if pos.size else 0.0)
+            near = np.all((pos >= lo - reach) & (pos <= hi + reach), axis=1)
+            out, ok = K.place_without_overlap(cand, radii, pos[near], self._p["rad"][near])
+            placed = masses[:n][ok].sum()
+            s["debt"] -= masses[:n].sum()
+            s["debt"] += masses[:n][~ok].sum()
+            s["inserted_kg"] += placed
+            if (~ok).any() and s["debt"] > 20 * s["rate"] * s["interval"] + masses.max():
+                self._warn_once("source_backlog", "a source cannot place its particles without "
+                                "overlap; the inserted mass flow falls short (enlarge the region)")
+            if ok.any():
+                nn = int(ok.sum())
+                self._append(out[ok], radii[ok].copy(), np.tile(s["vel"], (nn, 1)),
+                             np.zeros((nn, 3)), s["mat"])
+
+    def _warn_once(self, key: str, msg: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(msg, DemRuntimeWarning, stacklevel=4)
+
+    # ------------------------------------------------------------------ run
+    def run(self, duration_s: float, dt_s: float | None = None, *,
+            max_relative_speed_m_s: float = 60.0, safety: float = 0.2,
+            snapshot_every_s: float | None = None, progress: bool = True,
+            callback: Callable[[Simulation], bool | None] | None = None,
+            callback_every: int = 1000, timeseries_every_s: float | None = None,
+            max_overlap_fraction: float = 0.05, travel_fraction: float = 0.1) -> int:
+        """Advance the simulation by ``duration_s``; may be called repeatedly.
+
+        Parameters
+        ----------
+        duration_s : float
+            Simulated time to run (s).
+        dt_s : float, optional
+            Time step (s). Default: ``safety`` x the smallest Hertz contact
+            time at ``max_relative_speed_m_s`` (see :meth:`contact_time_s`),
+            further limited so that the travel per step at that speed (or at
+            the fastest wall, if faster) is at most ``travel_fraction`` of the
+            smallest radius and of the thinnest plate.
+        max_relative_speed_m_s : float
+            Highest expected relative impact speed, e.g. the rotor tip speed
+            plus the feed speed (m/s).
+        safety : float
+            Fraction of the contact time used as step.
+        snapshot_every_s : float, optional
+            Take a :meth:`snapshot` at this interval (s).
+        progress : bool
+            Show a Rich progress bar.
+        callback : callable, optional
+            ``callback(sim)`` every ``callback_every`` steps; returning True
+            stops the run early (e.g. at steady state).
+        timeseries_every_s : float, optional
+            Time-series sampling interval (s); default ``duration_s / 200``.
+        max_overlap_fraction : float
+            Warn when an overlap exceeds this fraction of the smaller radius.
+        travel_fraction : float
+            Allowed travel per step as a fraction of the smallest radius / plate.
+
+        Returns
+        -------
+        int
+            Number of steps run.
+        """
+        duration = _pos_number("duration_s", duration_s, allow_zero=True)
+        vrel = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
+        safety = _pos_number("safety", safety)
+        if safety > 1:
+            raise MsmillInputError("safety", safety, "a number in (0, 1]")
+        cb_every = int(callback_every)
+        if cb_every < 1:
+            raise MsmillInputError("callback_every", callback_every, "an integer >= 1")
+        if self._dirty:
+            self._pack()
+        rmin, rmax = self._r_min_max()
+        if not math.isfinite(rmin):
+            raise MsmillInputError("particles", 0, "at least one particle or source before run()")
+        if self._skin is None:
+            self._skin = 0.5 * rmin
+        thin = min([g["thickness"] for g in self._geoms if g["thickness"] > 0] + [np.inf])
+        lmin = min(rmin, thin)
+        vcheck = max(vrel, self._wall_speed_max())
+        if dt_s is None:
+            dt = safety * self.contact_time_s(vrel)
+            dt = min(dt, travel_fraction * lmin / vcheck)
+        else:
+            dt = _pos_number("dt_s", dt_s)
+            if vcheck * dt > travel_fraction * lmin:
+                warnings.warn(
+                    f"dt_s = {dt:.3g} s lets a body at {vcheck:.3g} m/s travel "
+                    f"{vcheck * dt:.3g} m per step, more than {travel_fraction} of the smallest "
+                    f"radius/plate ({lmin:.3g} m): risk of tunnelling", DemRuntimeWarning,
+                    stacklevel=2)
+        self._dt = dt
+        if not hasattr(self, "_rmax_cells"):
+            self._rmax_cells = 0.0
+        if rmax > self._rmax_cells:
+            self._rmax_cells = rmax
+            self._cells(rmax)
+        nsteps = round(duration / dt)
+        t_start = self._time
+        ts_every = timeseries_every_s or max(duration / 200, dt)
+        next_ts = t_start if not self._ts else t_start + ts_every
+        next_snap = t_start if snapshot_every_s else math.inf
+        wall_v = self._wall_speed_max()
+        bar = None
+        if progress:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+            bar = Progress(TextColumn("DEM t={task.fields[t]:.4f} s n={task.fields[n]}"),
+                           BarColumn(), TimeRemainingColumn())
+            bar.start()
+            task = bar.add_task("dem", total=nsteps, t=self._time, n=self.n_particles)
+        import time as _time
+
+        done = 0
+        diag = np.zeros((self._nch, K.N_DIAG))
+        last_cb = 0
+        stopped = False
+        try:
+            while done < nsteps:
+                if self._sources:
+                    self._insert_sources()
+                if self._need_rebuild:
+                    self._rebuild()
+                if self._time >= next_ts - 0.5 * dt:
+                    self._record_ts()
+                    next_ts += ts_every
+                if self._time >= next_snap - 0.5 * dt:
+                    self._snaps.append((self._time, self.snapshot()))
+                    next_snap += snapshot_every_s
+                limit = nsteps - done
+                for tnext in [next_ts, next_snap] + [s["next"] for s in self._sources]:
+                    if math.isfinite(tnext):
+                        limit = min(limit, max(1, math.ceil((tnext - self._time) / dt - 1e-9)))
+                if callback is not None:
+                    limit = min(limit, max(1, cb_every - (done - last_cb)))
+                p = self._p
+                diag[:] = 0.0
+                tic = _time.perf_counter()
+                k, reason = K.advance(
+                    self._time, dt, limit, self._skin, p["pos"], p["vel"], p["omg"], p["rad"],
+                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
+                    p["x0"], p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+                    self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
+                    self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
+                    self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
+                    p["h_ds"], p["h_n"], p["h_tch"], p["g_gid"], p["g_st"], p["g_ev"],
+                    p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
+                    self._rec.evn, diag, self._parallel())
+                self.stats["loop_time_s"] += _time.perf_counter() - tic
+                self.stats["steps"] += k
+                done += k
+                self._time = t_start + done * dt
+                self._check_diag(diag, dt, max_overlap_fraction, travel_fraction, lmin, wall_v)
+                if reason == K.R_FLAGGED:
+                    self._handle_flags()
+                elif reason == K.R_REBUILD:
+                    self._need_rebuild = True
+                elif reason == K.R_EVFULL:
+                    self._flush_events()
+                if bar is not None:
+                    bar.update(task, completed=done, t=self._time, n=self.n_particles)
+                if callback is not None and done - last_cb >= cb_every:
+                    last_cb = done
+                    if callback(self):
+                        stopped = True
+                        break
+        finally:
+            if bar is not None:
+                bar.stop()
+        if not stopped or self._time >= next_ts - 0.5 * dt:
+            self._record_ts()
+        return done
+
+    def _flush_events(self) -> None:
+        self._rec.flush([self._p["h_ev"], self._p["g_ev"]])
+
+    def _check_diag(self, diag, dt, max_over, travel_fraction, lmin, wall_v) -> None:
+        over = float(diag[:, K.D_OVER].max())
+        if over > max_over:
+            self._warn_once("overlap", f"peak overlap {over:.3g} of the smaller radius exceeds "
+                            f"{max_over} at t = {self._time:.6g} s: the material is too soft "
+                            "for the impact speed or dt_s is too large")
+        vmax = math.sqrt(float(diag[:, K.D_SPEED2].max()))
+        if (vmax + wall_v) * dt > travel_fraction * lmin * 1.0001:
+            self._warn_once("travel", f"particle speed {vmax:.3g} m/s (+ wall {wall_v:.3g} m/s) "
+                            f"moves {(vmax + wall_v) * dt:.3g} m per step, more than "
+                            f"{travel_fraction} of the smallest radius/plate: raise "
+                            "max_relative_speed_m_s or lower dt_s")
+        if diag[:, K.D_HOVF].sum() > 0:
+            self._warn_once("slots", "contact-history slots overflowed; raise "
+                            "max_contacts_per_particle / max_geometry_contacts")
+        if diag[:, K.D_EVOVF].sum() > 0:
+            self._rec.lost += int(diag[:, K.D_EVOVF].sum())
+            self._warn_once("events", "event buffer overflowed; some events were not recorded")
+
+    def _record_ts(self) -> None:
+        p = self._p
+        ke = float(0.5 * np.sum(p["mass"] * np.sum(p["vel"] ** 2, axis=1))
+                   + 0.5 * np.sum(np.sum(p["omg"] ** 2, axis=1) / p["invi"]))
+        self._ts.append((self._time, self.n_particles, float(p["mass"].sum()), ke,
+                         self._mass_out, self._n_lost))
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def time_s(self) -> float:
+        """Current simulated time (s)."""
+        return self._time
+
+    @property
+    def dt_s(self) -> float | None:
+        """Time step of the last run (s)."""
+        return self._dt
+
+    @property
+    def n_particles(self) -> int:
+        """Number of particles in the domain."""
+        return int(self._p["pid"].shape[0])
+
+    def particle_arrays(self) -> dict[str, np.ndarray]:
+        """Copies of the per-particle arrays (``pid``, ``pos``, ``vel``, ``omg``, ``rad``, ``mass``)."""
+        return {k: self._p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass")}
+
+    def kinetic_energy_j(self) -> float:
+        """Translational plus rotational kinetic energy (J)."""
+        p = self._p
+        return float(0.5 * np.sum(p["mass"] * np.sum(p["vel"] ** 2, axis=1))
+                     + 0.5 * np.sum(np.sum(p["omg"] ** 2, axis=1) / p["invi"]))
+
+    def momentum_kg_m_s(self) -> np.ndarray:
+        """Total linear momentum (kg m/s)."""
+        return np.sum(self._p["mass"][:, None] * self._p["vel"], axis=0)
+
+    def contact_energy_j(self) -> float:
+        """Elastic energy stored in the normal contacts now (J)."""
+        if self._need_rebuild or self._dirty:
+            if self._dirty:
+                self._pack()
+            if not hasattr(self, "_rmax_cells") or self._skin is None:
+                return 0.0
+            self._rebuild()
+        p = self._p
+        return float(K.contact_potential_energy(
+            p["pos"], p["rad"], p["pid"], p["mat"], self._nb[0], self._nb[1], self._nb[2],
+            self._box_len, self._ptab, self._gc[0], self._gc[1], self._gcur, self._gkind,
+            self._gmat))
+
+    def events(self) -> pd.DataFrame:
+        """One row per contact, recorded at onset (see ARCHITECTURE.md for the columns)."""
+        df = self._rec.frame()
+        geo = self.geometry()
+        tag = np.full(len(df), "", dtype=object)
+        grp = np.full(len(df), -1, dtype=np.int64)
+        m = df["partner_kind"].to_numpy() == 1
+        if m.any() and len(geo):
+            gid = df["partner_id"].to_numpy()[m]
+            tag[m] = geo["tag"].to_numpy()[gid]
+            grp[m] = geo["group"].to_numpy()[gid]
+        df["partner_tag"] = tag
+        df["partner_group"] = grp
+        return df
+
+    def removed(self) -> pd.DataFrame:
+        """Deleted particles: ``particle_id, time_s, radius_m, mass_kg, tag`` (sink tag or 'lost')."""
+        cols = ["particle_id", "time_s", "radius_m", "mass_kg", "tag"]
+        if not self._removed:
+            return pd.DataFrame({c: [] for c in cols})
+        return pd.DataFrame({c: np.concatenate([r[c] for r in self._removed]) for c in cols})
+
+    def timeseries(self) -> pd.DataFrame:
+        """``time_s, n_particles, mass_kg, kinetic_energy_j, mass_out_kg, n_lost``."""
+        return pd.DataFrame(self._ts, columns=["time_s", "n_particles", "mass_kg",
+                                               "kinetic_energy_j", "mass_out_kg", "n_lost"])
+
+    def snapshot(self) -> pd.DataFrame:
+        """Particles now: id, position (m), velocity (m/s), angular velocity (rad/s), radius (m)."""
+        p = self._p
+        return pd.DataFrame({
+            "particle_id": p["pid"].copy(), "x_m": p["pos"][:, 0].copy(),
+            "y_m": p["pos"][:, 1].copy(), "z_m": p["pos"][:, 2].copy(),
+            "vx_m_s": p["vel"][:, 0].copy(), "vy_m_s": p["vel"][:, 1].copy(),
+            "vz_m_s": p["vel"][:, 2].copy(), "wx_rad_s": p["omg"][:, 0].copy(),
+            "wy_rad_s": p["omg"][:, 1].copy(), "wz_rad_s": p["omg"][:, 2].copy(),
+            "radius_m": p["rad"].copy(),
+            "material": np.array([m["name"] for m in self._materials], dtype=object)[p["mat"]]
+            if self._materials else np.zeros(0)})
+
+    def snapshots(self) -> list[tuple[float, pd.DataFrame]]:
+        """Snapshots taken during runs (``snapshot_every_s``): list of (time_s, DataFrame)."""
+        return list(self._snaps)
+
+    def geometry(self) -> pd.DataFrame:
+        """``geom_id, kind, tag, group, material, rotating, omega_rad_s``."""
+        g = self._geoms
+        return pd.DataFrame({
+            "geom_id": np.arange(len(g), dtype=np.int64),
+            "kind": [KIND_NAMES[x["kind"]] for x in g],
+            "tag": [x["tag"] for x in g],
+            "group": np.array([x["group"] for x in g], dtype=np.int64),
+            "material": [self._materials[x["mat"]]["name"] for x in g],
+            "rotating": [bool(x["rot"][7] > 0) for x in g],
+            "omega_rad_s": [float(x["rot"][6]) for x in g]})
+
+    def write_events_parquet(self, path: str | Path) -> Path:
+        """Write :meth:`events` as Parquet."""
+        return write_parquet(self.events(), path)
+
+    def write_vtu(self, path: str | Path) -> Path:
+        """Write the particles now as a VTK ``.vtu`` file for ParaView."""
+        p = self._p
+        return write_vtu(path, p["pos"], {"particle_id": p["pid"], "radius_m": p["rad"],
+                                          "velocity_m_s": p["vel"],
+                                          "angular_velocity_rad_s": p["omg"],
+                                          "material": p["mat"]})
