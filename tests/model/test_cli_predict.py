@@ -100,3 +100,20 @@ def test_rosin_rammler_feed_and_solver_override(folder):
     p = write(folder, text)
     assert run(["predict", str(p), "--out", str(folder / "o2")]) == 0
     assert (folder / "o2" / "product.csv").is_file()
+
+
+@pytest.mark.parametrize("name", ["ug2.toml", "platreef.toml"])
+def test_examples_validate(name, tmp_path):
+    """The shipped examples parse; they run once the DEM-derived default table is installed."""
+    from importlib import resources
+    from pathlib import Path
+
+    from msmill.model.runfile import RunFile
+
+    path = Path(__file__).parents[2] / "examples" / name
+    rf = RunFile.from_toml(path)
+    assert rf.feed_psd().p80_mm > 1.0
+    assert rf.stage_parameters.file == "default"
+    if not resources.files("msmill").joinpath("data/stage_parameters/default.json").is_file():
+        pytest.skip("default stage-parameter table not installed yet")
+    assert run(["predict", str(path), "--out", str(tmp_path), "--no-plots"]) == 0
