@@ -136,6 +136,10 @@ class Mill:
         self.impacts = sm.resolve("impacts", impacts, self.ore)
         self.breakage = sm.resolve("breakage", breakage, self.ore)
         self.damage = sm.resolve("damage", damage, self.ore)
+        for step in ("breakage", "damage"):
+            for need in getattr(getattr(self, step), "requires", ()):
+                if hasattr(self.ore, need) and getattr(self.ore, need) is None and need != "tn":
+                    raise MsmillInputError(f"ore.{need}", None, f"a value (needed by the {step} sub-model)")
         if solver not in SOLVERS:
             raise MsmillInputError("solver", solver, sm.did_you_mean(solver, list(SOLVERS)))
         if impacted not in IMPACTED:
