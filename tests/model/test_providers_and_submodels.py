@@ -139,3 +139,17 @@ def test_result_outputs(feed, op):
     assert (res.stages["flinger_energy_j_per_t"] > 0).all()
     assert res.passing_pct.index.name == "size_mm"
     assert res.summary()["p80_mm"] == res.p80_mm
+
+
+def test_lazy_top_level_exports_and_simulate(feed, op):
+    import subprocess
+    import sys
+
+    code = "import sys, msmill; assert 'msmill.model' not in sys.modules; msmill.simulate; assert 'msmill.model' in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+    from msmill import simulate
+
+    res = simulate("UG2", feed, {"feed_tph": 30.0, "speed_rpm": 1500.0, "gate_deg": 40.0},
+                   TableProvider(synthetic_table()), damage="none")
+    assert res.submodels["damage"] == "none"
+    assert res.p80_mm <= res.f80_mm
