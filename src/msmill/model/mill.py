@@ -36,7 +36,7 @@ IMPACTED = ("refeed", "all")
 DEFAULT_PASSING_SIZES_MM = (0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0)
 DEFAULT_MIN_SIZE_MM = 0.038
 J_PER_KWH = 3.6e6
-#: Trailing moving-average window (steps) of the Monte-Carlo product rate for the
+#: Centred moving-average window (steps) of the Monte-Carlo product rate for the
 #: time to steady state.
 MC_SMOOTHING_STEPS = 25
 
@@ -333,11 +333,12 @@ class Mill:
                            "holdup_t": held, "product_tph": prod / dt * 3600.0})
         rate = ts["product_tph"].to_numpy()
         if solver == "monte_carlo" and rate.size >= MC_SMOOTHING_STEPS:
-            # parcel noise: judge steady state on a trailing moving average
+            # parcel noise: judge steady state on a centred moving average (no lag)
             k = MC_SMOOTHING_STEPS
             c = np.cumsum(np.concatenate([[0.0], rate]))
-            rate = np.concatenate([np.full(k - 1, np.nan), (c[k:] - c[:-k]) / k])
-            rate = np.where(np.isnan(rate), 0.0, rate)
+            ma = (c[k:] - c[:-k]) / k
+            half = k // 2
+            rate = np.concatenate([np.zeros(half), ma, np.full(rate.size - ma.size - half, ma[-1])])
         t_ss = time_to_steady_state(t, rate, op.feed_tph) if prod.size else float("nan")
         n_st = stage_mass.shape[0]
         hold = stage_mass.sum(axis=1)
