@@ -82,3 +82,17 @@ def test_mc_conserves_mass_every_step(impacted):
     run = mc.run(GRID.edges_mm, streams, stats, BREAKAGE, DAMAGE, feed, 0.5, 80, 40, impacted)
     assert run.mass_balance_error.max() < 1e-10
     assert run.product.sum() > 0
+
+
+def test_damage_split_is_mass_and_mean_conservative():
+    from msmill.model.expected_value import damage_nodes, split_damage
+
+    th, nd = 0.8, 8
+    d = np.random.default_rng(0).uniform(0, th * (nd - 1) / nd, 1000)
+    lo, frac = split_damage(d, nd, th)
+    nodes = damage_nodes(nd, th)
+    assert np.all((frac >= 0) & (frac <= 1))
+    # weights (1 - frac, frac) sum to one and reproduce the damage value exactly
+    assert np.allclose((1 - frac) * nodes[lo] + frac * nodes[np.minimum(lo + 1, nd - 1)], d)
+    top_lo, top_frac = split_damage(np.array([0.79]), nd, th)
+    assert top_lo[0] == nd - 1 and top_frac[0] == 0.0

@@ -241,7 +241,7 @@ class LinearMill:
     def steady_state(self, f: np.ndarray) -> np.ndarray:
         """Steady state ``x = (I - M)^-1 f`` by one sparse direct solve."""
         A = sp.identity(self.n_state, format="csc") - self.M.tocsc()
-        x = spla.spsolve(A, f)
+        x = spla.spsolve(A, f, permc_spec="MMD_AT_PLUS_A")  # fastest ordering for this block structure
         if not np.all(np.isfinite(x)):
             raise MsmillError("the mill never empties (no outflow for some rock); "
                               "check the bottom stage's pass-through")
