@@ -117,3 +117,16 @@ def test_examples_validate(name, tmp_path):
     if not resources.files("msmill").joinpath("data/stage_parameters/default.json").is_file():
         pytest.skip("default stage-parameter table not installed yet")
     assert run(["predict", str(path), "--out", str(tmp_path), "--no-plots"]) == 0
+
+
+def test_bad_table_file_error_names_the_table_field(folder, capsys):
+    import json
+
+    data = json.loads((folder / "table.json").read_text())
+    data["runs"][0]["stages"][1]["refeed"] = 0.9
+    (folder / "table.json").write_text(json.dumps(data))
+    p = write(folder, GOOD)
+    assert run(["predict", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: table.json.runs.0.stages.1"), err
+    assert len(err.splitlines()) == 1

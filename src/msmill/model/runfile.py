@@ -254,18 +254,23 @@ class RunFile(_Section):
         feed = self.feed_psd()
         op = self.operating_point()
         machine = self.machine_obj()
-        table = self.stage_parameter_path()
+        from msmill.model.providers import load_provider
+
+        provider = load_provider(self.stage_parameter_path())  # file errors name the file and field
         m = self.model
         try:
-            mill = Mill(self.ore_obj(), table, machine, transport=m.transport, impacts=m.impacts,
+            mill = Mill(self.ore_obj(), provider, machine, transport=m.transport, impacts=m.impacts,
                         breakage=m.breakage, damage=m.damage, solver=m.solver, impacted=m.impacted,
                         grid=self.model_grid(feed), damage_classes=m.damage_classes,
                         quadrature_nodes=m.quadrature_nodes, parcels_per_step=m.parcels_per_step,
                         mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm)
         except MsmillInputError as exc:
-            field = exc.field if exc.field.startswith(self.name) else f"{self.name}.model.{exc.field.removeprefix('model.')}"
-            if exc.field.startswith(("stage_parameters", "machine")):
-                field = f"{self.name}.{exc.field}"
+            field = exc.field
+            model_fields = ("solver", "impacted", "damage_classes", "quadrature_nodes", "parcels_per_step")
+            if field.startswith("model.") or field in model_fields:
+                field = f"{self.name}.model.{field.removeprefix('model.')}"
+            elif field.startswith(("machine.", "ore.")):
+                field = f"{self.name}.{field}"
             raise MsmillInputError(field, exc.value, exc.allowed) from None
         try:
             op.stage_speeds(mill.provider.n_stages)
