@@ -266,23 +266,30 @@ def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame
 
 # --------------------------------------------------------------------------- streams
 def _tag_pairs(
-    machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, tag_times: np.ndarray, tau_s: float,
+    machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, times: np.ndarray, lag: int,
     rock_density_kg_m3: float,
 ) -> pd.DataFrame:
-    """Tagged rocks (stage 1..n at a tag time) with the stage they are in ``tau`` later."""
+    """Tagged rocks (stage 1..n at snapshot ``i``) with the stage they are in at snapshot ``i + lag``.
+
+    ``times`` are the sorted snapshot times of the window; columns of the
+    result: ``time_s`` (tag time), ``t_to`` (time of snapshot ``i + lag``),
+    ``particle_id``, ``y_m``, ``radius_m``, ``stage_from``, ``stage_to``,
+    ``mass_kg``, ``category`` (0 kickback, 1 refeed, 2 pass-through). Rocks
+    missing from the later snapshot were removed: by the outlet sink
+    (``stage_to = n + 1``) or otherwise (lost: ``stage_to = 0``).
+    """
     n = machine.n_stages
-    times = np.sort(snaps["time_s"].unique())
-    later = np.searchsorted(times, tag_times + tau_s - 1e-9)
-    valid = (later < times.size) & (np.abs(times[np.minimum(later, times.size - 1)] - (tag_times + tau_s)) < 1e-6)
-    tag_times = tag_times[valid]
-    to_times = times[later[valid]]
-    a = snaps[snaps["time_s"].isin(tag_times)][["time_s", "particle_id", "y_m", "z_m", "radius_m"]].copy()
+    idx = {t: i for i, t in enumerate(times)}
+    sidx = snaps["time_s"].map(idx)
+    snaps = snaps.assign(i=sidx.to_numpy())
+    snaps = snaps[snaps["i"].notna()].astype({"i": np.int64})
+    a = snaps[snaps["i"] + lag < times.size][["i", "time_s", "particle_id", "y_m", "z_m", "radius_m"]].copy()
     a["stage_from"] = stage_of_z(machine, a["z_m"].to_numpy())
     a = a[(a["stage_from"] >= 1) & (a["stage_from"] <= n)]
-    a["t_to"] = a["time_s"].map(dict(zip(tag_times, to_times, strict=True)))
-    b = snaps[snaps["time_s"].isin(to_times)][["time_s", "particle_id", "z_m"]].rename(
-        columns={"time_s": "t_to", "z_m": "z_to"})
-    m = a.merge(b, on=["t_to", "particle_id"], how="left")
+    a["i_to"] = a["i"] + lag
+    a["t_to"] = times[a["i_to"].to_numpy()]
+    b = snaps[snaps["i"] >= lag][["i", "particle_id", "z_m"]].rename(columns={"i": "i_to", "z_m": "z_to"})
+    m = a.merge(b, on=["i_to", "particle_id"], how="left")
     m["stage_to"] = stage_of_z(machine, m["z_to"].fillna(0.0).to_numpy())
     missing = m["z_to"].isna().to_numpy()
     if missing.any():
@@ -298,7 +305,7 @@ def _tag_pairs(
     m["mass_kg"] = rock_density_kg_m3 * 4.0 / 3.0 * np.pi * m["radius_m"].to_numpy() ** 3
     m["category"] = np.select(
         [m["stage_to"] < m["stage_from"], m["stage_to"] == m["stage_from"]], [0, 1], default=2)
-    return m
+    return m.drop(columns=["z_m", "z_to", "i", "i_to"])
 
 
 def _streams(pairs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
@@ -373,14 +380,18 @@ def compute_statistics(
     times = np.sort(snaps["time_s"].unique())
     interval = float(np.median(np.diff(times))) if times.size > 1 else None
     if characteristic_time_s is None:
-        tau, speed = characteristic_time(machine, snaps, interval)
+        tau, speed = characteristic_time(machine, snaps, None)
     else:
         tau = float(characteristic_time_s)
         speed = machine.stage_spacing_m / tau
-    tag_times = times[times + tau <= t1 + 1e-9]
+    # tau as a whole number of snapshot intervals: tags at snapshot i, located at snapshot i + lag
+    lag = max(1, round(tau / interval)) if interval else 1
+    if interval:
+        tau = lag * interval
+    tag_times = times[: max(times.size - lag, 0)]
 
     # ---- transport
-    pairs = _tag_pairs(machine, snaps, removed, tag_times, tau, rock_density_kg_m3)
+    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3)
     streams = _streams(pairs, ["stage_from"]) if len(pairs) else None
     tag_batch = {t: b for b, chunk in enumerate(np.array_split(tag_times, s_.n_batches)) for t in chunk}
     pairs["batch"] = pairs["time_s"].map(tag_batch)
@@ -393,14 +404,14 @@ def compute_statistics(
     hits = pd.Series(dtype=float)
     hits_b = pd.DataFrame()
     if len(pairs):
-        tags = pairs[["time_s", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
+        tags = pairs[["time_s", "t_to", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
             columns={"stage_from": "stage"}).sort_values("time_s")
         p = prim[["time_s", "particle_id", "stage"]].rename(columns={"time_s": "t_hit"}).sort_values("t_hit")
         p = p.astype({"particle_id": np.int64, "stage": np.int64})
         tags = tags.astype({"particle_id": np.int64, "stage": np.int64})
         nxt = pd.merge_asof(tags, p, left_on="time_s", right_on="t_hit", by=["particle_id", "stage"],
                             direction="forward", allow_exact_matches=False)
-        nxt["hit"] = (nxt["t_hit"] - nxt["time_s"]) <= tau + 1e-12
+        nxt["hit"] = nxt["t_hit"] <= nxt["t_to"] + 1e-12
         nxt["mh"] = nxt["mass_kg"] * nxt["hit"]
         g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
         hits = g["mh"] / g["mass_kg"]
