@@ -22,6 +22,7 @@ table by monotone interpolation. The clipping ``F_n >= 0`` is the engine's.
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -175,6 +176,8 @@ def pair_table(
     for a in range(m):
         for b in range(m):
             ma, mb = materials[a], materials[b]
+            if math.isinf(ma["E"]) and math.isinf(mb["E"]):
+                continue  # two rigid (wall) materials never touch
             estar, gstar = effective_moduli(ma["E"], ma["nu"], mb["E"], mb["nu"])
             key = (min(a, b), max(a, b))
             inter = interactions.get(key, {"restitution": 1.0, "friction": 0.0,

@@ -92,7 +92,7 @@ def update_geometry(gref, grot, gkind, t, gcur):
 
 
 @njit(cache=True, fastmath=False)
-def geom_contact(kind, gp, x, y, z, r):
+def geom_contact(kind, gall, g, x, y, z, r):
     """Overlap with one primitive.
 
     Returns ``(ok, s, nx, ny, nz, cx, cy, cz)``: overlap ``s`` (m), unit normal
@@ -100,19 +100,19 @@ def geom_contact(kind, gp, x, y, z, r):
     wall surface.
     """
     if kind == PLANE:
-        d = (x - gp[0]) * gp[3] + (y - gp[1]) * gp[4] + (z - gp[2]) * gp[5]
+        d = (x - gall[g, 0]) * gall[g, 3] + (y - gall[g, 1]) * gall[g, 4] + (z - gall[g, 2]) * gall[g, 5]
         if d >= r or d <= -r:
             return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-        return (True, r - d, -gp[3], -gp[4], -gp[5],
-                x - d * gp[3], y - d * gp[4], z - d * gp[5])
+        return (True, r - d, -gall[g, 3], -gall[g, 4], -gall[g, 5],
+                x - d * gall[g, 3], y - d * gall[g, 4], z - d * gall[g, 5])
     if kind == BOX:
-        rx = x - gp[0]
-        ry = y - gp[1]
-        rz = z - gp[2]
-        q0 = rx * gp[3] + ry * gp[4] + rz * gp[5]
-        q1 = rx * gp[6] + ry * gp[7] + rz * gp[8]
-        q2 = rx * gp[9] + ry * gp[10] + rz * gp[11]
-        h0, h1, h2 = gp[12], gp[13], gp[14]
+        rx = x - gall[g, 0]
+        ry = y - gall[g, 1]
+        rz = z - gall[g, 2]
+        q0 = rx * gall[g, 3] + ry * gall[g, 4] + rz * gall[g, 5]
+        q1 = rx * gall[g, 6] + ry * gall[g, 7] + rz * gall[g, 8]
+        q2 = rx * gall[g, 9] + ry * gall[g, 10] + rz * gall[g, 11]
+        h0, h1, h2 = gall[g, 12], gall[g, 13], gall[g, 14]
         p0 = min(max(q0, -h0), h0)
         p1 = min(max(q1, -h1), h1)
         p2 = min(max(q2, -h2), h2)
@@ -150,33 +150,33 @@ def geom_contact(kind, gp, x, y, z, r):
                 l2 = -sg
                 p2 = sg * h2
                 s = r + a2
-        nx = l0 * gp[3] + l1 * gp[6] + l2 * gp[9]
-        ny = l0 * gp[4] + l1 * gp[7] + l2 * gp[10]
-        nz = l0 * gp[5] + l1 * gp[8] + l2 * gp[11]
-        cx = gp[0] + p0 * gp[3] + p1 * gp[6] + p2 * gp[9]
-        cy = gp[1] + p0 * gp[4] + p1 * gp[7] + p2 * gp[10]
-        cz = gp[2] + p0 * gp[5] + p1 * gp[8] + p2 * gp[11]
+        nx = l0 * gall[g, 3] + l1 * gall[g, 6] + l2 * gall[g, 9]
+        ny = l0 * gall[g, 4] + l1 * gall[g, 7] + l2 * gall[g, 10]
+        nz = l0 * gall[g, 5] + l1 * gall[g, 8] + l2 * gall[g, 11]
+        cx = gall[g, 0] + p0 * gall[g, 3] + p1 * gall[g, 6] + p2 * gall[g, 9]
+        cy = gall[g, 1] + p0 * gall[g, 4] + p1 * gall[g, 7] + p2 * gall[g, 10]
+        cz = gall[g, 2] + p0 * gall[g, 5] + p1 * gall[g, 8] + p2 * gall[g, 11]
         return True, s, nx, ny, nz, cx, cy, cz
     # cylinder
-    ux, uy, uz = gp[3], gp[4], gp[5]
-    ln = gp[6]
-    rc = gp[7]
-    rx = x - gp[0]
-    ry = y - gp[1]
-    rz = z - gp[2]
+    ux, uy, uz = gall[g, 3], gall[g, 4], gall[g, 5]
+    ln = gall[g, 6]
+    rc = gall[g, 7]
+    rx = x - gall[g, 0]
+    ry = y - gall[g, 1]
+    rz = z - gall[g, 2]
     a = rx * ux + ry * uy + rz * uz
     vx = rx - a * ux
     vy = ry - a * uy
     vz = rz - a * uz
     rho = np.sqrt(vx * vx + vy * vy + vz * vz)
-    if gp[8] > 0.5:  # inside a tube (open ends)
+    if gall[g, 8] > 0.5:  # inside a tube (open ends)
         if a < 0.0 or a > ln or rho <= rc - r or rho >= rc + r or rho == 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
         nx = vx / rho
         ny = vy / rho
         nz = vz / rho
         return (True, rho + r - rc, nx, ny, nz,
-                gp[0] + a * ux + rc * nx, gp[1] + a * uy + rc * ny, gp[2] + a * uz + rc * nz)
+                gall[g, 0] + a * ux + rc * nx, gall[g, 1] + a * uy + rc * ny, gall[g, 2] + a * uz + rc * nz)
     # outside a solid capped cylinder
     if rho > 0.0:
         ex = vx / rho
@@ -188,16 +188,16 @@ def geom_contact(kind, gp, x, y, z, r):
         dside = rc - rho
         if dside <= a and dside <= ln - a:
             return (True, r + dside, -ex, -ey, -ez,
-                    gp[0] + a * ux + rc * ex, gp[1] + a * uy + rc * ey, gp[2] + a * uz + rc * ez)
+                    gall[g, 0] + a * ux + rc * ex, gall[g, 1] + a * uy + rc * ey, gall[g, 2] + a * uz + rc * ez)
         if a <= ln - a:
             return True, r + a, ux, uy, uz, x - a * ux, y - a * uy, z - a * uz
         b = ln - a
         return True, r + b, -ux, -uy, -uz, x + b * ux, y + b * uy, z + b * uz
     ac = min(max(a, 0.0), ln)
     rr = min(rho, rc)
-    cx = gp[0] + ac * ux + rr * ex
-    cy = gp[1] + ac * uy + rr * ey
-    cz = gp[2] + ac * uz + rr * ez
+    cx = gall[g, 0] + ac * ux + rr * ex
+    cy = gall[g, 1] + ac * uy + rr * ey
+    cz = gall[g, 2] + ac * uz + rr * ez
     dx = cx - x
     dy = cy - y
     dz = cz - z
@@ -420,12 +420,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            pr = ptab[mat[a], mat[b]]
+            ma = mat[a]
+            mb = mat[b]
             rstar = ra * rb / (ra + rb)
             mstar = 1.0 / (invm[a] + invm[b])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
-                s, nx, ny, nz, vx, vy, vz, rstar, mstar, pr[0], pr[1], pr[2], pr[3],
-                pr[4], dt, sx, sy, sz)
+                s, nx, ny, nz, vx, vy, vz, rstar, mstar, ptab[ma, mb, 0], ptab[ma, mb, 1],
+                ptab[ma, mb, 2], ptab[ma, mb, 3], ptab[ma, mb, 4], dt, sx, sy, sz)
             fx += sgn * cfx
             fy += sgn * cfy
             fz += sgn * cfz
@@ -459,7 +460,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         # ---- particle-geometry
         for k in range(gc_start[i], gc_start[i + 1]):
             g = gc_g[k]
-            ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur[g], xi, yi, zi, ri)
+            ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xi, yi, zi, ri)
             if not ok:
                 continue
             li = ri - s
@@ -504,10 +505,11 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 sx, sy, sz = g_st[i, slot, 0], g_st[i, slot, 1], g_st[i, slot, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            pr = ptab[mat[i], gmat[g]]
+            ma = mat[i]
+            mb = gmat[g]
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
-                s, nx, ny, nz, vx, vy, vz, ri, mi, pr[0], pr[1], pr[2], pr[3], pr[4], dt,
-                sx, sy, sz)
+                s, nx, ny, nz, vx, vy, vz, ri, mi, ptab[ma, mb, 0], ptab[ma, mb, 1],
+                ptab[ma, mb, 2], ptab[ma, mb, 3], ptab[ma, mb, 4], dt, sx, sy, sz)
             fx += cfx
             fy += cfy
             fz += cfz
@@ -773,7 +775,7 @@ def bin_cells(pos, lo, cell_len, ncell):
     return cell, start, order
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
     pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
@@ -906,11 +908,11 @@ def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
     if (x < gbound[g, 0] - m or y < gbound[g, 1] - m or z < gbound[g, 2] - m
             or x > gbound[g, 3] + m or y > gbound[g, 4] + m or z > gbound[g, 5] + m):
         return False
-    ok = geom_contact(gkind[g], gcur[g], x, y, z, m)[0]
+    ok = geom_contact(gkind[g], gcur, g, x, y, z, m)[0]
     return ok
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
     pos.shape[0]
     ng = gkind.shape[0]
@@ -981,7 +983,7 @@ def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len,
                 e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
         for k in range(gc_start[i], gc_start[i + 1]):
             g = gc_g[k]
-            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur[g], pos[i, 0], pos[i, 1],
+            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, pos[i, 0], pos[i, 1],
                                                          pos[i, 2], rad[i])
             if ok:
                 e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5

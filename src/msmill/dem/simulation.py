@@ -777,8 +777,10 @@ class Simulation:
         return int(self._p["pid"].shape[0])
 
     def particle_arrays(self) -> dict[str, np.ndarray]:
-        """Copies of the per-particle arrays (``pid``, ``pos``, ``vel``, ``omg``, ``rad``, ``mass``)."""
-        return {k: self._p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass")}
+        """Copies of per-particle arrays: ``pid``, ``pos`` (m), ``vel`` (m/s), ``omg`` (rad/s),
+        ``rad`` (m), ``mass`` (kg), ``frc`` (N) and ``trq`` (N m) of the last force pass."""
+        return {k: self._p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass", "frc",
+                                               "trq")}
 
     def kinetic_energy_j(self) -> float:
         """Translational plus rotational kinetic energy (J)."""

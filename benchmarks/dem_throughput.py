@@ -1,0 +1,97 @@
+"""DEM throughput benchmark: particle-timesteps per second for a periodic granular gas.
+
+Set-up (the issue's reference case, comparable with the LIGGGHTS deck in this
+directory): 20,000 spheres of **diameter** 10 mm (radius 5 mm), density
+2700 kg/m^3, E = 2e10 Pa, nu = 0.25, restitution 0.5, friction 0.4, in a fully
+periodic cube at solid fraction 0.05 and 0.30, Gaussian velocities with
+10 m/s standard deviation per component (zero mean), no gravity,
+dt = 1e-6 s. 200 warm-up steps (the first step includes numba compilation,
+reported separately), then 2000 timed steps. "Loop time" is the wall time of
+``Simulation.run`` for the timed steps, neighbour-list rebuilds and sorting
+included.
+
+Run::
+
+    python benchmarks/dem_throughput.py [--n 20000] [--steps 2000] [--threads 2]
+
+The last two lines are ``phi=0.05 particle_steps_per_s=<number>`` and
+``phi=0.30 particle_steps_per_s=<number>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+
+def gas(n: int, phi: float, seed: int = 1):
+    """Positions on a jittered cubic lattice, box side (m), Gaussian velocities."""
+    r = 0.005
+    side = (n * 4.0 / 3.0 * np.pi * r**3 / phi) ** (1.0 / 3.0)
+    m = int(np.ceil(n ** (1.0 / 3.0)))
+    a = side / m
+    rng = np.random.default_rng(seed)
+    idx = np.stack(np.meshgrid(np.arange(m), np.arange(m), np.arange(m), indexing="ij"), -1)
+    idx = idx.reshape(-1, 3)[rng.permutation(m**3)[:n]]
+    jitter = (a - 2 * r) * 0.49 * rng.uniform(-1, 1, (n, 3))
+    pos = (idx + 0.5) * a + jitter
+    vel = rng.normal(0.0, 10.0, (n, 3))
+    vel -= vel.mean(axis=0)
+    return pos, vel, side, r
+
+
+def bench(n: int, phi: float, steps: int, warm: int) -> dict:
+    from msmill.dem import Simulation
+
+    pos, vel, side, r = gas(n, phi)
+    sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
+                     gravity_m_s2=(0, 0, 0))
+    sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
+    sim.add_particles(pos, r, vel, material="rock")
+    dt = 1e-6
+    t0 = time.perf_counter()
+    sim.run(dt, dt_s=dt, progress=False)  # first step: compilation (or cache load)
+    t_first = time.perf_counter() - t0
+    sim.run((warm - 1) * dt, dt_s=dt, progress=False)
+    r0 = sim.stats["rebuilds"]
+    t0 = time.perf_counter()
+    sim.run(steps * dt, dt_s=dt, progress=False)
+    loop = time.perf_counter() - t0
+    ev = sim.events()
+    return {"rate": n * steps / loop, "loop_s": loop, "first_step_s": t_first,
+            "rebuilds": sim.stats["rebuilds"] - r0, "events": len(ev), "n": sim.n_particles}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=20000)
+    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--warm", type=int, default=200)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args()
+    import numba
+
+    if args.threads:
+        numba.set_num_threads(args.threads)
+    load = os.getloadavg()
+    print(f"numba {numba.__version__}, threads {numba.get_num_threads()}, "
+          f"layer {numba.config.THREADING_LAYER}, cpus {os.cpu_count()}, "
+          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    out = {}
+    for phi in (0.05, 0.30):
+        res = bench(args.n, phi, args.steps, args.warm)
+        out[phi] = res
+        print(f"phi={phi:.2f}: first step (compile or cache load) {res['first_step_s']:.2f} s, "
+              f"loop {res['loop_s']:.3f} s for {args.steps} steps, "
+              f"{res['rebuilds']} rebuilds, {res['events']} contact events")
+    print(f"load average after: {os.getloadavg()[0]:.2f} (other processes share the cores)")
+    print(f"phi=0.05 particle_steps_per_s={out[0.05]['rate']:.4g}")
+    print(f"phi=0.30 particle_steps_per_s={out[0.30]['rate']:.4g}")
+
+
+if __name__ == "__main__":
+    main()
