@@ -9,12 +9,15 @@ Execution model (see docs/dem.md):
   paper Eqs. 2-3). It returns early when a rebuild is due (max displacement
   since the last build > skin/2), a particle was flagged (sink, lost,
   non-finite) or an event buffer is half full.
-* Every pair is evaluated by both partners (full list: no write races) in a
-  *canonical orientation* (lower particle id first), so both copies of the
-  tangential history and both forces are bitwise identical and opposite.
-* Contact history lives in per-particle slots keyed by partner id (particle
-  id or geometry id), so it moves with the particle through sorting,
-  insertion and deletion.
+* The Verlet list is a *half* list keyed by particle id: row ``i`` holds the
+  partners with a larger id, so every pair is evaluated once, by its owner
+  (the lower id), which accumulates its own force and stores the partner's
+  share (force, torque, contact flag) per list entry; the integration pass
+  gathers those shares through the reverse list (no write races, exact
+  action-reaction).
+* Contact history lives in the owner's per-particle slots keyed by partner
+  id (particle id or geometry id), so it moves with the particle through
+  sorting, insertion and deletion and the owner never changes.
 * Events are written at contact onset by the owner (lower id, or the particle
   for geometry) into the buffer of the chunk that processes it; the row
   reference stored in the history slot is ``row * nchunks + chunk``.
@@ -329,7 +332,7 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 @njit(cache=True, fastmath=False)
 def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
@@ -353,48 +356,35 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         ri = rad[i]
         idi = pid[i]
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
-        # ---- particle-particle
+        # ---- particle-particle: half list, row i holds partners with a larger id, so
+        # i is the canonical owner (force on i, history, events); the partner's
+        # share is stored per entry and gathered in the integration pass
         for k in range(nb_start[i], nb_start[i + 1]):
             j = nb_j[k]
-            rs = ri + rad[j]
+            rj = rad[j]
+            rs = ri + rj
             dx = pos[j, 0] - xi + nb_sh[k, 0] * lx
             dy = pos[j, 1] - yi + nb_sh[k, 1] * ly
             dz = pos[j, 2] - zi + nb_sh[k, 2] * lz
-            if dx * dx + dy * dy + dz * dz >= rs * rs:
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 >= rs * rs or d2 == 0.0:
+                pc[k] = 0
                 continue
             idj = pid[j]
-            if idi < idj:
-                a = i
-                b = j
-                sgn = 1.0
-                shx, shy, shz = nb_sh[k, 0], nb_sh[k, 1], nb_sh[k, 2]
-            else:
-                a = j
-                b = i
-                sgn = -1.0
-                shx, shy, shz = -nb_sh[k, 0], -nb_sh[k, 1], -nb_sh[k, 2]
-            dx = (pos[b, 0] - pos[a, 0]) + shx * lx
-            dy = (pos[b, 1] - pos[a, 1]) + shy * ly
-            dz = (pos[b, 2] - pos[a, 2]) + shz * lz
-            d2 = dx * dx + dy * dy + dz * dz
-            ra = rad[a]
-            rb = rad[b]
             d = np.sqrt(d2)
-            s = ra + rb - d
-            if s <= 0.0 or d == 0.0:
-                continue
+            s = rs - d
             nx = dx / d
             ny = dy / d
             nz = dz / d
-            la = ra - 0.5 * s
-            lb = rb - 0.5 * s
-            # relative velocity of a w.r.t. b at the contact point
-            wx = la * omg[a, 0] + lb * omg[b, 0]
-            wy = la * omg[a, 1] + lb * omg[b, 1]
-            wz = la * omg[a, 2] + lb * omg[b, 2]
-            vx = vel[a, 0] - vel[b, 0] + (wy * nz - wz * ny)
-            vy = vel[a, 1] - vel[b, 1] + (wz * nx - wx * nz)
-            vz = vel[a, 2] - vel[b, 2] + (wx * ny - wy * nx)
+            la = ri - 0.5 * s
+            lb = rj - 0.5 * s
+            # relative velocity of i w.r.t. j at the contact point
+            wx = la * omg[i, 0] + lb * omg[j, 0]
+            wy = la * omg[i, 1] + lb * omg[j, 1]
+            wz = la * omg[i, 2] + lb * omg[j, 2]
+            vx = vel[i, 0] - vel[j, 0] + (wy * nz - wz * ny)
+            vy = vel[i, 1] - vel[j, 1] + (wz * nx - wx * nz)
+            vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
             # history slot
             slot = -1
             for q in range(h_n[i]):
@@ -420,21 +410,30 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            ma = mat[a]
-            mb = mat[b]
-            rstar = ra * rb / (ra + rb)
-            mstar = 1.0 / (invm[a] + invm[b])
+            ma = mat[i]
+            mb = mat[j]
+            rstar = ri * rj / rs
+            mstar = 1.0 / (invm[i] + invm[j])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
                 s, nx, ny, nz, vx, vy, vz, rstar, mstar, ptab[ma, mb, 0], ptab[ma, mb, 1],
                 ptab[ma, mb, 2], ptab[ma, mb, 3], ptab[ma, mb, 4], dt, sx, sy, sz)
-            fx += sgn * cfx
-            fy += sgn * cfy
-            fz += sgn * cfz
-            li = la if a == i else lb
-            tx += li * (ny * cfz - nz * cfy)
-            ty += li * (nz * cfx - nx * cfz)
-            tz += li * (nx * cfy - ny * cfx)
-            frac = s / min(ra, rb)
+            fx += cfx
+            fy += cfy
+            fz += cfz
+            cx_ = ny * cfz - nz * cfy
+            cy_ = nz * cfx - nx * cfz
+            cz_ = nx * cfy - ny * cfx
+            tx += la * cx_
+            ty += la * cy_
+            tz += la * cz_
+            pc[k] = 1
+            pf[k, 0] = cfx
+            pf[k, 1] = cfy
+            pf[k, 2] = cfz
+            pt[k, 0] = lb * cx_
+            pt[k, 1] = lb * cy_
+            pt[k, 2] = lb * cz_
+            frac = s / min(ri, rj)
             if frac > ovmax:
                 ovmax = frac
             if slot >= 0:
@@ -442,21 +441,20 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 h_st[i, slot, 1] = sy
                 h_st[i, slot, 2] = sz
                 h_tch[i, slot] = 1
-                if a == i:
-                    if new:
-                        vn = vx * nx + vy * ny + vz * nz
-                        vtx = vx - vn * nx
-                        vty = vy - vn * ny
-                        vtz = vz - vn * nz
-                        h_ev[i, slot] = _record_onset(
-                            evf, evi, evn, c, t, idi, 0, idj, ri, rad[j],
-                            pos[a, 0] + nx * la, pos[a, 1] + ny * la, pos[a, 2] + nz * la,
-                            vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
-                    if s > h_pk[i, slot]:
-                        h_pk[i, slot] = s
-                    h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
-                                                invm[a] + invm[b],
-                                                la * la * invi[a] + lb * lb * invi[b], dt)
+                if new:
+                    vn = vx * nx + vy * ny + vz * nz
+                    vtx = vx - vn * nx
+                    vty = vy - vn * ny
+                    vtz = vz - vn * nz
+                    h_ev[i, slot] = _record_onset(
+                        evf, evi, evn, c, t, idi, 0, idj, ri, rj,
+                        xi + nx * la, yi + ny * la, zi + nz * la,
+                        vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
+                if s > h_pk[i, slot]:
+                    h_pk[i, slot] = s
+                h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
+                                            invm[i] + invm[j],
+                                            la * la * invi[i] + lb * lb * invi[j], dt)
         # ---- particle-geometry
         for k in range(gc_start[i], gc_start[i + 1]):
             g = gc_g[k]
@@ -586,30 +584,30 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
 def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -621,15 +619,32 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag
     for i in range(i0, i1):
         im = invm[i]
         ii = invi[i]
-        v0 = vel[i, 0] + frc[i, 0] * im * dt
-        v1 = vel[i, 1] + frc[i, 1] * im * dt
-        v2 = vel[i, 2] + frc[i, 2] * im * dt
+        f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
+        t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
+        for q in range(rv_start[i], rv_start[i + 1]):
+            k = rv_k[q]
+            if pc[k] != 0:  # contact owned by a partner with a smaller id
+                f0 -= pf[k, 0]
+                f1 -= pf[k, 1]
+                f2 -= pf[k, 2]
+                t0 += pt[k, 0]
+                t1 += pt[k, 1]
+                t2 += pt[k, 2]
+        frc[i, 0] = f0
+        frc[i, 1] = f1
+        frc[i, 2] = f2
+        trq[i, 0] = t0
+        trq[i, 1] = t1
+        trq[i, 2] = t2
+        v0 = vel[i, 0] + f0 * im * dt
+        v1 = vel[i, 1] + f1 * im * dt
+        v2 = vel[i, 2] + f2 * im * dt
         vel[i, 0] = v0
         vel[i, 1] = v1
         vel[i, 2] = v2
-        omg[i, 0] += trq[i, 0] * ii * dt
-        omg[i, 1] += trq[i, 1] * ii * dt
-        omg[i, 2] += trq[i, 2] * ii * dt
+        omg[i, 0] += t0 * ii * dt
+        omg[i, 1] += t1 * ii * dt
+        omg[i, 2] += t2 * ii * dt
         x = pos[i, 0] + v0 * dt
         y = pos[i, 1] + v1 * dt
         z = pos[i, 2] + v2 * dt
@@ -673,23 +688,23 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
 def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-            x0, flag, flag_t, nb_start, nb_j, nb_sh, box_len, gc_start, gc_g,
-            gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
+            x0, flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_k, pc, pf, pt, box_len, gc_start,
+            gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
     """Run up to ``nsteps`` steps from time ``t0``; return (steps done, reason).
@@ -704,17 +719,17 @@ def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid
         update_geometry(gref, grot, gkind, t, gcur)
         if parallel:
             force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, invm, invi, x0, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         dmax = 0.0
         nflag = 0.0
@@ -776,7 +791,7 @@ def bin_cells(pos, lo, cell_len, ncell):
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
     pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
     ci = cell[i]
@@ -785,6 +800,7 @@ def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic,
     cz = ci // (nx * ny)
     xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
     ri = rad[i]
+    idi = pid[i]
     cnt = 0
     k = 0
     if not count_only:
@@ -831,7 +847,7 @@ def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic,
                 q = (qz * ny + qy) * nx + qx
                 for p in range(start[q], start[q + 1]):
                     j = order[p]
-                    if j == i:
+                    if pid[j] <= idi:
                         continue
                     dx = pos[j, 0] + sx * box_len[0] - xi
                     dy = pos[j, 1] + sy * box_len[1] - yi
@@ -851,42 +867,59 @@ def _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic,
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
     for i in prange(pos.shape[0]):
-        _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
     for i in range(pos.shape[0]):
-        _neighbours_pass_one(i, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def build_neighbours(pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel):
-    """Full Verlet list in CSR form: (start, partner index, periodic shift)."""
+def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel):
+    """Half Verlet list (partners with a larger id) in CSR form plus its reverse.
+
+    Returns ``(start, partner index, periodic shift, reverse start, reverse
+    entry)``: entries ``rv_k[rv_start[j]:rv_start[j+1]]`` are the list entries
+    whose partner is ``j``.
+    """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
     nb_start = np.zeros(n + 1, np.int64)
     dummy_j = np.zeros(0, np.int32)
     dummy_sh = np.zeros((0, 3), np.int8)
     if parallel:
-        _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+        _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
                              nb_start, dummy_j, dummy_sh, True, counts)
     else:
-        _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+        _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
                              nb_start, dummy_j, dummy_sh, True, counts)
     for i in range(n):
         nb_start[i + 1] = nb_start[i] + counts[i]
     nb_j = np.empty(nb_start[n], np.int32)
     nb_sh = np.empty((nb_start[n], 3), np.int8)
     if parallel:
-        _neighbours_pass_par(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+        _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
                              nb_start, nb_j, nb_sh, False, counts)
     else:
-        _neighbours_pass_ser(pos, rad, skin, cell, start, order, ncell, periodic, box_len,
+        _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
                              nb_start, nb_j, nb_sh, False, counts)
-    return nb_start, nb_j, nb_sh
+    m = nb_start[n]
+    rv_start = np.zeros(n + 1, np.int64)
+    for k in range(m):
+        rv_start[nb_j[k] + 1] += 1
+    for i in range(n):
+        rv_start[i + 1] += rv_start[i]
+    fill = rv_start[:-1].copy()
+    rv_k = np.empty(m, np.int64)
+    for k in range(m):
+        j = nb_j[k]
+        rv_k[fill[j]] = k
+        fill[j] += 1
+    return nb_start, nb_j, nb_sh, rv_start, rv_k
 
 
 @njit(cache=True, fastmath=False)

@@ -477,9 +477,11 @@ class Simulation:
             self._keep(order)
             cell = cell[order]
             order = np.arange(cell.size, dtype=np.int64)
-        self._nb = K.build_neighbours(p["pos"], p["rad"], self._skin, cell, start, order,
+        self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
                                       self._parallel())
+        m = self._nb[1].shape[0]
+        self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
         self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
                                            self._grot, self._gkind, self._gbound,
@@ -700,6 +702,7 @@ class Simulation:
                     self._time, dt, limit, self._skin, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
                     p["x0"], p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+                    self._nb[3], self._nb[4], self._pair[0], self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
                     self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
                     self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
