@@ -158,3 +158,16 @@ def test_ev_operator_columns_are_probabilities(provider, grid, op):
     for st in lm.stages:
         assert np.allclose(st.G.sum(axis=0), 1.0, atol=1e-12)
         assert st.G.min() >= -1e-14
+
+
+def test_solvers_agree_all_impacted_with_damage_threshold(provider, feed, op):
+    """The other semantics and threshold breakage: still K-S < 0.01 (continuous MC damage)."""
+    from msmill.ore import get_ore
+
+    ore = BreakageParameters.from_ore(get_ore("UG2").with_l_ref(5.0, "test"))
+    ore = BreakageParameters(**{**ore.__dict__, "damage_threshold": 0.3})
+    kw = dict(impacted="all", damage_classes=12)
+    ev = Mill(ore, provider, **kw).run(feed, op)
+    mc = Mill(ore, provider, solver="monte_carlo", seed=11, parcels_per_step=1000, **kw).run(feed, op)
+    assert ev.reduction_ratio > 1.2
+    assert ks_statistic(ev.product_psd, mc.product_psd) < 0.01
