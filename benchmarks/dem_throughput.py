@@ -43,12 +43,12 @@ def gas(n: int, phi: float, seed: int = 1):
     return pos, vel, side, r
 
 
-def bench(n: int, phi: float, steps: int, warm: int) -> dict:
+def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None) -> dict:
     from msmill.dem import Simulation
 
     pos, vel, side, r = gas(n, phi)
     sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
-                     gravity_m_s2=(0, 0, 0))
+                     gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
     sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
     sim.add_particles(pos, r, vel, material="rock")
@@ -72,6 +72,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--warm", type=int, default=200)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--skin", type=float, default=None, help="Verlet skin (m); default r/2")
+    ap.add_argument("--phi", type=float, nargs="*", default=[0.05, 0.30])
     args = ap.parse_args()
     import numba
 
@@ -82,15 +84,15 @@ def main() -> None:
           f"layer {numba.config.THREADING_LAYER}, cpus {os.cpu_count()}, "
           f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     out = {}
-    for phi in (0.05, 0.30):
-        res = bench(args.n, phi, args.steps, args.warm)
+    for phi in args.phi:
+        res = bench(args.n, phi, args.steps, args.warm, args.skin)
         out[phi] = res
         print(f"phi={phi:.2f}: first step (compile or cache load) {res['first_step_s']:.2f} s, "
               f"loop {res['loop_s']:.3f} s for {args.steps} steps, "
               f"{res['rebuilds']} rebuilds, {res['events']} contact events")
     print(f"load average after: {os.getloadavg()[0]:.2f} (other processes share the cores)")
-    print(f"phi=0.05 particle_steps_per_s={out[0.05]['rate']:.4g}")
-    print(f"phi=0.30 particle_steps_per_s={out[0.30]['rate']:.4g}")
+    for phi, res in out.items():
+        print(f"phi={phi:.2f} particle_steps_per_s={res['rate']:.4g}")
 
 
 if __name__ == "__main__":

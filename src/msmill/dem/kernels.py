@@ -791,7 +791,7 @@ def bin_cells(pos, lo, cell_len, ncell):
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
     pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
     ci = cell[i]
@@ -802,9 +802,7 @@ def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, peri
     ri = rad[i]
     idi = pid[i]
     cnt = 0
-    k = 0
-    if not count_only:
-        k = nb_start[i]
+    maxn = pad_j.shape[1]
     for oz in range(-1, 2):
         qz = cz + oz
         sz = 0
@@ -854,59 +852,68 @@ def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, peri
                     dz = pos[j, 2] + sz * box_len[2] - zi
                     cut = ri + rad[j] + skin
                     if dx * dx + dy * dy + dz * dz < cut * cut:
-                        if count_only:
-                            cnt += 1
-                        else:
-                            nb_j[k] = j
-                            nb_sh[k, 0] = sx
-                            nb_sh[k, 1] = sy
-                            nb_sh[k, 2] = sz
-                            k += 1
-    if count_only:
-        counts[i] = cnt
+                        if cnt < maxn:
+                            pad_j[i, cnt] = j
+                            pad_sh[i, cnt, 0] = sx
+                            pad_sh[i, cnt, 1] = sy
+                            pad_sh[i, cnt, 2] = sz
+                        cnt += 1
+    counts[i] = cnt
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
     for i in prange(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
 
 
 @njit(cache=True, fastmath=False)
-def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts):
+def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
     for i in range(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, nb_start, nb_j, nb_sh, count_only, counts)
+        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
 
 
 @njit(cache=True, fastmath=False)
-def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel):
+def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel,
+                     maxn_hint):
     """Half Verlet list (partners with a larger id) in CSR form plus its reverse.
 
-    Returns ``(start, partner index, periodic shift, reverse start, reverse
-    entry)``: entries ``rv_k[rv_start[j]:rv_start[j+1]]`` are the list entries
-    whose partner is ``j``.
+    One cell sweep fills padded rows of width ``maxn_hint`` (widened and
+    redone if a row overflows), then rows are packed. Returns ``(start,
+    partner index, periodic shift, reverse start, reverse entry)``: entries
+    ``rv_k[rv_start[j]:rv_start[j+1]]`` are the list entries whose partner
+    is ``j``.
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
+    maxn = max(maxn_hint, 1)
+    while True:
+        pad_j = np.empty((n, maxn), np.int32)
+        pad_sh = np.empty((n, maxn, 3), np.int8)
+        if parallel:
+            _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+                                 box_len, pad_j, pad_sh, counts)
+        else:
+            _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+                                 box_len, pad_j, pad_sh, counts)
+        top = 0
+        for i in range(n):
+            top = max(top, counts[i])
+        if top <= maxn:
+            break
+        maxn = top + top // 4 + 4
     nb_start = np.zeros(n + 1, np.int64)
-    dummy_j = np.zeros(0, np.int32)
-    dummy_sh = np.zeros((0, 3), np.int8)
-    if parallel:
-        _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
-                             nb_start, dummy_j, dummy_sh, True, counts)
-    else:
-        _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
-                             nb_start, dummy_j, dummy_sh, True, counts)
     for i in range(n):
         nb_start[i + 1] = nb_start[i] + counts[i]
     nb_j = np.empty(nb_start[n], np.int32)
     nb_sh = np.empty((nb_start[n], 3), np.int8)
-    if parallel:
-        _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
-                             nb_start, nb_j, nb_sh, False, counts)
-    else:
-        _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len,
-                             nb_start, nb_j, nb_sh, False, counts)
+    for i in range(n):
+        o = nb_start[i]
+        for q in range(counts[i]):
+            nb_j[o + q] = pad_j[i, q]
+            nb_sh[o + q, 0] = pad_sh[i, q, 0]
+            nb_sh[o + q, 1] = pad_sh[i, q, 1]
+            nb_sh[o + q, 2] = pad_sh[i, q, 2]
     m = nb_start[n]
     rv_start = np.zeros(n + 1, np.int64)
     for k in range(m):
@@ -919,7 +926,7 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
         j = nb_j[k]
         rv_k[fill[j]] = k
         fill[j] += 1
-    return nb_start, nb_j, nb_sh, rv_start, rv_k
+    return nb_start, nb_j, nb_sh, rv_start, rv_k, top
 
 
 @njit(cache=True, fastmath=False)

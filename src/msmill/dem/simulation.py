@@ -137,6 +137,7 @@ class Simulation:
         self._dirty = True  # geometry/material tables need packing
         self._need_rebuild = True
         self._n_rebuilds = 0
+        self._maxn = 16
         self._warned: set[str] = set()
         self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
 
@@ -479,7 +480,8 @@ class Simulation:
             order = np.arange(cell.size, dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
-                                      self._parallel())
+                                      self._parallel(), self._maxn)
+        self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
