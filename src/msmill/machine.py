@@ -82,33 +82,37 @@ class Deflector(_Model):
 
     The plate spans the whole casing length along ``y``. It starts at the
     liner (``x = +-casing half-width``) at height ``height_above_axis_m``
-    above the rotor axes of ``stage`` and slopes down towards the centre at
-    ``angle_deg`` below the horizontal, reaching ``length_m`` along its slope.
-    Two plates are made, one per liner, mirror images of each other.
+    above the rotor axes of ``stage`` and runs towards the centre at
+    ``angle_deg`` below the horizontal (negative: rising towards the centre),
+    ``length_m`` along its slope. Two plates are made, one per liner, mirror
+    images of each other. A plate rising from the liner to the roof at the
+    chute edge makes a hipped roof whose underside turns rock thrown up along
+    the liners back towards the centre.
 
     Parameters
     ----------
     stage : int
         Stage (1 = top) above whose rotors the plates sit.
     height_above_axis_m : float
-        Height of the plates' upper (liner) edge above the stage's rotor axes (m).
+        Height of the plates' liner edge above the stage's rotor axes (m).
     length_m : float
         Plate length along its slope (m).
     angle_deg : float
-        Slope below the horizontal, pointing inwards and down (deg, 0-90).
+        Slope below the horizontal towards the centre (deg, -90 to 90;
+        negative rises towards the centre).
     """
 
     stage: int = Field(ge=1)
     height_above_axis_m: float = Field(gt=0)
     length_m: float = Field(gt=0)
-    angle_deg: float = Field(ge=0, le=90)
+    angle_deg: float = Field(ge=-90, le=90)
 
     def inner_edge_offset_m(self) -> float:
         """Horizontal reach of the plate from the liner (m)."""
         return self.length_m * math.cos(math.radians(self.angle_deg))
 
     def drop_m(self) -> float:
-        """Height difference between the liner edge and the inner edge (m)."""
+        """Height of the liner edge minus that of the inner edge (m; negative if rising inwards)."""
         return self.length_m * math.sin(math.radians(self.angle_deg))
 
 
@@ -229,7 +233,23 @@ class Machine(_Model):
                 raise ValueError(f"deflector stage {d.stage} exceeds n_stages {self.n_stages}")
             if d.inner_edge_offset_m() >= half_w:
                 raise ValueError("deflector plates must not reach the centre plane")
+            if d.stage == 1 and max(d.height_above_axis_m, d.height_above_axis_m - d.drop_m()) > self.headroom_m + 1e-9:
+                raise ValueError("stage-1 deflector plates must stay below the roof")
+            if self._deflector_clearance(d) <= 0:
+                raise ValueError(f"deflector plates above stage {d.stage} cut the flinger circles")
         return self
+
+    def _deflector_clearance(self, d: Deflector) -> float:
+        """Smallest distance from a deflector plate to a flinger tip circle of its stage (m)."""
+        hw = self.casing_width_m / 2
+        p0 = (-hw, d.height_above_axis_m)
+        p1 = (-hw + d.inner_edge_offset_m(), d.height_above_axis_m - d.drop_m())
+        best = math.inf
+        for ax in (-self.rotor_axis_offset_m, self.rotor_axis_offset_m):
+            dx, dz = p1[0] - p0[0], p1[1] - p0[1]
+            t = max(0.0, min(1.0, ((ax - p0[0]) * dx + (0.0 - p0[1]) * dz) / (dx * dx + dz * dz)))
+            best = min(best, math.hypot(p0[0] + t * dx - ax, p0[1] + t * dz) - self.tip_radius_m)
+        return best
 
     # ------------------------------------------------------------------ I/O
     @classmethod

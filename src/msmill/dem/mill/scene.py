@@ -26,7 +26,10 @@ Modes
 -----
 ``full``: the whole casing length ``L``, closed by end walls. ``slice``: one
 flinger row (``row_pitch_m`` long, row 0, periodic along y); the feed is
-scaled by ``row_pitch_m / casing_length_m``.
+scaled by ``slice length / casing_length_m``. The engine needs a periodic
+length of at least three neighbour cells (``3 (2 r_max + r_min / 2)``), so for
+rocks above about 26 mm (default machine) the slice holds the smallest whole
+number of rows that satisfies this (2 rows for 30 mm rock).
 
 Rock stiffness
 --------------
@@ -219,10 +222,13 @@ def build_scene(
 
     hw = machine.half_width_m
     if mode == "slice":
+        # the engine needs >= 3 neighbour cells (2 r_max + skin, skin = r_min / 2) along a periodic axis
+        need = 3 * (2 * float(sizes.max()) / 2000 + 0.5 * float(sizes.min()) / 2000) * 1.001
+        n_rows = min(machine.flinger_rows, max(1, math.ceil(need / machine.row_pitch_m)))
         y0 = machine.row_y_m(0) - machine.row_pitch_m / 2
-        y1 = y0 + machine.row_pitch_m
-        rows = [0]
-        scale = machine.row_pitch_m / machine.casing_length_m
+        y1 = y0 + n_rows * machine.row_pitch_m
+        rows = list(range(n_rows))
+        scale = (y1 - y0) / machine.casing_length_m
     else:
         y0, y1 = 0.0, machine.casing_length_m
         rows = list(range(machine.flinger_rows))
@@ -311,6 +317,7 @@ def build_scene(
     info = {
         "mode": mode,
         "slice_length_m": y1 - y0,
+        "slice_rows": len(rows),
         "feed_scale": scale,
         "feed_kg_s": feed_kg_s,
         "size_mm": d50,
