@@ -21,8 +21,8 @@ from msmill.machine import Machine, OperatingPoint
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="also save the run (events, statistics, plots) here")
-    ap.add_argument("--measure-s", type=float, default=1.0, help="measurement window (s)")
-    ap.add_argument("--max-time-s", type=float, default=5.0, help="max time to wait for steady state (s)")
+    ap.add_argument("--measure-s", type=float, default=0.5, help="measurement window (s)")
+    ap.add_argument("--max-time-s", type=float, default=4.0, help="max time to wait for steady state (s)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     machine = Machine.default()

@@ -9,7 +9,7 @@ at 40 deg) for several rock sizes, and writes a
 the file and beside it (``default.provenance.json``). Each run's raw data and
 plots go to ``--runs-dir`` (not shipped).
 
-Run: ``python scripts/build_stage_table.py [--sizes-mm 6 10 16 30] [--measure-s 1.0]``
+Run: ``python scripts/build_stage_table.py [--sizes-mm 10 14 20 30] [--measure-s 0.5]``
 """
 
 from __future__ import annotations
@@ -34,12 +34,12 @@ DEFAULT_OUT = ROOT / "src" / "msmill" / "data" / "stage_parameters" / "default.j
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes-mm", type=float, nargs="+", default=[6.0, 10.0, 16.0, 30.0])
+    ap.add_argument("--sizes-mm", type=float, nargs="+", default=[10.0, 14.0, 20.0, 30.0])
     ap.add_argument("--feed-tph", type=float, default=30.0)
     ap.add_argument("--speed-rpm", type=float, default=1500.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
-    ap.add_argument("--measure-s", type=float, default=1.0)
-    ap.add_argument("--max-time-s", type=float, default=5.0)
+    ap.add_argument("--measure-s", type=float, default=0.5)
+    ap.add_argument("--max-time-s", type=float, default=4.0)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
     args = ap.parse_args()
@@ -49,7 +49,8 @@ def main() -> None:
     settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
     t_all = time.perf_counter()
     runs, per_run = [], []
-    for size in sorted(args.sizes_mm):
+    # cheapest (largest rocks) first; the table is rewritten after every run so a partial build is usable
+    for size in sorted(args.sizes_mm, reverse=True):
         t0 = time.perf_counter()
         run = run_mill(machine, op, size_mm=size, mode="slice", settings=settings)
         save_run(run, args.runs_dir / f"size_{size:g}mm")
@@ -64,6 +65,10 @@ def main() -> None:
                         "rock_youngs_modulus_used_pa": run.scene.info["rock_youngs_modulus_used_pa"],
                         "kl_primary_v_lambda_secondary_v": kls})
         print(json.dumps(per_run[-1]), flush=True)
+        _write(args, machine, op, settings, runs, per_run, t_all)
+
+
+def _write(args, machine, op, settings, runs, per_run, t_all) -> None:
     provenance = {
         "command": " ".join(shlex.quote(a) for a in [sys.executable, *sys.argv]),
         "script": "scripts/build_stage_table.py",
@@ -76,15 +81,16 @@ def main() -> None:
                    "feed_tph": op.feed_tph, "speed_rpm": op.speed_rpm, "bottom_speed_factor": op.bottom_speed_factor,
                    "stage_speeds_rpm": op.stage_speeds(machine.n_stages), "gate_deg": op.gate_deg,
                    "run_settings": settings.__dict__},
+        "sizes_done_mm": sorted(r.design.size_mm for r in runs),
         "runs": per_run,
         "wall_s": round(time.perf_counter() - t_all, 1),
         "note": "Produced by our own DEM (msmill.dem) periodic-slice runs; not hand-edited.",
     }
-    table = StageParameterTable(runs=runs, provenance=provenance)
+    table = StageParameterTable(runs=sorted(runs, key=lambda r: r.design.size_mm), provenance=provenance)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     table.to_json(args.out)
     args.out.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out} ({len(runs)} runs, {provenance['wall_s']} s)")
+    print(f"wrote {args.out} ({len(runs)} runs, {provenance['wall_s']} s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ def test_default_geometry_matches_documented_values():
 def test_toml_round_trip(tmp_path):
     m = Machine.default().model_copy(
         update={"central_sweep": [("down", "down")] * 4 + [("up", "down")],
-                "deflectors": [Deflector(stage=1, height_above_axis_m=0.25, length_m=0.1, angle_deg=30)]}
+                "deflectors": [Deflector(stage=1, height_above_axis_m=0.2, length_m=0.1, angle_deg=30)]}
     )
     m = Machine.model_validate(m.model_dump())
     p = tmp_path / "m.toml"

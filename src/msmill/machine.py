@@ -188,7 +188,7 @@ class Machine(_Model):
     flinger_width_m: float = Field(default=0.08, gt=0)
     casing_width_m: float = Field(default=0.96, gt=0)
     casing_length_m: float = Field(default=0.60, gt=0)
-    headroom_m: float = Field(default=0.45, gt=0)
+    headroom_m: float = Field(default=0.24, gt=0)
     chute_width_m: float = Field(default=0.16, gt=0)
     gate_length_m: float = Field(default=0.30, gt=0)
     gate_hinge_drop_m: float = Field(default=0.25, gt=0)

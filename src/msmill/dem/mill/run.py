@@ -55,15 +55,15 @@ __all__ = ["MillRun", "RunSettings", "design_point", "load_raw", "run_mill", "sa
 class RunSettings:
     """Settings of a run to steady state plus measurement window (times in s)."""
 
-    max_time_s: float = 6.0
+    max_time_s: float = 4.0
     chunk_s: float = 0.1
     steady_window_s: float = 0.4
     rel_tol: float = 0.05
     trend_tol: float = 0.05
-    measure_s: float = 1.0
+    measure_s: float = 0.5
     snapshot_every_s: float = 0.005
     max_overlap_fraction: float = 0.05
-    safety: float = 0.2
+    safety: float = 0.3
     dt_s: float | None = None
     seed: int = 0
 
@@ -136,8 +136,14 @@ def run_mill(
     kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
     found = None
-    while sim.time_s < rs.max_time_s - 1e-9:
-        sim.run(min(rs.chunk_s, rs.max_time_s - sim.time_s), **kw)
+
+    def remaining(t_end: float) -> float:
+        # time left, treating less than half a step as nothing (the engine runs whole steps)
+        left = t_end - sim.time_s
+        return left if left > 0.5 * (sim.dt_s or 0.0) + 1e-12 else 0.0
+
+    while remaining(rs.max_time_s) > 0:
+        sim.run(min(rs.chunk_s, remaining(rs.max_time_s)), **kw)
         ts = sim.timeseries()
         if progress:
             progress(sim.time_s, int(sim.n_particles), "transient")
@@ -148,8 +154,8 @@ def run_mill(
     t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
     if found is not None:
         t_stop = sim.time_s + rs.measure_s
-        while sim.time_s < t_stop - 1e-9:
-            sim.run(min(rs.chunk_s, t_stop - sim.time_s), **kw)
+        while remaining(t_stop) > 0:
+            sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
                 progress(sim.time_s, int(sim.n_particles), "measure")
     wall = time.perf_counter() - wall0
