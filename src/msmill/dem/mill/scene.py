@@ -257,12 +257,15 @@ def build_scene(
     yc, yh = (y0 + y1) / 2, (y1 - y0) / 2 + ext
     cw = machine.chute_width_m / 2
     roof_half = (hw - cw) / 2
+    # roof, chute walls and lid are solid slabs on their outer side (a rock pressed against a plate of
+    # zero thickness by a flinger could be pushed through it; a 50 mm slab cannot be crossed)
+    slab = 0.05
     for side in (-1, 1):
-        sim.add_box((side * (cw + roof_half), yc, roof), (roof_half, yh, 0.0), material="steel",
+        sim.add_box((side * (cw + roof_half), yc, roof + slab), (roof_half, yh, slab), material="steel",
                     tag="liner", group=4)
-        sim.add_box((side * cw, yc, roof + chute_h / 2), (0.0, yh, chute_h / 2), material="steel",
+        sim.add_box((side * (cw + slab), yc, roof + chute_h / 2), (slab, yh, chute_h / 2), material="steel",
                     tag="chute", group=0)
-    sim.add_box((0.0, yc, top), (cw, yh, 0.0), material="steel", tag="chute", group=1)
+    sim.add_box((0.0, yc, top + slab), (cw + 2 * slab, yh, slab), material="steel", tag="chute", group=1)
 
     # rotors
     r_in, r_out = machine.hub_radius_m, machine.tip_radius_m
