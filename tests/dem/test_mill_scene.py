@@ -105,3 +105,20 @@ def test_statistics_valid_and_streams_sum_to_one(small_run):
         assert 0 <= s.primary_hit_probability <= 1
     assert st.characteristic_time_s > 0
     assert st.provenance["scene"]["rock_youngs_modulus_used_pa"] <= 50e9
+
+
+def test_saved_run_recomputes_same_statistics(small_run, tmp_path):
+    from msmill.cli.main import run as cli
+    from msmill.dem.mill.run import save_run, stats_from_dir
+
+    save_run(small_run, tmp_path, plots=False)
+    again = stats_from_dir(tmp_path).run
+    first = small_run.stats.run
+    for a, b in zip(first.stages, again.stages, strict=True):
+        assert a.kickback == pytest.approx(b.kickback)
+        assert a.secondary_lambda == pytest.approx(b.secondary_lambda)
+        assert a.n_primary_impacts == b.n_primary_impacts
+    assert again.characteristic_time_s == pytest.approx(first.characteristic_time_s)
+    assert cli(["dem", "stats", str(tmp_path)]) == 0
+    assert (tmp_path / "statistics.json").exists()
+    assert cli(["dem", "stats", str(tmp_path / "missing")]) == 2
