@@ -153,3 +153,14 @@ def test_lazy_top_level_exports_and_simulate(feed, op):
                    TableProvider(synthetic_table()), damage="none")
     assert res.submodels["damage"] == "none"
     assert res.p80_mm <= res.f80_mm
+
+
+def test_implausible_velocities_warn(run_stats):
+    from msmill.stageparams import GaussianMixture
+
+    s0 = run_stats.stages[0].model_copy(update={
+        "primary_velocity": GaussianMixture(weights=[0.9, 0.1], means_m_s=[40.0, 5000.0],
+                                            sigmas_m_s=[5.0, 10.0])})
+    prov = RunProvider(run_stats.model_copy(update={"stages": [s0, *run_stats.stages[1:]]}))
+    with pytest.warns(OutOfDomainWarning, match="beyond 300 m/s"):
+        prov.stage_parameters(np.array([10.0]))

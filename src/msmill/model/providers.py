@@ -48,6 +48,10 @@ __all__ = [
 ]
 
 _REL_TOL = 0.01  # relative difference of an operating value that triggers a warning
+#: Impact velocities above this (m/s, mean or spread of a mixture component) are
+#: implausible for an impact mill (bottom-stage tip speed at 3800 rpm is ~75 m/s)
+#: and are reported with a warning.
+PLAUSIBLE_VELOCITY_M_S = 300.0
 
 
 @runtime_checkable
@@ -96,6 +100,24 @@ def _mixture_rows(stats: list[StageStatistics], attr: str) -> tuple[np.ndarray, 
     return w, m, sd
 
 
+def _check_velocities(runs: list[RunStatistics], source: str) -> None:
+    bad = []
+    for r in runs:
+        for st in r.stages:
+            for kind in ("primary_velocity", "secondary_velocity"):
+                g = getattr(st, kind)
+                w = np.asarray(g.weights)
+                big = (np.abs(g.means_m_s) > PLAUSIBLE_VELOCITY_M_S) | (np.asarray(g.sigmas_m_s) > PLAUSIBLE_VELOCITY_M_S)
+                if np.any(big & (w > 0)):
+                    bad.append(f"{r.design.size_mm:g} mm stage {st.stage} {kind.split('_')[0]} "
+                               f"(weight {w[big].sum():.2g})")
+    if bad:
+        warnings.warn(
+            f"{source} has velocity-mixture components beyond {PLAUSIBLE_VELOCITY_M_S:g} m/s "
+            f"({len(bad)} distributions, e.g. {'; '.join(bad[:3])}); check the fits",
+            OutOfDomainWarning, stacklevel=4)
+
+
 def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     """Stack runs into arrays of shape (R, S, ...)."""
     n_s = runs[0].n_stages
@@ -134,6 +156,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
             f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
             "to the nearest size", OutOfDomainWarning, stacklevel=3)
     a = _run_arrays(runs)
+    _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
     xr = np.log(run_sizes)
     if len(runs) == 1:
