@@ -553,6 +553,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             h_ds[i, q] = h_ds[i, last]
             h_tch[i, q] = h_tch[i, last]
             h_tch[i, last] = 0
+            h_ev[i, last] = -1
             h_n[i] = last
         q = 0
         while q < g_n[i]:
@@ -572,6 +573,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             g_ds[i, q] = g_ds[i, last]
             g_tch[i, q] = g_tch[i, last]
             g_tch[i, last] = 0
+            g_ev[i, last] = -1
             g_n[i] = last
         frc[i, 0] = fx
         frc[i, 1] = fy
@@ -953,14 +955,17 @@ def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
-    pos.shape[0]
-    ng = gkind.shape[0]
+def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+    x, y, z = pos[i, 0], pos[i, 1], pos[i, 2]
+    cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
+    cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
+    cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
+    cell = (cz * gnc[1] + cy) * gnc[0] + cx
     k = 0 if count_only else gc_start[i]
     cnt = 0
-    for g in range(ng):
-        if _geom_candidate(g, pos[i, 0], pos[i, 1], pos[i, 2], rad[i], skin, gcur, grot,
-                           gkind, gbound):
+    for q in range(grid_start[cell], grid_start[cell + 1]):
+        g = grid_list[q]
+        if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
             if count_only:
                 cnt += 1
             else:
@@ -971,36 +976,128 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g,
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
+def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in prange(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts):
+def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in range(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, parallel):
-    """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus."""
+def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
+                          grid_list, parallel):
+    """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus.
+
+    Only the primitives listed in the particle's cell of the coarse geometry
+    grid (:func:`build_geom_grid`) are tested.
+    """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
     gc_start = np.zeros(n + 1, np.int64)
     dummy = np.zeros(0, np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, dummy, True, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
+                       grid_list, gc_start, dummy, True, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, dummy, True, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
+                       grid_list, gc_start, dummy, True, counts)
     for i in range(n):
         gc_start[i + 1] = gc_start[i] + counts[i]
     gc_g = np.empty(gc_start[n], np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, False, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
+                       grid_list, gc_start, gc_g, False, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gc_start, gc_g, False, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
+                       grid_list, gc_start, gc_g, False, counts)
     return gc_start, gc_g
+
+
+@njit(cache=True, fastmath=False)
+def _geom_aabb(g, gcur, grot, gkind, gbound):
+    """Axis-aligned box holding a primitive at any rotation angle (planes: infinite)."""
+    lo = np.empty(3)
+    hi = np.empty(3)
+    if gkind[g] == PLANE:
+        for k in range(3):
+            lo[k] = -np.inf
+            hi[k] = np.inf
+    elif grot[g, 7] > 0.0:
+        rmax = gbound[g, 1]
+        for k in range(3):
+            u = grot[g, 3 + k]
+            a0 = grot[g, k] + gbound[g, 2] * u
+            a1 = grot[g, k] + gbound[g, 3] * u
+            ext = rmax * np.sqrt(max(0.0, 1.0 - u * u))
+            lo[k] = min(a0, a1) - ext
+            hi[k] = max(a0, a1) + ext
+    else:
+        for k in range(3):
+            lo[k] = gbound[g, k]
+            hi[k] = gbound[g, 3 + k]
+    return lo, hi
+
+
+@njit(cache=True, fastmath=False)
+def _grid_pass(gcur, grot, gkind, gbound, glo, gcl, gnc, margin, grid_start, grid_list, fill):
+    ncell = gnc[0] * gnc[1] * gnc[2]
+    half_diag = 0.5 * np.sqrt(gcl[0] ** 2 + gcl[1] ** 2 + gcl[2] ** 2)
+    for g in range(gkind.shape[0]):
+        if gkind[g] == PLANE and grot[g, 7] <= 0.0:
+            for c in range(ncell):
+                cx = c % gnc[0]
+                cy = (c // gnc[0]) % gnc[1]
+                cz = c // (gnc[0] * gnc[1])
+                px = glo[0] + (cx + 0.5) * gcl[0] - gcur[g, 0]
+                py = glo[1] + (cy + 0.5) * gcl[1] - gcur[g, 1]
+                pz = glo[2] + (cz + 0.5) * gcl[2] - gcur[g, 2]
+                d = px * gcur[g, 3] + py * gcur[g, 4] + pz * gcur[g, 5]
+                if abs(d) <= half_diag + margin:
+                    if fill:
+                        grid_list[grid_start[c + 1]] = g
+                    grid_start[c + 1] += 1
+            continue
+        lo, hi = _geom_aabb(g, gcur, grot, gkind, gbound)
+        i0 = np.empty(3, np.int64)
+        i1 = np.empty(3, np.int64)
+        for k in range(3):
+            a = (lo[k] - margin - glo[k]) / gcl[k]
+            b = (hi[k] + margin - glo[k]) / gcl[k]
+            a = min(max(a, 0.0), gnc[k] - 1.0)
+            b = min(max(b, 0.0), gnc[k] - 1.0)
+            i0[k] = int(np.floor(a))
+            i1[k] = int(np.floor(b))
+        for cz in range(i0[2], i1[2] + 1):
+            for cy in range(i0[1], i1[1] + 1):
+                for cx in range(i0[0], i1[0] + 1):
+                    c = (cz * gnc[1] + cy) * gnc[0] + cx
+                    if fill:
+                        grid_list[grid_start[c + 1]] = g
+                    grid_start[c + 1] += 1
+
+
+@njit(cache=True, fastmath=False)
+def build_geom_grid(gcur, grot, gkind, gbound, glo, gcl, gnc, margin):
+    """Coarse grid of primitives: cell ``c`` lists every primitive within ``margin`` of it."""
+    ncell = gnc[0] * gnc[1] * gnc[2]
+    counts = np.zeros(ncell + 1, np.int64)
+    dummy = np.zeros(0, np.int32)
+    _grid_pass(gcur, grot, gkind, gbound, glo, gcl, gnc, margin, counts, dummy, False)
+    grid_start = np.zeros(ncell + 1, np.int64)
+    for c in range(ncell):
+        grid_start[c + 1] = grid_start[c] + counts[c + 1]
+    grid_list = np.empty(grid_start[ncell], np.int32)
+    cursor = grid_start.copy()
+    # second pass writes at cursor[c + 1 - 1]: shift so that cursor[c + 1] starts at c's offset
+    shifted = np.empty(ncell + 1, np.int64)
+    shifted[1:] = cursor[:-1]
+    shifted[0] = 0
+    _grid_pass(gcur, grot, gkind, gbound, glo, gcl, gnc, margin, shifted, grid_list, True)
+    return grid_start, grid_list
 
 
 # --------------------------------------------------------------------------- diagnostics
@@ -1072,3 +1169,32 @@ def place_without_overlap(cand, radii, ex_pos, ex_rad):
                 okm[p] = True
                 break
     return out, okm
+
+
+@njit(cache=True, fastmath=False)
+def permute_slots(perm, cnt, ids, st, ev, pk, ds, tch):
+    """Gather history slots by ``perm``, copying only the used slots of each particle.
+
+    Returns new arrays (``ids, st, ev, pk, ds, tch``); unused slots hold
+    ``ev = -1`` and otherwise undefined values (kernels bound access by ``cnt``).
+    """
+    n = perm.shape[0]
+    s = ids.shape[1]
+    ids2 = np.empty((n, s), ids.dtype)
+    st2 = np.empty((n, s, 3))
+    ev2 = np.full((n, s), -1, np.int64)  # read unbounded by flush / deletion
+    pk2 = np.empty((n, s))
+    ds2 = np.empty((n, s))
+    tch2 = np.zeros((n, s), np.uint8)
+    for i in range(n):
+        o = perm[i]
+        for q in range(cnt[o]):
+            ids2[i, q] = ids[o, q]
+            st2[i, q, 0] = st[o, q, 0]
+            st2[i, q, 1] = st[o, q, 1]
+            st2[i, q, 2] = st[o, q, 2]
+            ev2[i, q] = ev[o, q]
+            pk2[i, q] = pk[o, q]
+            ds2[i, q] = ds[o, q]
+            tch2[i, q] = tch[o, q]
+    return ids2, st2, ev2, pk2, ds2, tch2

@@ -44,6 +44,9 @@ class DemRuntimeError(MsmillError, RuntimeError):
 # per-particle arrays and their trailing shapes; every one is permuted together
 _P_FLOAT3 = ("pos", "vel", "omg", "frc", "trq", "x0")
 _P_SCALAR = ("rad", "mass", "invm", "invi", "flag_t")
+# contact-history slot arrays (prefix -> names); only the used slots are copied on reordering
+_SLOTS = {"h": ("h_pid", "h_st", "h_ev", "h_pk", "h_ds", "h_tch"),
+          "g": ("g_gid", "g_st", "g_ev", "g_pk", "g_ds", "g_tch")}
 
 
 def _pos_number(name: str, value: Any, *, allow_zero: bool = False, allow_inf: bool = False
@@ -87,7 +90,7 @@ class Simulation:
 
     def __init__(self, domain_min_m=(0.0, 0.0, 0.0), domain_max_m=(1.0, 1.0, 1.0),
                  periodic=(False, False, False), gravity_m_s2=(0.0, 0.0, -9.81), *,
-                 neighbor_skin_m: float | None = None, sort_every: int = 20,
+                 neighbor_skin_m: float | None = None, sort_every: int = 10,
                  n_chunks: int | None = None, max_contacts_per_particle: int = 16,
                  max_geometry_contacts: int = 8, parallel_min_particles: int = 3000) -> None:
         self._lo = vec3("domain_min_m", domain_min_m)
@@ -107,6 +110,7 @@ class Simulation:
         if int(sort_every) < 1:
             raise MsmillInputError("sort_every", sort_every, "an integer >= 1")
         self._sort_every = int(sort_every)
+        self._ggrid = None
         import numba
 
         self._nch = int(n_chunks) if n_chunks else 4 * numba.get_num_threads()
@@ -388,8 +392,17 @@ class Simulation:
         return ids
 
     def _keep(self, keep: np.ndarray) -> None:
-        for k in self._p:
-            self._p[k] = self._p[k][keep]
+        """Reorder / compact every per-particle array (boolean mask or index array)."""
+        p = self._p
+        idx = np.nonzero(keep)[0] if keep.dtype == np.bool_ else np.asarray(keep, np.int64)
+        for pre, names in _SLOTS.items():
+            out = K.permute_slots(idx, p[f"{pre}_n"], *(p[k] for k in names))
+            for k, v in zip(names, out, strict=True):
+                p[k] = v
+        slot_names = {k for names in _SLOTS.values() for k in names}
+        for k in p:
+            if k not in slot_names:
+                p[k] = p[k][idx]
 
     # ------------------------------------------------------------------ packing
     def _pack(self) -> None:
@@ -404,6 +417,8 @@ class Simulation:
         self._gbound = np.array([bound_row(x["kind"], x["ref"], x["rot"]) for x in g]
                                 ).reshape(len(g), 6)
         self._gcur = self._gref.copy()
+        K.update_geometry(self._gref, self._grot, self._gkind, 0.0, self._gcur)
+        self._ggrid = None
         self._sinkbox = np.array([np.concatenate([s["lo"], s["hi"]]) for s in self._sinks]
                                  ).reshape(len(self._sinks), 6)
         self._dirty = False
@@ -485,8 +500,18 @@ class Simulation:
         m = self._nb[1].shape[0]
         self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
+        margin = self._rmax_cells + self._skin
+        if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
+            L = self._hi - self._lo
+            size = float(L.max()) / 24.0
+            self._gnc = np.clip(np.ceil(L / size), 1, 64).astype(np.int64)
+            self._gcl = L / self._gnc
+            self._ggrid = K.build_geom_grid(self._gcur, self._grot, self._gkind, self._gbound,
+                                            self._lo, self._gcl, self._gnc, margin)
+            self._ggrid_margin = margin
         self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
-                                           self._grot, self._gkind, self._gbound,
+                                           self._grot, self._gkind, self._gbound, self._lo,
+                                           self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            self._parallel())
         p["x0"][:] = p["pos"]
         self._n_rebuilds += 1
@@ -520,9 +545,10 @@ class Simulation:
                           f"(total lost {self._n_lost}); see removed(), tag 'lost'",
                           DemRuntimeWarning, stacklevel=3)
         # close events whose owner disappears
-        for ev, pk, ds in (("h_ev", "h_pk", "h_ds"), ("g_ev", "g_pk", "g_ds")):
+        for ev, pk, ds, cnt in (("h_ev", "h_pk", "h_ds", "h_n"), ("g_ev", "g_pk", "g_ds", "g_n")):
             refs = p[ev][gone]
-            m = refs >= 0
+            used = np.arange(refs.shape[1])[None, :] < p[cnt][gone][:, None]
+            m = (refs >= 0) & used
             if m.any():
                 tt = np.broadcast_to(p["flag_t"][gone][:, None], refs.shape)[m]
                 r = refs[m]
