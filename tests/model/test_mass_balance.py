@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from threadpoolctl import threadpool_limits
 
 from msmill.model.expected_value import assemble
 from msmill.model.montecarlo import MonteCarloSolver
@@ -59,7 +60,8 @@ def march_errors(lm, f, steps):
 def test_ev_conserves_mass_every_step(seed, n_stages, impacted, n_damage):
     rng = np.random.default_rng(seed)
     streams, stats = random_parameters(rng, n_stages)
-    lm = assemble(GRID.edges_mm, streams, stats, BREAKAGE, DAMAGE, n_damage, 6, impacted)
+    with threadpool_limits(1, user_api="blas"):  # small matrices; threads only contend
+        lm = assemble(GRID.edges_mm, streams, stats, BREAKAGE, DAMAGE, n_damage, 6, impacted)
     # every column of [M; O] sums to one: nothing created or lost in a step
     cols = np.asarray(lm.M.sum(axis=0)).ravel() + np.asarray(lm.out_op.sum(axis=0)).ravel()
     assert np.max(np.abs(cols - 1.0)) < 1e-10

@@ -154,7 +154,8 @@ def test_region_weighted_streams(run_stats):
 def test_ev_operator_columns_are_probabilities(provider, grid, op):
     mill = Mill("UG2", provider)
     _, streams, stats, _, _ = mill.prepare(grid, op)
-    lm = assemble(grid.edges_mm, streams, stats, mill.breakage, mill.damage, 4, 8)
+    with __import__("threadpoolctl").threadpool_limits(1, user_api="blas"):
+        lm = assemble(grid.edges_mm, streams, stats, mill.breakage, mill.damage, 4, 8)
     for st in lm.stages:
         assert np.allclose(st.G.sum(axis=0), 1.0, atol=1e-12)
         assert st.G.min() >= -1e-14

@@ -200,7 +200,7 @@ class Mill:
         key = (grid.edges_mm.tobytes(), tuple(speeds), float(op.feed_tph), float(op.gate_deg))
         hit = self._cache.get(key)
         if hit is None:
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, _single_threaded_blas():
                 warnings.simplefilter("always")
                 params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
                 streams = np.asarray(self.transport.streams(params), dtype=float)
