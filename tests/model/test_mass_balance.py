@@ -98,3 +98,13 @@ def test_damage_split_is_mass_and_mean_conservative():
     assert np.allclose((1 - frac) * nodes[lo] + frac * nodes[np.minimum(lo + 1, nd - 1)], d)
     top_lo, top_frac = split_damage(np.array([0.79]), nd, th)
     assert top_lo[0] == nd - 1 and top_frac[0] == 0.0
+
+
+def test_expected_fragments_fast_path_equals_generic():
+    rng = np.random.default_rng(0)
+    n = GRID.n_classes
+    pb = rng.uniform(0, 1, (n, 20, 3))
+    w = rng.uniform(0, 1, (n, 20, 3))
+    parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
+    generic = np.einsum("iqd,iqdk->kid", w, BREAKAGE.fragments(GRID.edges_mm, parent, pb))
+    assert np.allclose(BREAKAGE.expected_fragments(GRID.edges_mm, pb, w), generic, atol=1e-13)

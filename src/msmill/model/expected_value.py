@@ -112,9 +112,12 @@ def impact_operator(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, 
     d_new = damage.after_impact(e[..., None], L, dn[None, None, :])
     broke_thr = d_new >= th
     pbr = pb + (1.0 - pb) * broke_thr
-    parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
-    cols = breakage.fragments(edges_mm, parent, pb)  # (N, Q, nd, N)
-    frag = np.einsum("iq,iqd,iqdk->kid", w, pbr, cols)
+    if hasattr(breakage, "expected_fragments"):  # optional fast path of the sub-model
+        frag = breakage.expected_fragments(edges_mm, pb, w[..., None] * pbr)
+    else:
+        parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
+        cols = breakage.fragments(edges_mm, parent, pb)  # (N, Q, nd, N)
+        frag = np.einsum("iq,iqd,iqdk->kid", w, pbr, cols)
     surv = w[..., None] * (1.0 - pbr)  # (N, Q, nd)
     lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), n_damage, th)
     classes = np.arange(n_damage)
