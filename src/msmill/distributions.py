@@ -22,7 +22,8 @@ Empirical densities
 * Velocities are continuous: ``P`` is a **histogram** (bin masses ``P_b``, bin
   edges from the Freedman-Diaconis rule, clipped to ``min_bins..max_bins``
   bins spanning the data) and ``Q_b`` is the mixture's probability mass in the
-  same bins (differences of its CDF, renormalised to the histogram's range).
+  same bins (differences of its CDF; mixture mass outside the histogram's
+  range is not renormalised away, so it counts against the fit).
   The KL is the discrete ``sum_b P_b ln(P_b / Q_b)`` over non-empty bins; it
   is the KL between the two piecewise-constant densities on those bins and is
   insensitive to the bin width in a way a KL of point densities is not. A
@@ -32,8 +33,9 @@ Empirical densities
 The mixture fit starts from scikit-learn's ``GaussianMixture`` (EM) for
 ``K = 1..k_max`` components, keeps the ``K`` with the lowest BIC, and then
 refines all ``3K - 1`` free parameters by minimising the binned KL with
-L-BFGS (weights through a softmax, sigmas through a log, sigmas floored at a
-quarter of a bin width).
+L-BFGS-B (weights through a softmax, sigmas through a log, sigmas floored at a
+quarter of a bin width and capped at the data range, means bounded to the
+data range).
 """
 
 from __future__ import annotations
@@ -213,11 +215,11 @@ class GaussianMixtureKLFit:
         return np.linspace(lo, hi, n + 1)
 
     def _bin_mass(self, w: np.ndarray, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
+        # not renormalised: mixture mass outside the histogram's range counts as a miss, so no
+        # component can wander off and act as a free uniform background
         e = self.bin_edges_
         cdf = special.ndtr((e[:, None] - mu) / sd) @ w
-        q = np.diff(cdf)
-        total = cdf[-1] - cdf[0]
-        return q / max(total, 1e-300)
+        return np.diff(cdf)
 
     def _kl(self, p: np.ndarray) -> float:
         return kl_divergence(p, self._bin_mass(self.weights_, self.means_, self.sigmas_))
@@ -242,8 +244,13 @@ class GaussianMixtureKLFit:
         a0 = np.log(w0[1:] / w0[0])
         s0 = np.log(np.maximum(self.sigmas_ - sig_floor, 1e-3 * sig_floor))
         theta0 = np.concatenate([a0, self.means_, s0])
+        lo, hi = float(self.bin_edges_[0]), float(self.bin_edges_[-1])
+        span = hi - lo
+        theta0[k - 1 : 2 * k - 1] = np.clip(theta0[k - 1 : 2 * k - 1], lo, hi)
+        theta0[2 * k - 1 :] = np.minimum(theta0[2 * k - 1 :], np.log(span))
+        bounds = [(-30.0, 30.0)] * (k - 1) + [(lo, hi)] * k + [(None, float(np.log(span)))] * k
         f0 = objective(theta0)
-        res = optimize.minimize(objective, theta0, method="L-BFGS-B", options={"maxiter": 500})
+        res = optimize.minimize(objective, theta0, method="L-BFGS-B", bounds=bounds, options={"maxiter": 500})
         if np.isfinite(res.fun) and res.fun <= f0:
             self._set(*unpack(res.x))
 
