@@ -229,7 +229,8 @@ def test_sphere_rolls_inside_rotating_drum_and_outputs(tmp_path):
     sim.add_cylinder((0, -0.2, 0), (0, 0.2, 0), 0.25, material="steel", tag="liner",
                      rotation=drum, inside=True)
     sim.add_particles([[0, 0, -0.24]], 0.01, material="rock")
-    sim.run(0.5, progress=False, max_relative_speed_m_s=2, snapshot_every_s=0.1)
+    sim.run(0.5, progress=True, max_relative_speed_m_s=2, snapshot_every_s=0.1,
+            snapshot_times_s=[0.123, 0.31])
     ev = sim.events()
     assert (ev.partner_tag == "liner").all() and len(ev) >= 1
     a = sim.particle_arrays()
@@ -237,7 +238,10 @@ def test_sphere_rolls_inside_rotating_drum_and_outputs(tmp_path):
     assert 0.235 < r < 0.2405  # resting on the liner (small overlap)
     assert np.linalg.norm(a["vel"][0]) > 0.1  # dragged along by the rotating wall
     snaps = sim.snapshots()
-    assert len(snaps) == 5 and snaps[0][1].shape[0] == 1
+    assert len(snaps) == 7 and snaps[0][1].shape[0] == 1
+    times = sorted(t for t, _ in snaps)
+    assert any(abs(t - 0.123) <= sim.dt_s for t in times)
+    assert any(abs(t - 0.31) <= sim.dt_s for t in times)
     assert isinstance(sim.snapshot(), pd.DataFrame)
     p = sim.write_events_parquet(tmp_path / "ev.parquet")
     back = pd.read_parquet(p)

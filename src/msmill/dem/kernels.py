@@ -373,9 +373,10 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             idj = pid[j]
             d = np.sqrt(d2)
             s = rs - d
-            nx = dx / d
-            ny = dy / d
-            nz = dz / d
+            inv_d = 1.0 / d
+            nx = dx * inv_d
+            ny = dy * inv_d
+            nz = dz * inv_d
             la = ri - 0.5 * s
             lb = rj - 0.5 * s
             # relative velocity of i w.r.t. j at the contact point
@@ -433,9 +434,9 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             pt[k, 0] = lb * cx_
             pt[k, 1] = lb * cy_
             pt[k, 2] = lb * cz_
-            frac = s / min(ri, rj)
-            if frac > ovmax:
-                ovmax = frac
+            rmin = min(ri, rj)
+            if s > ovmax * rmin:
+                ovmax = s / rmin
             if slot >= 0:
                 h_st[i, slot, 0] = sx
                 h_st[i, slot, 1] = sy
@@ -514,9 +515,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             tx += li * (ny * cfz - nz * cfy)
             ty += li * (nz * cfx - nx * cfz)
             tz += li * (nx * cfy - ny * cfx)
-            frac = s / ri
-            if frac > ovmax:
-                ovmax = frac
+            if s > ovmax * ri:
+                ovmax = s / ri
             if slot >= 0:
                 g_st[i, slot, 0] = sx
                 g_st[i, slot, 1] = sy

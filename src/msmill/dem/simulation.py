@@ -613,7 +613,8 @@ class Simulation:
             snapshot_every_s: float | None = None, progress: bool = True,
             callback: Callable[[Simulation], bool | None] | None = None,
             callback_every: int = 1000, timeseries_every_s: float | None = None,
-            max_overlap_fraction: float = 0.05, travel_fraction: float = 0.1) -> int:
+            max_overlap_fraction: float = 0.05, travel_fraction: float = 0.1,
+            snapshot_times_s=None) -> int:
         """Advance the simulation by ``duration_s``; may be called repeatedly.
 
         Parameters
@@ -632,7 +633,10 @@ class Simulation:
         safety : float
             Fraction of the contact time used as step.
         snapshot_every_s : float, optional
-            Take a :meth:`snapshot` at this interval (s).
+            Take a :meth:`snapshot` at this interval (s), starting now.
+        snapshot_times_s : sequence of float, optional
+            Also take snapshots at these absolute times (s) within this run
+            (each at the first step at or after the time).
         progress : bool
             Show a Rich progress bar.
         callback : callable, optional
@@ -689,7 +693,15 @@ class Simulation:
         t_start = self._time
         ts_every = timeseries_every_s or max(duration / 200, dt)
         next_ts = t_start if not self._ts else t_start + ts_every
+        if snapshot_every_s is not None:
+            snapshot_every_s = _pos_number("snapshot_every_s", snapshot_every_s)
         next_snap = t_start if snapshot_every_s else math.inf
+        try:
+            snap_times = sorted(float(x) for x in (snapshot_times_s or ()))
+        except (TypeError, ValueError):
+            raise MsmillInputError("snapshot_times_s", snapshot_times_s,
+                                   "a sequence of times (s)") from None
+        snap_times = [x for x in snap_times if x >= t_start - 0.5 * dt]
         wall_v = self._wall_speed_max()
         bar = None
         if progress:
@@ -717,8 +729,13 @@ class Simulation:
                 if self._time >= next_snap - 0.5 * dt:
                     self._snaps.append((self._time, self.snapshot()))
                     next_snap += snapshot_every_s
+                if snap_times and self._time >= snap_times[0] - 0.5 * dt:
+                    self._snaps.append((self._time, self.snapshot()))
+                    while snap_times and self._time >= snap_times[0] - 0.5 * dt:
+                        snap_times.pop(0)
                 limit = nsteps - done
-                for tnext in [next_ts, next_snap] + [s["next"] for s in self._sources]:
+                for tnext in ([next_ts, next_snap] + snap_times[:1]
+                              + [s["next"] for s in self._sources]):
                     if math.isfinite(tnext):
                         limit = min(limit, max(1, math.ceil((tnext - self._time) / dt - 1e-9)))
                 if callback is not None:
