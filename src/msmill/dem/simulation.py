@@ -633,7 +633,8 @@ class Simulation:
         safety : float
             Fraction of the contact time used as step.
         snapshot_every_s : float, optional
-            Take a :meth:`snapshot` at this interval (s), starting now.
+            Take a :meth:`snapshot` at the times ``k * snapshot_every_s`` (s),
+            at the first step at or after each.
         snapshot_times_s : sequence of float, optional
             Also take snapshots at these absolute times (s) within this run
             (each at the first step at or after the time).
@@ -695,7 +696,9 @@ class Simulation:
         next_ts = t_start if not self._ts else t_start + ts_every
         if snapshot_every_s is not None:
             snapshot_every_s = _pos_number("snapshot_every_s", snapshot_every_s)
-        next_snap = t_start if snapshot_every_s else math.inf
+        # snapshots on the absolute grid k * snapshot_every_s (regular across repeated runs)
+        next_snap = (math.ceil((t_start - 0.5 * dt) / snapshot_every_s) * snapshot_every_s
+                     if snapshot_every_s else math.inf)
         try:
             snap_times = sorted(float(x) for x in (snapshot_times_s or ()))
         except (TypeError, ValueError):
