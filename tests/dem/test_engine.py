@@ -11,10 +11,10 @@ import pytest
 from msmill.dem import Rotation, Simulation
 
 
-def gas(n_side: int, r: float, spacing: float, speed: float, *, e=1.0, mu=0.0, seed=3):
+def gas(n_side: int, r: float, spacing: float, speed: float, *, e=1.0, mu=0.0, seed=3, **kw):
     side = n_side * spacing
     sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
-                     gravity_m_s2=(0, 0, 0))
+                     gravity_m_s2=(0, 0, 0), **kw)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
     sim.set_interaction("rock", "rock", restitution=e, friction=mu)
     g = (np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -253,3 +253,17 @@ def test_sphere_rolls_inside_rotating_drum_and_outputs(tmp_path):
 
     m = meshio.read(vtu)
     assert m.points.shape == (1, 3) and "radius_m" in m.point_data
+
+
+def test_event_buffer_flushes_keep_every_event():
+    frames = []
+    for rows in (8, 100_000):
+        sim = gas(6, 0.005, 0.0115, 5.0, e=0.5, mu=0.4, event_buffer_rows=rows, n_chunks=4)
+        sim.run(2e-3, dt_s=2e-7, progress=False)
+        frames.append(sim.events())
+    small, big = frames
+    assert len(big) > 100
+    pd.testing.assert_frame_equal(small, big)
+    closed = big.dropna(subset=["end_time_s"])
+    assert (closed.end_time_s > closed.time_s).all()
+    assert (closed.peak_overlap_m > 0).all()

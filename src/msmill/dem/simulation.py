@@ -86,13 +86,16 @@ class Simulation:
     parallel_min_particles : int
         Use the threaded kernels from this many particles on (below, the
         thread wake-up per pass costs more than it saves).
+    event_buffer_rows : int
+        Initial event rows per chunk (buffers are flushed and grown as needed).
     """
 
     def __init__(self, domain_min_m=(0.0, 0.0, 0.0), domain_max_m=(1.0, 1.0, 1.0),
                  periodic=(False, False, False), gravity_m_s2=(0.0, 0.0, -9.81), *,
                  neighbor_skin_m: float | None = None, sort_every: int = 10,
                  n_chunks: int | None = None, max_contacts_per_particle: int = 16,
-                 max_geometry_contacts: int = 8, parallel_min_particles: int = 3000) -> None:
+                 max_geometry_contacts: int = 8, parallel_min_particles: int = 3000,
+                 event_buffer_rows: int = 4096) -> None:
         self._lo = vec3("domain_min_m", domain_min_m)
         self._hi = vec3("domain_max_m", domain_max_m)
         if np.any(self._hi <= self._lo):
@@ -132,7 +135,9 @@ class Simulation:
         self._dt: float | None = None
         self._next_id = 0
         self._p = self._empty_particles()
-        self._rec = EventRecorder(self._nch)
+        if int(event_buffer_rows) < 8:
+            raise MsmillInputError("event_buffer_rows", event_buffer_rows, "an integer >= 8")
+        self._rec = EventRecorder(self._nch, int(event_buffer_rows))
         self._removed: list[dict[str, np.ndarray]] = []
         self._ts: list[tuple] = []
         self._snaps: list[tuple[float, pd.DataFrame]] = []
