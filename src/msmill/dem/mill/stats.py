@@ -33,6 +33,10 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 * **Hit probability**: mass fraction of the tagged rocks of stage ``s`` that
   receive at least one primary impact from a stage-``s`` rotor within
   ``(t, t + tau]``.
+* **Numerical blow-ups**: a rock with any contact at ``vn <= 0``, non-finite
+  or above ``2 x`` the fastest tip speed ``+ 20 m/s`` (impossible here; an
+  engine failure) is dropped from all tables; the number is reported in
+  ``provenance["stats"]``.
 * **Sampling errors**: standard errors by batch means: the tag times (or
   primary impacts, for the secondary statistics) are split into
   ``n_batches`` consecutive blocks, the statistic is computed per block and
@@ -375,7 +379,23 @@ def compute_statistics(
     s_ = settings or StatsSettings()
     n = machine.n_stages
     t0, t1 = map(float, window_s)
-    snaps = snapshots_frame(snapshots)
+    snaps_all = snapshots_frame(snapshots)
+    # guard against numerical blow-ups of the engine: a rock with a contact at vn <= 0, non-finite or
+    # faster than 2 x the fastest tip speed + 20 m/s is physically impossible here; such rocks are
+    # dropped from every table (and counted in the provenance)
+    v_bad = 2.0 * max(machine.tip_speed_m_s(v) for v in design.stage_speeds_rpm) + 20.0
+    vn_all = events["vn_m_s"].to_numpy(dtype=float)
+    bad_ev = ~np.isfinite(vn_all) | (vn_all <= 0) | (vn_all > v_bad)
+    bad_ids = np.unique(np.concatenate([
+        events["particle_id"].to_numpy()[bad_ev],
+        events["partner_id"].to_numpy()[bad_ev & (events["partner_kind"].to_numpy() == 0)],
+    ]))
+    if bad_ids.size:
+        events = events[~events["particle_id"].isin(bad_ids)
+                        & ~((events["partner_kind"] == 0) & events["partner_id"].isin(bad_ids))]
+        snaps_all = snaps_all[~snaps_all["particle_id"].isin(bad_ids)]
+        removed = removed[~removed["particle_id"].isin(bad_ids)]
+    snaps = snaps_all
     snaps = snaps[(snaps["time_s"] >= t0 - 1e-9) & (snaps["time_s"] <= t1 + 1e-9)]
     times = np.sort(snaps["time_s"].unique())
     interval = float(np.median(np.diff(times))) if times.size > 1 else None
@@ -398,7 +418,7 @@ def compute_statistics(
     bstreams = _streams(pairs, ["stage_from", "batch"]) if len(pairs) else None
 
     # ---- impacts
-    ev = identify_impacts(machine, events, snapshots_frame(snapshots))
+    ev = identify_impacts(machine, events, snaps_all)
     prim = ev[ev["is_primary"]]
     # hit probability: tagged rock hit by a rotor of its stage within (t, t + tau]
     hits = pd.Series(dtype=float)
@@ -530,6 +550,8 @@ def compute_statistics(
     prov.setdefault("stats", {}).update({
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
         "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
+        "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
+        "n_events_blow_up": int(bad_ev.sum()),
     })
     by_size = None
     if size_edges_m is not None and len(pairs):
