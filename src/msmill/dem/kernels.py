@@ -7,7 +7,8 @@ Execution model (see docs/dem.md):
   over the full Verlet neighbour list plus the particle's geometry candidates,
   parallel over particle chunks) and one integration pass (symplectic Euler,
   paper Eqs. 2-3). It returns early when a rebuild is due (max displacement
-  since the last build > skin/2), a particle was flagged (sink, lost,
+  since the last build, bounded by the sum over steps of the largest speed
+  times dt, exceeds skin/2), a particle was flagged (sink, lost,
   non-finite) or an event buffer is half full.
 * The Verlet list is a *half* list keyed by particle id: row ``i`` holds the
   partners with a larger id, so every pair is evaluated once, by its owner
@@ -609,13 +610,12 @@ def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, t
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
     n = pos.shape[0]
     nch = diag.shape[0]
     nsink = sinks.shape[0]
     i0, i1 = chunk_bounds(n, nch, c)
-    dmax = 0.0
     vmax = 0.0
     nflag = 0
     for i in range(i0, i1):
@@ -653,18 +653,12 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
         pos[i, 0] = x
         pos[i, 1] = y
         pos[i, 2] = z
-        ex = x - x0[i, 0]
-        ey = y - x0[i, 1]
-        ez = z - x0[i, 2]
-        d2 = ex * ex + ey * ey + ez * ez
-        if d2 > dmax:
-            dmax = d2
         sp = v0 * v0 + v1 * v1 + v2 * v2
         if sp > vmax:
             vmax = sp
         if flag[i] != F_OK:
             continue
-        if not (np.isfinite(d2) and np.isfinite(sp)):
+        if not (np.isfinite(x + y + z) and np.isfinite(sp)):
             flag[i] = F_NONFINITE
             flag_t[i] = t_new
             nflag += 1
@@ -684,28 +678,28 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
             flag[i] = F_LOST
             flag_t[i] = t_new
             nflag += 1
-    diag[c, D_DISP2] = max(diag[c, D_DISP2], dmax)
+    diag[c, D_DISP2] = vmax  # this step's max speed^2 (D_SPEED2 keeps the max of the call)
     diag[c, D_SPEED2] = max(diag[c, D_SPEED2], vmax)
     diag[c, D_FLAGGED] += nflag
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-            x0, flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_k, pc, pf, pt, box_len, gc_start,
+def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_k, pc, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
@@ -714,7 +708,7 @@ def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid
     ``parallel`` selects the threaded passes (worth it from a few thousand
     particles; below that the thread wake-up per pass dominates).
     """
-    half_skin2 = (0.5 * skin) ** 2
+    half_skin = 0.5 * skin
     ev_limit = evf.shape[0] // 2
     for step in range(nsteps):
         t = t0 + step * dt
@@ -724,23 +718,25 @@ def advance(t0, dt, nsteps, skin, pos, vel, omg, rad, mass, invm, invi, mat, pid
                 nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
                 nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, x0, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
-        dmax = 0.0
+        vmax2 = 0.0
         nflag = 0.0
         for c in range(diag.shape[0]):
-            dmax = max(dmax, diag[c, D_DISP2])
+            vmax2 = max(vmax2, diag[c, D_DISP2])
             nflag += diag[c, D_FLAGGED]
+        # bound on the largest displacement since the last build: sum of max speed x dt
+        disp[0] += np.sqrt(vmax2) * dt
         if nflag > 0:
             return step + 1, R_FLAGGED
-        if dmax > half_skin2:
+        if disp[0] > half_skin:
             return step + 1, R_REBUILD
         for c in range(evn.shape[0]):
             if evn[c] > ev_limit:

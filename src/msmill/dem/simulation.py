@@ -42,7 +42,7 @@ class DemRuntimeError(MsmillError, RuntimeError):
 
 
 # per-particle arrays and their trailing shapes; every one is permuted together
-_P_FLOAT3 = ("pos", "vel", "omg", "frc", "trq", "x0")
+_P_FLOAT3 = ("pos", "vel", "omg", "frc", "trq")
 _P_SCALAR = ("rad", "mass", "invm", "invi", "flag_t")
 # contact-history slot arrays (prefix -> names); only the used slots are copied on reordering
 _SLOTS = {"h": ("h_pid", "h_st", "h_ev", "h_pk", "h_ds", "h_tch"),
@@ -147,6 +147,7 @@ class Simulation:
         self._need_rebuild = True
         self._n_rebuilds = 0
         self._maxn = 16
+        self._disp = np.zeros(1)  # displacement bound since the last neighbour build (m)
         self._warned: set[str] = set()
         self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
 
@@ -378,7 +379,6 @@ class Simulation:
         for k, v in new.items():
             new[k] = np.zeros((n, *v.shape[1:]), v.dtype)
         new["pos"] = pos.copy()
-        new["x0"] = pos.copy()
         new["vel"] = vel
         new["omg"] = omg
         new["rad"] = rad
@@ -518,7 +518,7 @@ class Simulation:
                                            self._grot, self._gkind, self._gbound, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            self._parallel())
-        p["x0"][:] = p["pos"]
+        self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
         self._need_rebuild = False
@@ -752,9 +752,9 @@ class Simulation:
                 diag[:] = 0.0
                 tic = _time.perf_counter()
                 k, reason = K.advance(
-                    self._time, dt, limit, self._skin, p["pos"], p["vel"], p["omg"], p["rad"],
+                    self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
-                    p["x0"], p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+                    p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
                     self._nb[3], self._nb[4], self._pair[0], self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
                     self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
