@@ -65,8 +65,8 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         *[(f"passing {s:g} mm (%)", f"{v:.3g}") for s, v in result.passing_pct.items()],
         ("time to steady state (s)", f"{result.time_to_steady_state_s:.3g}"),
         ("mass held in mill (kg)", f"{1000 * result.stages['holdup_t'].sum():.3g}"),
-        ("primary impacts per t", f"{result.primary_impacts_per_t:.3g}"),
-        ("secondary impacts per t", f"{result.secondary_impacts_per_t:.3g}"),
+        ("primary impacts per rock (mass-weighted)", f"{result.primary_impacts_per_t:.3g}"),
+        ("secondary impacts per rock (mass-weighted)", f"{result.secondary_impacts_per_t:.3g}"),
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
     ]
@@ -74,8 +74,8 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         t.add_row(*r)
     con.print(t)
     s = Table(title="per stage", show_header=True)
-    for col in ("stage", "hold-up (kg)", "P80 (mm)", "primary /t", "secondary /t", "kWh/t",
-                "flinger J/t"):
+    for col in ("stage", "hold-up (kg)", "P80 (mm)", "primary /rock", "secondary /rock", "kWh/t feed",
+                "flinger J/t feed"):
         s.add_column(col, justify="right")
     for _, r in result.stages.iterrows():
         s.add_row(f"{int(r['stage'])}", f"{1000 * r['holdup_t']:.3g}", f"{r['p80_mm']:.3g}",
