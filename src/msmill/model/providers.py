@@ -292,11 +292,28 @@ class RunProvider:
         return f"RunProvider({self.source}, {self.run.design.size_mm:g} mm)"
 
 
+DEFAULT_TABLE = "default"
+
+
+def default_table_path(field: str = "stage_parameters") -> Path:
+    """Path of the packaged DEM-derived table (``msmill/data/stage_parameters/default.json``)."""
+    from importlib import resources
+
+    p = Path(str(resources.files("msmill").joinpath("data/stage_parameters/default.json")))
+    if not p.is_file():
+        raise MsmillInputError(field, DEFAULT_TABLE, "a table file: the packaged DEM-derived default "
+                               "table (msmill/data/stage_parameters/default.json) is not installed")
+    return p
+
+
 def load_provider(path: str | Path) -> TableProvider | RunProvider:
-    """Open a parameter file: a table (JSON / TOML / CSV) or one run's statistics (JSON)."""
+    """Open a parameter file: a table (JSON / TOML / CSV) or one run's statistics (JSON).
+
+    ``"default"`` names the packaged DEM-derived table.
+    """
     import json
 
-    p = Path(path)
+    p = default_table_path() if str(path) == DEFAULT_TABLE else Path(path)
     if p.suffix.lower() == ".json" and p.exists():
         try:
             kind = json.loads(p.read_text(encoding="utf-8")).get("kind")

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import math
 import tomllib
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +55,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
-
-DEFAULT_TABLE = "default"
+from msmill.model.providers import DEFAULT_TABLE, default_table_path
 
 
 class _Section(BaseModel):
@@ -223,13 +221,7 @@ class RunFile(_Section):
         """The stage-parameter file (the packaged default table for ``"default"``)."""
         v = self.stage_parameters.file
         if v == DEFAULT_TABLE:
-            p = Path(str(resources.files("msmill").joinpath("data/stage_parameters/default.json")))
-            if not p.is_file():
-                raise MsmillInputError(
-                    f"{self.name}.stage_parameters.file", v,
-                    "a table file: the packaged DEM-derived default table "
-                    "(msmill/data/stage_parameters/default.json) is not installed yet")
-            return p
+            return default_table_path(f"{self.name}.stage_parameters.file")
         p = self.path(v)
         if not p.is_file():
             raise MsmillInputError(f"{self.name}.stage_parameters.file", v, "an existing table or run-statistics file")
