@@ -98,7 +98,8 @@ def main() -> None:
               f"loop {res['loop_s']:.3f} s for {args.steps} steps, "
               f"{res['rebuilds']} rebuilds, {res['events']} contact events, "
               f"best 100-step window {res['best_window_rate']:.3g} particle-steps/s")
-    print(f"load average after: {os.getloadavg()[0]:.2f} (other processes share the cores)")
+    print(f"threading layer used: {numba.threading_layer()}; load average after: "
+          f"{os.getloadavg()[0]:.2f} (other processes share the cores)")
     for phi, res in out.items():
         print(f"phi={phi:.2f} particle_steps_per_s={res['rate']:.4g}")
 
