@@ -101,7 +101,8 @@ def plot_stage_impacts(stats: Any, path: str | Path | None = None) -> Any:
             x = np.linspace(v.min(), v.max(), 300)
             a1.plot(x, gm.pdf(x), color=color, lw=1.2,
                     label=f"{label}: K={gm.n_components}, KL={kl or 0:.3f}")
-        a1.legend(fontsize=7)
+        if a1.get_legend_handles_labels()[0]:
+            a1.legend(fontsize=7)
     axes[-1][0].set_xlabel("secondary impacts per primary impact")
     axes[-1][1].set_xlabel("relative normal impact velocity (m/s)")
     fig.tight_layout()
