@@ -1,5 +1,8 @@
 """DEM throughput benchmark: particle-timesteps per second for a periodic granular gas.
 
+The peak overlap of this soft, fast gas reaches ~5 % of the radius, so the
+overlap warning threshold is raised to 10 % here.
+
 Set-up (the issue's reference case, comparable with the LIGGGHTS deck in this
 directory): 20,000 spheres of **diameter** 10 mm (radius 5 mm), density
 2700 kg/m^3, E = 2e10 Pa, nu = 0.25, restitution 0.5, friction 0.4, in a fully
@@ -55,15 +58,15 @@ def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None) 
     sim.add_particles(pos, r, vel, material="rock")
     dt = 1e-6
     t0 = time.perf_counter()
-    sim.run(dt, dt_s=dt, progress=False)  # first step: compilation (or cache load)
+    sim.run(dt, dt_s=dt, progress=False, max_overlap_fraction=0.1)  # first step: compilation (or cache load)
     t_first = time.perf_counter() - t0
-    sim.run((warm - 1) * dt, dt_s=dt, progress=False)
+    sim.run((warm - 1) * dt, dt_s=dt, progress=False, max_overlap_fraction=0.1)
     r0 = sim.stats["rebuilds"]
     window = 100
     times = []
     for _ in range(steps // window):  # windows show the rate when the machine is quiet
         t0 = time.perf_counter()
-        sim.run(window * dt, dt_s=dt, progress=False)
+        sim.run(window * dt, dt_s=dt, progress=False, max_overlap_fraction=0.1)
         times.append(time.perf_counter() - t0)
     loop = float(sum(times))
     steps = window * len(times)
@@ -101,7 +104,7 @@ def main() -> None:
     print(f"threading layer used: {numba.threading_layer()}; load average after: "
           f"{os.getloadavg()[0]:.2f} (other processes share the cores)")
     for phi, res in out.items():
-        print(f"phi={phi:.2f} particle_steps_per_s={res['rate']:.4g}")
+        print(f"phi={phi:.2f} particle_steps_per_s={res['rate']:.4g}", flush=True)
 
 
 if __name__ == "__main__":
