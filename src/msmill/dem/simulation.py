@@ -649,7 +649,8 @@ class Simulation:
             ``callback(sim)`` every ``callback_every`` steps; returning True
             stops the run early (e.g. at steady state).
         timeseries_every_s : float, optional
-            Time-series sampling interval (s); default ``duration_s / 200``.
+            Time-series sampling interval (s); default ``duration_s / 200`` but
+            at least 500 steps.
         max_overlap_fraction : float
             Warn when an overlap exceeds this fraction of the smaller radius.
         travel_fraction : float
@@ -697,7 +698,9 @@ class Simulation:
             self._cells(rmax)
         nsteps = round(duration / dt)
         t_start = self._time
-        ts_every = timeseries_every_s or max(duration / 200, dt)
+        # default sampling: 200 samples per run, but never more often than every 500 steps
+        # (each sample returns from the compiled loop)
+        ts_every = timeseries_every_s or max(duration / 200, 500 * dt)
         next_ts = t_start if not self._ts else t_start + ts_every
         if snapshot_every_s is not None:
             snapshot_every_s = _pos_number("snapshot_every_s", snapshot_every_s)
