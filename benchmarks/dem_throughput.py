@@ -47,12 +47,13 @@ def gas(n: int, phi: float, seed: int = 1):
     return pos, vel, side, r
 
 
-def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None) -> dict:
+def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None,
+          chunks: int | None = None) -> dict:
     from msmill.dem import Simulation
 
     pos, vel, side, r = gas(n, phi)
     sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
-                     gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin)
+                     gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin, n_chunks=chunks)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
     sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
     sim.add_particles(pos, r, vel, material="rock")
@@ -86,6 +87,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--skin", type=float, default=None, help="Verlet skin (m); default r/2")
     ap.add_argument("--phi", type=float, nargs="*", default=[0.05, 0.30])
+    ap.add_argument("--chunks", type=int, default=None, help="particle chunks (default 4 x threads)")
     args = ap.parse_args()
     import numba
 
@@ -97,7 +99,7 @@ def main() -> None:
           f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     out = {}
     for phi in args.phi:
-        res = bench(args.n, phi, args.steps, args.warm, args.skin)
+        res = bench(args.n, phi, args.steps, args.warm, args.skin, args.chunks)
         out[phi] = res
         print(f"phi={phi:.2f}: first step (compile or cache load) {res['first_step_s']:.2f} s, "
               f"loop {res['loop_s']:.3f} s for {args.steps} steps, "
