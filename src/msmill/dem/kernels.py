@@ -21,7 +21,8 @@ Execution model (see docs/dem.md):
   sorting, insertion and deletion and the owner never changes.
 * Events are written at contact onset by the owner (lower id, or the particle
   for geometry) into the buffer of the chunk that processes it; the row
-  reference stored in the history slot is ``row * nchunks + chunk``.
+  reference stored in the history slot is ``row * nchunks + chunk``; buffers
+  are laid out ``(chunk, row, column)`` so threads never share cache lines.
 """
 
 from __future__ import annotations
@@ -281,35 +282,35 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
 @njit(cache=True, fastmath=False)
 def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
     row = evn[c]
-    if row >= evf.shape[0]:
+    if row >= evf.shape[1]:
         diag[c, D_EVOVF] += 1.0
         return -1
     evn[c] = row + 1
-    evf[row, c, EV_T] = t
-    evf[row, c, EV_R] = r
-    evf[row, c, EV_PR] = pr
-    evf[row, c, EV_X] = cx
-    evf[row, c, EV_Y] = cy
-    evf[row, c, EV_Z] = cz
-    evf[row, c, EV_VN] = vn
-    evf[row, c, EV_VT] = vt
-    evf[row, c, EV_END] = np.nan
-    evf[row, c, EV_PEAK] = np.nan
-    evf[row, c, EV_DISS] = np.nan
-    evi[row, c, EVI_PID] = owner_pid
-    evi[row, c, EVI_KIND] = kind
-    evi[row, c, EVI_PARTNER] = partner
-    return row * evf.shape[1] + c
+    evf[c, row, EV_T] = t
+    evf[c, row, EV_R] = r
+    evf[c, row, EV_PR] = pr
+    evf[c, row, EV_X] = cx
+    evf[c, row, EV_Y] = cy
+    evf[c, row, EV_Z] = cz
+    evf[c, row, EV_VN] = vn
+    evf[c, row, EV_VT] = vt
+    evf[c, row, EV_END] = np.nan
+    evf[c, row, EV_PEAK] = np.nan
+    evf[c, row, EV_DISS] = np.nan
+    evi[c, row, EVI_PID] = owner_pid
+    evi[c, row, EVI_KIND] = kind
+    evi[c, row, EVI_PARTNER] = partner
+    return row * evf.shape[0] + c
 
 
 @njit(cache=True, fastmath=False)
 def _close_event(evf, ref, t, peak, diss):
-    nch = evf.shape[1]
+    nch = evf.shape[0]
     c = ref % nch
     row = ref // nch
-    evf[row, c, EV_END] = t
-    evf[row, c, EV_PEAK] = peak
-    evf[row, c, EV_DISS] = diss
+    evf[c, row, EV_END] = t
+    evf[c, row, EV_PEAK] = peak
+    evf[c, row, EV_DISS] = diss
 
 
 @njit(cache=True, fastmath=False)
@@ -709,7 +710,7 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
     particles; below that the thread wake-up per pass dominates).
     """
     half_skin = 0.5 * skin
-    ev_limit = evf.shape[0] // 2
+    ev_limit = evf.shape[1] // 2
     for step in range(nsteps):
         t = t0 + step * dt
         update_geometry(gref, grot, gkind, t, gcur)

@@ -1,7 +1,7 @@
 """Event recorder: per-chunk onset buffers filled by the kernels, flushed to columns.
 
 The kernels write one row per new contact into ``evf`` (float columns) and
-``evi`` (int columns), both shaped ``(capacity, n_chunks, n_columns)``, and
+``evi`` (int columns), both shaped ``(n_chunks, capacity, n_columns)``, and
 keep a reference ``row * n_chunks + chunk`` in the contact's history slot so
 the end fields (end time, peak overlap, dissipated energy) can be filled when
 the contact ends. :meth:`EventRecorder.flush` moves finished rows to growing
@@ -38,8 +38,8 @@ class EventRecorder:
 
     def __init__(self, n_chunks: int, capacity: int = 4096) -> None:
         self.n_chunks = n_chunks
-        self.evf = np.zeros((capacity, n_chunks, K.N_EVF))
-        self.evi = np.zeros((capacity, n_chunks, K.N_EVI), np.int64)
+        self.evf = np.zeros((n_chunks, capacity, K.N_EVF))
+        self.evi = np.zeros((n_chunks, capacity, K.N_EVI), np.int64)
         self.evn = np.zeros(n_chunks, np.int64)
         self._done_f: list[np.ndarray] = []
         self._done_i: list[np.ndarray] = []
@@ -48,7 +48,7 @@ class EventRecorder:
     @property
     def capacity(self) -> int:
         """Rows per chunk."""
-        return self.evf.shape[0]
+        return self.evf.shape[1]
 
     def flush(self, refs: list[np.ndarray]) -> None:
         """Move finished rows out, compact open ones and remap ``refs`` in place.
@@ -64,8 +64,8 @@ class EventRecorder:
         n_open = np.zeros(nch, np.int64)
         for c in range(nch):  # loop over a handful of chunks, not events
             rows = int(self.evn[c])
-            f = self.evf[:rows, c]
-            i = self.evi[:rows, c]
+            f = self.evf[c, :rows]
+            i = self.evi[c, :rows]
             closed = ~np.isnan(f[:, K.EV_END])
             if closed.any():
                 self._done_f.append(f[closed].copy())
@@ -73,8 +73,8 @@ class EventRecorder:
             op = ~closed
             k = int(op.sum())
             new_row[np.nonzero(op)[0], c] = np.arange(k)
-            self.evf[:k, c] = f[op]
-            self.evi[:k, c] = i[op]
+            self.evf[c, :k] = f[op]
+            self.evi[c, :k] = i[op]
             self.evn[c] = k
             n_open[c] = k
         for r in refs:
@@ -88,10 +88,10 @@ class EventRecorder:
 
     def _grow(self, cap: int) -> None:
         old = self.capacity
-        evf = np.zeros((cap, self.n_chunks, K.N_EVF))
-        evi = np.zeros((cap, self.n_chunks, K.N_EVI), np.int64)
-        evf[:old] = self.evf
-        evi[:old] = self.evi
+        evf = np.zeros((self.n_chunks, cap, K.N_EVF))
+        evi = np.zeros((self.n_chunks, cap, K.N_EVI), np.int64)
+        evf[:, :old] = self.evf
+        evi[:, :old] = self.evi
         self.evf, self.evi = evf, evi
 
     def frame(self) -> pd.DataFrame:
@@ -100,8 +100,8 @@ class EventRecorder:
         is_ = list(self._done_i)
         for c in range(self.n_chunks):
             rows = int(self.evn[c])
-            fs.append(self.evf[:rows, c])
-            is_.append(self.evi[:rows, c])
+            fs.append(self.evf[c, :rows])
+            is_.append(self.evi[c, :rows])
         f = np.concatenate(fs) if fs else np.zeros((0, K.N_EVF))
         i = np.concatenate(is_) if is_ else np.zeros((0, K.N_EVI), np.int64)
         data = {name: f[:, k] for k, name in enumerate(FLOAT_COLUMNS)}

@@ -558,9 +558,9 @@ class Simulation:
                 tt = np.broadcast_to(p["flag_t"][gone][:, None], refs.shape)[m]
                 r = refs[m]
                 nch = self._nch
-                self._rec.evf[r // nch, r % nch, K.EV_END] = tt
-                self._rec.evf[r // nch, r % nch, K.EV_PEAK] = p[pk][gone][m]
-                self._rec.evf[r // nch, r % nch, K.EV_DISS] = p[ds][gone][m]
+                self._rec.evf[r % nch, r // nch, K.EV_END] = tt
+                self._rec.evf[r % nch, r // nch, K.EV_PEAK] = p[pk][gone][m]
+                self._rec.evf[r % nch, r // nch, K.EV_DISS] = p[ds][gone][m]
         self._keep(~gone)
         self._need_rebuild = True
 
