@@ -76,7 +76,9 @@ def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None,
     ev = sim.events()
     return {"rate": n * steps / loop, "loop_s": loop, "first_step_s": t_first,
             "best_window_rate": n * window / min(times),
-            "rebuilds": r1 - r0, "events": len(ev), "n": sim.n_particles}
+            "rebuilds": r1 - r0, "events": len(ev), "n": sim.n_particles,
+            "ns_per_particle_step": {("threaded" if k else "serial"): (None if v is None else v * 1e9)
+                                     for k, v in sim._perf.items()}}
 
 
 def main() -> None:
@@ -104,7 +106,8 @@ def main() -> None:
         print(f"phi={phi:.2f}: first step (compile or cache load) {res['first_step_s']:.2f} s, "
               f"loop {res['loop_s']:.3f} s for {args.steps} steps, "
               f"{res['rebuilds']} rebuilds, {res['events']} contact events, "
-              f"best of 5 extra 200-step windows {res['best_window_rate']:.3g} particle-steps/s")
+              f"best of 5 extra 200-step windows {res['best_window_rate']:.3g} particle-steps/s; "
+              f"auto-tuned kernel cost (ns/particle-step) {res['ns_per_particle_step']}")
     print(f"threading layer used: {numba.threading_layer()}; load average after: "
           f"{os.getloadavg()[0]:.2f} (other processes share the cores)")
     for phi, res in out.items():

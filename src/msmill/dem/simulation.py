@@ -88,6 +88,9 @@ class Simulation:
         thread wake-up per pass costs more than it saves).
     event_buffer_rows : int
         Initial event rows per chunk (buffers are flushed and grown as needed).
+    parallel : bool, optional
+        Force the threaded (True) or serial (False) step kernels; default:
+        time both and use the faster (results are identical either way).
     """
 
     def __init__(self, domain_min_m=(0.0, 0.0, 0.0), domain_max_m=(1.0, 1.0, 1.0),
@@ -95,7 +98,7 @@ class Simulation:
                  neighbor_skin_m: float | None = None, sort_every: int = 10,
                  n_chunks: int | None = None, max_contacts_per_particle: int = 16,
                  max_geometry_contacts: int = 8, parallel_min_particles: int = 3000,
-                 event_buffer_rows: int = 4096) -> None:
+                 event_buffer_rows: int = 4096, parallel: bool | None = None) -> None:
         self._lo = vec3("domain_min_m", domain_min_m)
         self._hi = vec3("domain_max_m", domain_max_m)
         if np.any(self._hi <= self._lo):
@@ -120,6 +123,9 @@ class Simulation:
         if self._nch < 1:
             raise MsmillInputError("n_chunks", n_chunks, "an integer >= 1")
         self._par_min = int(parallel_min_particles)
+        self._par_mode = None if parallel is None else bool(parallel)
+        self._perf: dict[bool, float | None] = {True: None, False: None}
+        self._calls = 0
         self._smax = int(max_contacts_per_particle)
         self._sgmax = int(max_geometry_contacts)
         if self._smax < 1 or self._sgmax < 1:
@@ -469,6 +475,32 @@ class Simulation:
     def _parallel(self) -> bool:
         return self.n_particles >= self._par_min
 
+    def _choose_parallel(self) -> bool:
+        """Threaded or serial step kernels for the next call (results are identical).
+
+        ``parallel=None`` (auto): above ``parallel_min_particles`` both are
+        timed and the faster one is used, re-probing the other every 32 calls,
+        because on a shared machine the threaded passes can be slower.
+        """
+        if not self._parallel():
+            return False
+        if self._par_mode is not None:
+            return self._par_mode
+        perf = self._perf
+        for mode in (True, False):
+            if perf[mode] is None:
+                return mode
+        self._calls += 1
+        best = perf[True] <= perf[False]
+        return (not best) if self._calls % 32 == 0 else best
+
+    def _tune(self, mode: bool, elapsed: float, steps: int) -> None:
+        if steps < 5 or self.n_particles == 0:
+            return
+        cost = elapsed / (steps * self.n_particles)
+        old = self._perf[mode]
+        self._perf[mode] = cost if old is None else 0.5 * old + 0.5 * cost
+
     # ------------------------------------------------------------------ rebuild
     def _cells(self, rmax: float) -> None:
         L = self._hi - self._lo
@@ -753,6 +785,7 @@ class Simulation:
                     limit = min(limit, max(1, cb_every - (done - last_cb)))
                 p = self._p
                 diag[:] = 0.0
+                use_par = self._choose_parallel()
                 tic = _time.perf_counter()
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
@@ -764,8 +797,10 @@ class Simulation:
                     self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
                     p["h_ds"], p["h_n"], p["h_tch"], p["g_gid"], p["g_st"], p["g_ev"],
                     p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
-                    self._rec.evn, diag, self._parallel())
-                self.stats["loop_time_s"] += _time.perf_counter() - tic
+                    self._rec.evn, diag, use_par)
+                elapsed = _time.perf_counter() - tic
+                self.stats["loop_time_s"] += elapsed
+                self._tune(use_par, elapsed, k)
                 self.stats["steps"] += k
                 done += k
                 self._time = t_start + done * dt
