@@ -123,6 +123,7 @@ class Simulation:
         if self._nch < 1:
             raise MsmillInputError("n_chunks", n_chunks, "an integer >= 1")
         self._par_min = int(parallel_min_particles)
+        self._cells_n = 0  # particle count the cell grid was sized for
         self._par_mode = None if parallel is None else bool(parallel)
         self._perf: dict[bool, float | None] = {True: None, False: None}
         self._calls = 0
@@ -506,8 +507,19 @@ class Simulation:
         L = self._hi - self._lo
         cut = 2 * rmax + self._skin
         nc = np.maximum(np.floor(L / cut).astype(np.int64), 1)
-        while np.prod(nc) > max(4_000_000, 8 * len(self._p["rad"])):
-            nc = np.maximum(nc // 2, 1)
+        # Every rebuild zeroes and prefix-sums the whole cell grid, so its size
+        # follows the particle count (a sparse mill slice would otherwise sweep
+        # ~1e5 empty cells per rebuild). Coarsen the longest axis first; cells
+        # only grow, so they stay >= the cut-off.
+        n = len(self._p["rad"])
+        cap = max(4096, 8 * n)
+        while np.prod(nc) > cap:
+            a = int(np.argmax(nc))
+            floor = 3 if self._periodic[a] else 1
+            if nc[a] <= floor:
+                break
+            nc[a] = max(nc[a] // 2, floor)
+        self._cells_n = n
         for a in range(3):
             if self._periodic[a] and nc[a] < 3:
                 raise MsmillInputError(
@@ -525,6 +537,8 @@ class Simulation:
         if rmax > self._rmax_cells:
             self._rmax_cells = rmax
             self._cells(rmax)
+        elif p["rad"].size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
+            self._cells(self._rmax_cells)
         cell, start, order = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
             self._keep(order)
