@@ -266,3 +266,22 @@ def test_event_buffer_flushes_keep_every_event():
     closed = big.dropna(subset=["end_time_s"])
     assert (closed.end_time_s > closed.time_s).all()
     assert (closed.peak_overlap_m > 0).all()
+
+
+def test_sparse_domain_gets_a_small_cell_grid_and_still_finds_contacts():
+    """A few rocks in a large periodic domain: the grid follows the particle count
+    (every rebuild sweeps it), periodic axes keep >= 3 cells, contacts are found."""
+    sim = Simulation((0, 0, 0), (2.0, 0.1, 3.0), periodic=(False, True, False), gravity_m_s2=(0, 0, 0))
+    sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
+    # two head-on pairs, one of them across the periodic boundary along y
+    pos = [(1.0, 0.05, 1.5), (1.03, 0.05, 1.5), (0.5, 0.006, 0.5), (0.5, 0.094, 0.5)]
+    vel = [(1.0, 0, 0), (-1.0, 0, 0), (0, -1.0, 0), (0, 1.0, 0)]
+    sim.add_particles(np.array(pos), 0.005, np.array(vel), material="rock")
+    sim.run(0.02, progress=False)
+    assert np.prod(sim._ncell) <= 4096
+    assert sim._ncell[1] >= 3
+    ev = sim.events()
+    pairs = {tuple(sorted((int(a), int(b)))) for a, b in zip(ev.particle_id, ev.partner_id, strict=True)}
+    assert len(pairs) == 2, pairs
+    assert np.allclose(np.sort(ev.vn_m_s.to_numpy()), 2.0, rtol=1e-3)
