@@ -285,3 +285,33 @@ def test_sparse_domain_gets_a_small_cell_grid_and_still_finds_contacts():
     pairs = {tuple(sorted((int(a), int(b)))) for a, b in zip(ev.particle_id, ev.partner_id, strict=True)}
     assert len(pairs) == 2, pairs
     assert np.allclose(np.sort(ev.vn_m_s.to_numpy()), 2.0, rtol=1e-3)
+
+
+def _plate_kick(safety: float) -> tuple[float, float]:
+    """A frictionless rotating plate hits a resting rock; return (onset vn, rebound speed)."""
+    omega, rc = 157.08, 0.15
+    sim = Simulation((-0.5, -0.2, -0.5), (0.5, 0.2, 0.5), gravity_m_s2=(0, 0, 0))
+    sim.add_material("rock", youngs_modulus_pa=5e10, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.add_material("steel", youngs_modulus_pa=2.1e11, poisson_ratio=0.3, density_kg_m3=7800)
+    sim.set_interaction("rock", "steel", restitution=0.2, friction=0.0)
+    rot = Rotation(axis_point_m=(0, 0, 0), axis_dir=(0, 1, 0), omega_rad_s=omega)
+    sim.add_box((0.12, 0.0, 0.0), (0.07, 0.04, 0.006), axes=np.eye(3), material="steel",
+                tag="flinger", group=0, rotation=rot)
+    a = math.radians(30)
+    sim.add_particles(np.array([[rc * math.cos(a), 0.0, -rc * math.sin(a)]]), 0.005,
+                      np.zeros((1, 3)), material="rock")
+    sim.run(0.006, max_relative_speed_m_s=omega * 0.19 + 5, safety=safety, progress=False)
+    s = sim.snapshot()
+    return float(sim.events().vn_m_s.iloc[0]), float(np.sqrt(s.vx_m_s**2 + s.vy_m_s**2 + s.vz_m_s**2).iloc[0])
+
+
+def test_rotating_plate_kick_returns_one_plus_e_times_the_plate_speed():
+    """Against a plate of infinite mass the rock leaves at (1 + e) times the normal
+    plate speed at the contact point; larger time steps than the cap gain energy."""
+    vn, v = _plate_kick(0.2)
+    assert vn == pytest.approx(157.08 * 0.15, rel=0.01)
+    assert v == pytest.approx(1.2 * vn, rel=0.02)
+    from msmill.errors import MsmillInputError
+
+    with pytest.raises(MsmillInputError, match="safety"):
+        _plate_kick(0.3)
