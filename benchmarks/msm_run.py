@@ -16,6 +16,7 @@ import time
 
 from msmill.dem.mill.run import RunSettings, run_mill, save_run
 from msmill.machine import Machine, OperatingPoint
+from msmill.plots.dem import plot_run
 
 
 def main() -> None:
@@ -44,6 +45,7 @@ def main() -> None:
               f"KL(lambda)={s.secondary_lambda_kl} KL(v_sec)={s.secondary_velocity_kl}")
     if args.out:
         save_run(run, args.out)
+        plot_run(run, args.out)
     wall = time.perf_counter() - t0
     print(f"wall_seconds={wall:.1f} particles={run.extra['n_particles_end']}")
 

@@ -26,6 +26,7 @@ from pathlib import Path
 from msmill._version import __version__
 from msmill.dem.mill.run import RunSettings, git_commit, run_mill, save_run
 from msmill.machine import Machine, OperatingPoint
+from msmill.plots.dem import plot_run
 from msmill.stageparams import StageParameterTable
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,6 +60,7 @@ def main() -> None:
         t0 = time.perf_counter()
         run = run_mill(machine, op, size_mm=size, mode="slice", settings=settings)
         save_run(run, args.runs_dir / f"size_{size:g}mm")
+        plot_run(run, args.runs_dir / f"size_{size:g}mm")
         wall = time.perf_counter() - t0
         st = run.stats.run
         runs.append(st)

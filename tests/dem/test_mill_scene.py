@@ -115,7 +115,10 @@ def test_saved_run_recomputes_same_statistics(small_run, tmp_path):
     from msmill.cli.main import run as cli
     from msmill.dem.mill.run import save_run, stats_from_dir
 
-    save_run(small_run, tmp_path, plots=False)
+    from msmill.plots.dem import plot_run
+
+    save_run(small_run, tmp_path)
+    assert [f.name for f in plot_run(small_run, tmp_path)] == ["particles_in_mill.png", "stage_impacts.png"]
     again = stats_from_dir(tmp_path).run
     first = small_run.stats.run
     for a, b in zip(first.stages, again.stages, strict=True):

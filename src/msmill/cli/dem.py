@@ -53,6 +53,9 @@ def run_cmd(
 
             result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb)
     save_run(result, out, vtk=vtk)
+    from msmill.plots.dem import plot_run
+
+    plot_run(result, out)
     st = result.stats.run if result.stats else None
     ss = result.steady_state_time_s
     typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "

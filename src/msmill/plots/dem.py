@@ -110,3 +110,20 @@ def plot_stage_impacts(stats: Any, path: str | Path | None = None) -> Any:
         fig.savefig(path, dpi=110)
         plt.close(fig)
     return fig
+
+
+def plot_run(run: Any, out_dir: str | Path) -> list[Path]:
+    """Write the plots of a mill DEM run (``msmill.dem.mill.run.MillRun``) into ``out_dir``.
+
+    ``particles_in_mill.png`` (paper Fig. 3) and, when statistics exist,
+    ``stage_impacts.png`` (paper Fig. 8). Returns the files written.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "particles_in_mill.png"]
+    plot_particles_in_mill(run.timeseries, written[0],
+                           steady_state_time_s=run.steady_state_time_s, window_s=run.window_s)
+    if run.stats is not None:
+        written.append(out / "stage_impacts.png")
+        plot_stage_impacts(run.stats, written[-1])
+    return written

@@ -211,12 +211,13 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
 
 
 # --------------------------------------------------------------------------- saving
-def save_run(run: MillRun, out_dir: str | Path, plots: bool = True, vtk: bool = False) -> Path:
-    """Write raw tables (Parquet), statistics (JSON), machine and run settings (TOML), plots.
+def save_run(run: MillRun, out_dir: str | Path, vtk: bool = False) -> Path:
+    """Write raw tables (Parquet), statistics (JSON), machine and run settings (TOML).
 
     Files: ``events.parquet``, ``removed.parquet``, ``timeseries.parquet``,
-    ``snapshots.parquet``, ``statistics.json``, ``machine.toml``, ``run.toml``,
-    ``particles_in_mill.png``, ``stage_impacts.png`` and optionally ``final.vtu``.
+    ``snapshots.parquet``, ``statistics.json``, ``machine.toml``, ``run.toml``
+    and optionally ``final.vtu``. Plots are an edge concern:
+    :func:`msmill.plots.dem.plot_run`.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -242,12 +243,6 @@ def save_run(run: MillRun, out_dir: str | Path, plots: bool = True, vtk: bool = 
     (out / "run.toml").write_text(tomli_w.dumps(_toml_safe(settings)), encoding="utf-8")
     if run.stats is not None:
         run.stats.run.to_json(out / "statistics.json")
-    if plots and run.stats is not None:
-        from msmill.plots.dem import plot_particles_in_mill, plot_stage_impacts
-
-        plot_particles_in_mill(run.timeseries, out / "particles_in_mill.png",
-                               steady_state_time_s=run.steady_state_time_s, window_s=run.window_s)
-        plot_stage_impacts(run.stats, out / "stage_impacts.png")
     if vtk and hasattr(run.scene.sim, "write_vtu"):
         run.scene.sim.write_vtu(out / "final.vtu")
     return out
