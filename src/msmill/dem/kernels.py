@@ -279,6 +279,31 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
 
 
 # --------------------------------------------------------------------------- force pass
+@njit(cache=True, fastmath=False, inline='always')
+def _history_slot(keys, n, st, ev, pk, ds, i, key, smax):
+    """Slot of partner ``key`` in particle ``i``'s contact history; a new contact opens one.
+
+    Returns ``(slot, new)``; ``slot`` is -1 when the history is full (counted
+    as an overflow by the caller). The same layout serves particle partners
+    (keyed by particle id) and geometry partners (keyed by geom id).
+    """
+    for q in range(n[i]):
+        if keys[i, q] == key:
+            return q, False
+    if n[i] >= smax:
+        return -1, True
+    q = n[i]
+    n[i] += 1
+    keys[i, q] = key
+    st[i, q, 0] = 0.0
+    st[i, q, 1] = 0.0
+    st[i, q, 2] = 0.0
+    ev[i, q] = -1
+    pk[i, q] = 0.0
+    ds[i, q] = 0.0
+    return q, True
+
+
 @njit(cache=True, fastmath=False)
 def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
     row = evn[c]
@@ -389,26 +414,9 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vy = vel[i, 1] - vel[j, 1] + (wz * nx - wx * nz)
             vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
             # history slot
-            slot = -1
-            for q in range(h_n[i]):
-                if h_pid[i, q] == idj:
-                    slot = q
-                    break
-            new = False
+            slot, new = _history_slot(h_pid, h_n, h_st, h_ev, h_pk, h_ds, i, idj, smax)
             if slot < 0:
-                new = True
-                if h_n[i] < smax:
-                    slot = h_n[i]
-                    h_n[i] += 1
-                    h_pid[i, slot] = idj
-                    h_st[i, slot, 0] = 0.0
-                    h_st[i, slot, 1] = 0.0
-                    h_st[i, slot, 2] = 0.0
-                    h_ev[i, slot] = -1
-                    h_pk[i, slot] = 0.0
-                    h_ds[i, slot] = 0.0
-                else:
-                    diag[c, D_HOVF] += 1.0
+                diag[c, D_HOVF] += 1.0
             if slot >= 0:
                 sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
             else:
@@ -482,26 +490,9 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] + li * (omg[i, 1] * nz - omg[i, 2] * ny) - wvx
             vy = vel[i, 1] + li * (omg[i, 2] * nx - omg[i, 0] * nz) - wvy
             vz = vel[i, 2] + li * (omg[i, 0] * ny - omg[i, 1] * nx) - wvz
-            slot = -1
-            for q in range(g_n[i]):
-                if g_gid[i, q] == g:
-                    slot = q
-                    break
-            new = False
+            slot, new = _history_slot(g_gid, g_n, g_st, g_ev, g_pk, g_ds, i, g, sgmax)
             if slot < 0:
-                new = True
-                if g_n[i] < sgmax:
-                    slot = g_n[i]
-                    g_n[i] += 1
-                    g_gid[i, slot] = g
-                    g_st[i, slot, 0] = 0.0
-                    g_st[i, slot, 1] = 0.0
-                    g_st[i, slot, 2] = 0.0
-                    g_ev[i, slot] = -1
-                    g_pk[i, slot] = 0.0
-                    g_ds[i, slot] = 0.0
-                else:
-                    diag[c, D_HOVF] += 1.0
+                diag[c, D_HOVF] += 1.0
             if slot >= 0:
                 sx, sy, sz = g_st[i, slot, 0], g_st[i, slot, 1], g_st[i, slot, 2]
             else:
