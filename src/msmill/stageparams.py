@@ -50,6 +50,17 @@ class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
+class _JsonDocument(_Frozen):
+    """A frozen model that is written as one JSON document."""
+
+    def to_json(self, path: str | Path | None = None) -> str:
+        """Serialise to JSON text (and write it to ``path`` if given)."""
+        text = self.model_dump_json(indent=2)
+        if path is not None:
+            Path(path).write_text(text + "\n", encoding="utf-8")
+        return text
+
+
 class GaussianMixture(_Frozen):
     """A 1-D Gaussian mixture of impact velocities (paper Eq. 14), in m/s.
 
@@ -170,7 +181,7 @@ class DesignPoint(_Frozen):
         return v
 
 
-class RunStatistics(_Frozen):
+class RunStatistics(_JsonDocument):
     """All per-stage statistics of one DEM run, with run-level figures and provenance."""
 
     schema_version: Literal[1] = SCHEMA_VERSION
@@ -199,13 +210,6 @@ class RunStatistics(_Frozen):
         """Number of rotor stages."""
         return len(self.stages)
 
-    def to_json(self, path: str | Path | None = None) -> str:
-        """Serialise to JSON text (and write it to ``path`` if given)."""
-        text = self.model_dump_json(indent=2)
-        if path is not None:
-            Path(path).write_text(text + "\n", encoding="utf-8")
-        return text
-
     @classmethod
     def from_json(cls, path_or_text: str | Path) -> RunStatistics:
         """Read from a JSON file path or JSON text; errors are one line."""
@@ -229,7 +233,7 @@ class RunStatistics(_Frozen):
             raise from_validation_error(exc, prefix=source) from None
 
 
-class StageParameterTable(_Frozen):
+class StageParameterTable(_JsonDocument):
     """Statistics of several DEM runs at one operating point, differing in rock size.
 
     This is the shipped default source of stage parameters for the mill model
@@ -257,13 +261,6 @@ class StageParameterTable(_Frozen):
     def sizes_mm(self) -> np.ndarray:
         """Rock sizes of the runs (mm), ascending."""
         return np.array([r.design.size_mm for r in self.runs])
-
-    def to_json(self, path: str | Path | None = None) -> str:
-        """Serialise to JSON text (and write it to ``path`` if given)."""
-        text = self.model_dump_json(indent=2)
-        if path is not None:
-            Path(path).write_text(text + "\n", encoding="utf-8")
-        return text
 
     @classmethod
     def from_json(cls, path: str | Path) -> StageParameterTable:
