@@ -114,7 +114,6 @@ def test_statistics_valid_and_streams_sum_to_one(small_run):
 def test_saved_run_recomputes_same_statistics(small_run, tmp_path):
     from msmill.cli.main import run as cli
     from msmill.dem.mill.run import save_run, stats_from_dir
-
     from msmill.plots.dem import plot_run
 
     save_run(small_run, tmp_path)
