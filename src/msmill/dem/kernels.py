@@ -781,6 +781,25 @@ def bin_cells(pos, lo, cell_len, ncell):
 
 
 @njit(cache=True, fastmath=False, inline='always')
+def _neighbour_cell(q, n, periodic_axis):
+    """Cell index ``q`` along one axis wrapped into ``[0, n)``: ``(index, image shift, ok)``.
+
+    The shift is -1, 0 or 1 periodic lengths; ``ok`` is False beyond a
+    non-periodic boundary (and for periodic axes of fewer than 3 cells, where
+    a wrapped cell would repeat a neighbour).
+    """
+    if q < 0:
+        if periodic_axis == 0 or n < 3:
+            return 0, 0, False
+        return q + n, -1, True
+    if q >= n:
+        if periodic_axis == 0 or n < 3:
+            return 0, 0, False
+        return q - n, 1, True
+    return q, 0, True
+
+
+@njit(cache=True, fastmath=False, inline='always')
 def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
     pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
@@ -794,44 +813,17 @@ def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, peri
     cnt = 0
     maxn = pad_j.shape[1]
     for oz in range(-1, 2):
-        qz = cz + oz
-        sz = 0
-        if qz < 0:
-            if periodic[2] == 0 or nz < 3:
-                continue
-            qz += nz
-            sz = -1
-        elif qz >= nz:
-            if periodic[2] == 0 or nz < 3:
-                continue
-            qz -= nz
-            sz = 1
+        qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
+        if not ok:
+            continue
         for oy in range(-1, 2):
-            qy = cy + oy
-            sy = 0
-            if qy < 0:
-                if periodic[1] == 0 or ny < 3:
-                    continue
-                qy += ny
-                sy = -1
-            elif qy >= ny:
-                if periodic[1] == 0 or ny < 3:
-                    continue
-                qy -= ny
-                sy = 1
+            qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
+            if not ok:
+                continue
             for ox in range(-1, 2):
-                qx = cx + ox
-                sx = 0
-                if qx < 0:
-                    if periodic[0] == 0 or nx < 3:
-                        continue
-                    qx += nx
-                    sx = -1
-                elif qx >= nx:
-                    if periodic[0] == 0 or nx < 3:
-                        continue
-                    qx -= nx
-                    sx = 1
+                qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
+                if not ok:
+                    continue
                 q = (qz * ny + qy) * nx + qx
                 for p in range(start[q], start[q + 1]):
                     j = order[p]
