@@ -338,6 +338,36 @@ def _close_event(evf, ref, t, peak, diss):
     evf[c, row, EV_DISS] = diss
 
 
+
+@njit(cache=True, fastmath=False, inline='always')
+def _close_untouched(keys, n, st, ev, pk, ds, tch, i, evf, t):
+    """End particle ``i``'s contacts whose slot was not touched this step.
+
+    Their events are closed (peak overlap, dissipated energy) and the slot is
+    refilled from the last one; touched slots are reset for the next step.
+    Serves particle and geometry partners alike.
+    """
+    q = 0
+    while q < n[i]:
+        if tch[i, q] == 1:
+            tch[i, q] = 0
+            q += 1
+            continue
+        if ev[i, q] >= 0:
+            _close_event(evf, ev[i, q], t, pk[i, q], ds[i, q])
+        last = n[i] - 1
+        keys[i, q] = keys[i, last]
+        st[i, q, 0] = st[i, last, 0]
+        st[i, q, 1] = st[i, last, 1]
+        st[i, q, 2] = st[i, last, 2]
+        ev[i, q] = ev[i, last]
+        pk[i, q] = pk[i, last]
+        ds[i, q] = ds[i, last]
+        tch[i, q] = tch[i, last]
+        tch[i, last] = 0
+        ev[i, last] = -1
+        n[i] = last
+
 @njit(cache=True, fastmath=False)
 def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
     """Work of a contact force on the pair over one symplectic-Euler step (J).
@@ -528,46 +558,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
         # ---- end of contacts: slots not touched this step
-        q = 0
-        while q < h_n[i]:
-            if h_tch[i, q] == 1:
-                h_tch[i, q] = 0
-                q += 1
-                continue
-            if h_ev[i, q] >= 0:
-                _close_event(evf, h_ev[i, q], t, h_pk[i, q], h_ds[i, q])
-            last = h_n[i] - 1
-            h_pid[i, q] = h_pid[i, last]
-            h_st[i, q, 0] = h_st[i, last, 0]
-            h_st[i, q, 1] = h_st[i, last, 1]
-            h_st[i, q, 2] = h_st[i, last, 2]
-            h_ev[i, q] = h_ev[i, last]
-            h_pk[i, q] = h_pk[i, last]
-            h_ds[i, q] = h_ds[i, last]
-            h_tch[i, q] = h_tch[i, last]
-            h_tch[i, last] = 0
-            h_ev[i, last] = -1
-            h_n[i] = last
-        q = 0
-        while q < g_n[i]:
-            if g_tch[i, q] == 1:
-                g_tch[i, q] = 0
-                q += 1
-                continue
-            if g_ev[i, q] >= 0:
-                _close_event(evf, g_ev[i, q], t, g_pk[i, q], g_ds[i, q])
-            last = g_n[i] - 1
-            g_gid[i, q] = g_gid[i, last]
-            g_st[i, q, 0] = g_st[i, last, 0]
-            g_st[i, q, 1] = g_st[i, last, 1]
-            g_st[i, q, 2] = g_st[i, last, 2]
-            g_ev[i, q] = g_ev[i, last]
-            g_pk[i, q] = g_pk[i, last]
-            g_ds[i, q] = g_ds[i, last]
-            g_tch[i, q] = g_tch[i, last]
-            g_tch[i, last] = 0
-            g_ev[i, last] = -1
-            g_n[i] = last
+        _close_untouched(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
+        _close_untouched(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
         frc[i, 0] = fx
         frc[i, 1] = fy
         frc[i, 2] = fz
