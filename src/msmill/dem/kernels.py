@@ -58,6 +58,36 @@ def chunk_bounds(n: int, nch: int, c: int) -> tuple[int, int]:
 
 
 # --------------------------------------------------------------------------- geometry
+@njit(cache=True, fastmath=False, inline='always')
+def _image_shift(code, a):
+    """Shift (in box lengths, -8..7) along axis ``a`` of a geometry image code."""
+    v = (code >> (4 * (2 - a))) & 15
+    return v - 16 if v >= 8 else v
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _image_code(sx, sy, sz):
+    """Code of the periodic image shift ``(sx, sy, sz)``; 0 for the primitive itself."""
+    return ((sx & 15) << 8) | ((sy & 15) << 4) | (sz & 15)
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _geom_key_frame(key, ng, x, y, z, box_len):
+    """Decode a geometry candidate key ``g + ng * code``.
+
+    Returns the primitive ``g`` and the particle position moved into the
+    frame of that primitive (particle position + shift x box length), so that
+    a particle near a periodic boundary meets the periodic image of a
+    primitive on the other side.
+    """
+    g = key % ng
+    code = key // ng
+    if code == 0:
+        return g, x, y, z
+    return (g, x + _image_shift(code, 0) * box_len[0], y + _image_shift(code, 1) * box_len[1],
+            z + _image_shift(code, 2) * box_len[2])
+
+
 @njit(cache=True, fastmath=False)
 def update_geometry(gref, grot, gkind, t, gcur):
     """Pose of every primitive at time ``t`` (rotating ones turned by omega t)."""
@@ -230,7 +260,12 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
     kh = kfac * np.sqrt(rstar)
     ch = 2.0 * etah * np.sqrt(mstar * kh)
     sq = np.sqrt(s)
-    fn = kh * s * sq + ch * np.sqrt(sq) * vn
+    fel = kh * s * sq
+    cn = ch * np.sqrt(sq)
+    # damping on the end-of-step normal velocity of this contact (implicit in the dashpot)
+    a_ = 0.5 * cn * dt / mstar
+    vn1 = (vn * (1.0 - a_) - fel * dt / mstar) / (1.0 + a_)
+    fn = fel + 0.5 * cn * (vn + vn1)
     if fn < 0.0:
         fn = 0.0
     fx = -fn * nx
@@ -399,6 +434,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     nch = diag.shape[0]
     smax = h_pid.shape[1]
     sgmax = g_gid.shape[1]
+    ng = gkind.shape[0]
     lx, ly, lz = box_len[0], box_len[1], box_len[2]
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
@@ -496,10 +532,11 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i] + invm[j],
                                             la * la * invi[i] + lb * lb * invi[j], dt)
-        # ---- particle-geometry
+        # ---- particle-geometry (a key is a primitive or one of its periodic images)
         for k in range(gc_start[i], gc_start[i + 1]):
-            g = gc_g[k]
-            ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xi, yi, zi, ri)
+            key = gc_g[k]
+            g, xg, yg, zg = _geom_key_frame(key, ng, xi, yi, zi, box_len)
+            ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
             li = ri - s
@@ -520,7 +557,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] + li * (omg[i, 1] * nz - omg[i, 2] * ny) - wvx
             vy = vel[i, 1] + li * (omg[i, 2] * nx - omg[i, 0] * nz) - wvy
             vz = vel[i, 2] + li * (omg[i, 0] * ny - omg[i, 1] * nx) - wvz
-            slot, new = _history_slot(g_gid, g_n, g_st, g_ev, g_pk, g_ds, i, g, sgmax)
+            slot, new = _history_slot(g_gid, g_n, g_st, g_ev, g_pk, g_ds, i, key, sgmax)
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
             if slot >= 0:
@@ -550,8 +587,10 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     vtx = vx - vn * nx
                     vty = vy - vn * ny
                     vtz = vz - vn * nz
+                    # contact point reported in the particle's frame
                     g_ev[i, slot] = _record_onset(
-                        evf, evi, evn, c, t, idi, 1, g, ri, np.nan, cx, cy, cz, vn,
+                        evf, evi, evn, c, t, idi, 1, g, ri, np.nan, cx + xi - xg, cy + yi - yg,
+                        cz + zi - zg, vn,
                         np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
                 if s > g_pk[i, slot]:
                     g_pk[i, slot] = s
@@ -730,18 +769,42 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
 
 # --------------------------------------------------------------------------- neighbour search
 @njit(cache=True, fastmath=False)
-def wrap_positions(pos, lo, box_len, periodic):
-    """Map positions into the periodic box along periodic axes."""
+def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, ng):
+    """Map positions into the periodic box along periodic axes.
+
+    A particle moved by ``-k`` box lengths keeps its geometry contacts: the
+    image shift in each history key grows by ``k`` (see
+    :func:`_geom_key_frame`), so the key still names the same image.
+    """
     for i in range(pos.shape[0]):
+        kx = 0
+        ky = 0
+        kz = 0
         for a in range(3):
             if periodic[a] != 0:
                 L = box_len[a]
                 x = pos[i, a] - lo[a]
                 if x < 0.0 or x >= L:
-                    x -= np.floor(x / L) * L
+                    k = int(np.floor(x / L))
+                    x -= k * L
                     if x >= L:
                         x -= L
+                        k += 1
                     pos[i, a] = lo[a] + x
+                    if a == 0:
+                        kx = k
+                    elif a == 1:
+                        ky = k
+                    else:
+                        kz = k
+        if kx != 0 or ky != 0 or kz != 0:
+            for q in range(g_n[i]):
+                key = g_gid[i, q]
+                code = key // ng
+                sx = min(max(_image_shift(code, 0) + kx, -8), 7)
+                sy = min(max(_image_shift(code, 1) + ky, -8), 7)
+                sz = min(max(_image_shift(code, 2) + kz, -8), 7)
+                g_gid[i, q] = key % ng + ng * _image_code(sx, sy, sz)
 
 
 @njit(cache=True, fastmath=False)
@@ -927,65 +990,91 @@ def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
-    x, y, z = pos[i, 0], pos[i, 1], pos[i, 2]
-    cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
-    cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
-    cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
-    cell = (cz * gnc[1] + cy) * gnc[0] + cx
+def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
+    """Candidates of particle ``i``: keys ``g + ng * code`` of primitives and periodic images.
+
+    Along a periodic axis the particle is also tested shifted by one box
+    length either way against every primitive that does not span that axis
+    (``gspan``), i.e. against the primitive's periodic images.
+    """
+    ng = gkind.shape[0]
     k = 0 if count_only else gc_start[i]
     cnt = 0
-    for q in range(grid_start[cell], grid_start[cell + 1]):
-        g = grid_list[q]
-        if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
-            if count_only:
-                cnt += 1
-            else:
-                gc_g[k] = g
-                k += 1
+    px = 1 if periodic[0] != 0 else 0
+    py = 1 if periodic[1] != 0 else 0
+    pz = 1 if periodic[2] != 0 else 0
+    for sx in range(-px, px + 1):
+        for sy in range(-py, py + 1):
+            for sz in range(-pz, pz + 1):
+                x = pos[i, 0] + sx * box_len[0]
+                y = pos[i, 1] + sy * box_len[1]
+                z = pos[i, 2] + sz * box_len[2]
+                shifted = sx != 0 or sy != 0 or sz != 0
+                code = _image_code(sx, sy, sz)
+                cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
+                cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
+                cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
+                cell = (cz * gnc[1] + cy) * gnc[0] + cx
+                for q in range(grid_start[cell], grid_start[cell + 1]):
+                    g = grid_list[q]
+                    if shifted and ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
+                                    or (sz != 0 and gspan[g, 2] != 0)):
+                        continue
+                    if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
+                        if count_only:
+                            cnt += 1
+                        else:
+                            gc_g[k] = g + ng * code
+                            k += 1
     if count_only:
         counts[i] = cnt
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in prange(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in range(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
-                          grid_list, parallel):
+def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
+                          gnc, grid_start, grid_list, parallel):
     """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus.
 
     Only the primitives listed in the particle's cell of the coarse geometry
-    grid (:func:`build_geom_grid`) are tested.
+    grid (:func:`build_geom_grid`) are tested; entries are keys
+    ``g + ng * image code`` (see :func:`_geom_key_frame`).
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
     gc_start = np.zeros(n + 1, np.int64)
     dummy = np.zeros(0, np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
-                       grid_list, gc_start, dummy, True, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                       grid_start, grid_list, gc_start, dummy, True, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
-                       grid_list, gc_start, dummy, True, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                       grid_start, grid_list, gc_start, dummy, True, counts)
     for i in range(n):
         gc_start[i + 1] = gc_start[i] + counts[i]
     gc_g = np.empty(gc_start[n], np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
-                       grid_list, gc_start, gc_g, False, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                       grid_start, grid_list, gc_start, gc_g, False, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, glo, gcl, gnc, grid_start,
-                       grid_list, gc_start, gc_g, False, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
+                       grid_start, grid_list, gc_start, gc_g, False, counts)
     return gc_start, gc_g
 
 
@@ -1091,19 +1180,32 @@ def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len,
                 rstar = rad[i] * rad[j] / (rad[i] + rad[j])
                 e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
         for k in range(gc_start[i], gc_start[i + 1]):
-            g = gc_g[k]
-            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, pos[i, 0], pos[i, 1],
-                                                         pos[i, 2], rad[i])
+            g, xg, yg, zg = _geom_key_frame(gc_g[k], gkind.shape[0], pos[i, 0], pos[i, 1], pos[i, 2],
+                                            box_len)
+            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, rad[i])
             if ok:
                 e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5
     return e
 
 
+@njit(cache=True, fastmath=False, inline='always')
+def _min_image_d2(dx, dy, dz, box_len, periodic):
+    """Squared length of the shortest periodic image of ``(dx, dy, dz)``."""
+    if periodic[0] != 0:
+        dx -= box_len[0] * np.round(dx / box_len[0])
+    if periodic[1] != 0:
+        dy -= box_len[1] * np.round(dy / box_len[1])
+    if periodic[2] != 0:
+        dz -= box_len[2] * np.round(dz / box_len[2])
+    return dx * dx + dy * dy + dz * dz
+
+
 @njit(cache=True, fastmath=False)
-def place_without_overlap(cand, radii, ex_pos, ex_rad):
+def place_without_overlap(cand, radii, ex_pos, ex_rad, box_len, periodic):
     """Pick, for each new particle, the first candidate position free of overlap.
 
-    ``cand`` has shape (n_new, n_try, 3). Returns the accepted positions and a
+    ``cand`` has shape (n_new, n_try, 3). Distances are taken to the nearest
+    periodic image along periodic axes. Returns the accepted positions and a
     boolean mask (False when every try overlapped).
     """
     nnew, ntry = cand.shape[0], cand.shape[1]
@@ -1116,22 +1218,18 @@ def place_without_overlap(cand, radii, ex_pos, ex_rad):
             x, y, z = cand[p, tr, 0], cand[p, tr, 1], cand[p, tr, 2]
             free = True
             for j in range(nex):
-                dx = ex_pos[j, 0] - x
-                dy = ex_pos[j, 1] - y
-                dz = ex_pos[j, 2] - z
                 rr = ex_rad[j] + r
-                if dx * dx + dy * dy + dz * dz < rr * rr:
+                if _min_image_d2(ex_pos[j, 0] - x, ex_pos[j, 1] - y, ex_pos[j, 2] - z, box_len,
+                                 periodic) < rr * rr:
                     free = False
                     break
             if free:
                 for q in range(p):
                     if not okm[q]:
                         continue
-                    dx = out[q, 0] - x
-                    dy = out[q, 1] - y
-                    dz = out[q, 2] - z
                     rr = radii[q] + r
-                    if dx * dx + dy * dy + dz * dz < rr * rr:
+                    if _min_image_d2(out[q, 0] - x, out[q, 1] - y, out[q, 2] - z, box_len,
+                                     periodic) < rr * rr:
                         free = False
                         break
             if free:

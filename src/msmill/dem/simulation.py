@@ -436,6 +436,15 @@ class Simulation:
                                 ).reshape(len(g), 6)
         self._gcur = self._gref.copy()
         K.update_geometry(self._gref, self._grot, self._gkind, 0.0, self._gcur)
+        # along a periodic axis a primitive shorter than the period is met through its periodic
+        # images; one at least a period long is taken as continuous along the axis (no images)
+        L = self._hi - self._lo
+        self._gaabb = np.array([np.concatenate(K._geom_aabb(k, self._gcur, self._grot, self._gkind,
+                                                            self._gbound)) for k in range(len(g))]
+                               ).reshape(len(g), 6)
+        ext = self._gaabb[:, 3:] - self._gaabb[:, :3]
+        self._gspan = np.where(self._periodic.astype(bool)[None, :], ext >= L[None, :], True
+                               ).astype(np.int8).reshape(len(g), 3)
         self._ggrid = None
         self._sinkbox = np.array([np.concatenate([s["lo"], s["hi"]]) for s in self._sinks]
                                  ).reshape(len(self._sinks), 6)
@@ -461,6 +470,8 @@ class Simulation:
     def contact_time_s(self, max_relative_speed_m_s: float) -> float:
         """Smallest Hertz contact time over all pairs at the given impact speed (s)."""
         v = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
+        if self._dirty:
+            self._pack()
         mats = {int(m) for m in np.unique(self._p["mat"])} | {s["mat"] for s in self._sources}
         rmin = {}
         for m in mats:
@@ -538,7 +549,8 @@ class Simulation:
 
     def _rebuild(self) -> None:
         p = self._p
-        K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic)
+        K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic, p["g_gid"], p["g_n"],
+                         len(self._geoms))
         rmax = float(p["rad"].max()) if p["rad"].size else 0.0
         if rmax > self._rmax_cells:
             self._rmax_cells = rmax
@@ -567,7 +579,8 @@ class Simulation:
                                             self._lo, self._gcl, self._gnc, margin)
             self._ggrid_margin = margin
         self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
-                                           self._grot, self._gkind, self._gbound, self._lo,
+                                           self._grot, self._gkind, self._gbound, self._gspan,
+                                           self._periodic, self._box_len, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            self._parallel())
         self._disp[0] = 0.0
@@ -645,8 +658,11 @@ class Simulation:
             cand = lo + radii[:, None, None] + u * (hi - lo - 2 * radii[:, None, None])
             pos = self._p["pos"]
             reach = float(radii.max()) + (float(self._p["rad"].max()) if pos.size else 0.0)
-            near = np.all((pos >= lo - reach) & (pos <= hi + reach), axis=1)
-            out, ok = K.place_without_overlap(cand, radii, pos[near], self._p["rad"][near])
+            inside = (pos >= lo - reach) & (pos <= hi + reach)
+            inside[:, self._periodic.astype(bool)] = True  # periodic images may reach the region
+            near = np.all(inside, axis=1)
+            out, ok = K.place_without_overlap(cand, radii, pos[near], self._p["rad"][near],
+                                              self._box_len, self._periodic)
             placed = masses[:n][ok].sum()
             s["debt"] -= masses[:n].sum()
             s["debt"] += masses[:n][~ok].sum()
@@ -731,6 +747,7 @@ class Simulation:
             raise MsmillInputError("particles", 0, "at least one particle or source before run()")
         if self._skin is None:
             self._skin = 0.5 * rmin
+        self._check_periodic_spans(rmax + self._skin)
         thin = min([g["thickness"] for g in self._geoms if g["thickness"] > 0] + [np.inf])
         lmin = min(rmin, thin)
         vcheck = max(vrel, self._wall_speed_max())
@@ -854,6 +871,20 @@ class Simulation:
         if not stopped or self._time >= next_ts - 0.5 * dt:
             self._record_ts()
         return done
+
+    def _check_periodic_spans(self, pad: float) -> None:
+        """Warn about primitives taken as continuous along a periodic axis that end too close to it."""
+        for a in np.nonzero(self._periodic)[0]:
+            lo_g, hi_g = self._gaabb[:, a], self._gaabb[:, 3 + a]
+            short = ((self._gspan[:, a] != 0) & np.isfinite(lo_g)
+                     & ((lo_g > self._lo[a] - pad) | (hi_g < self._hi[a] + pad)))
+            for k in np.nonzero(short)[0]:
+                self._warn_once(
+                    f"span{k}{a}",
+                    f"geometry {k} ({self._geoms[k]['tag']}) is at least one period long along "
+                    f"periodic axis {a}, so it is taken as continuous along it, but it ends less "
+                    f"than r_max + skin = {pad:.3g} m beyond the periodic box: particles at the "
+                    "boundary meet its end; extend it by that much or make it shorter than the period")
 
     def _flush_events(self) -> None:
         self._rec.flush([self._p["h_ev"], self._p["g_ev"]])
