@@ -26,14 +26,15 @@ Modes
 -----
 ``full``: the whole casing length ``L``, closed by end walls. ``slice``: one
 flinger row (``row_pitch_m`` long, row 0, periodic along y); the feed is
-scaled by ``slice length / casing_length_m``. In a slice every flinger is one
-continuous plate across the whole periodic length (row 0's angles): the
-periodic images of a row are all in phase anyway, and a plate side edge
-inside the periodic box triggered numerical blow-ups in the engine (rocks
-touching the side face of a fast plate reached overlaps above 20 % of their
-radius and speeds of 10^2-10^4 m/s; 27 of 29 blow-ups in a 20 mm trial
-started at a side edge). The slice's flinger area per metre of shaft is thus
-``row_pitch / flinger_width`` (1.25 for the default) times the machine's. The engine needs a periodic
+scaled by ``slice length / casing_length_m``. The slice holds the machine's
+own flinger plates of its rows (80 mm wide in a 100 mm row for the default),
+so a rock can pass a rotor through the gap between a plate and its periodic
+image exactly as in the machine; the engine meets plates across the periodic
+boundary through their periodic images. (Earlier builds used one
+continuous plate per flinger, 1.25 times the machine's flinger area, because
+plate side edges at the periodic boundary blew up: the engine did not image
+geometry then.) Liners, hubs, gates and deflectors span the slice and
+overhang it, and are taken as continuous along the shafts. The engine needs a periodic
 length of at least three neighbour cells (``3 (2 r_max + r_min / 2)``), so for
 rocks above about 26 mm (default machine) the slice holds the smallest whole
 number of rows that satisfies this (2 rows for 30 mm rock).
@@ -240,7 +241,7 @@ def build_scene(
         y0, y1 = 0.0, machine.casing_length_m
         rows = list(range(machine.flinger_rows))
         scale = 1.0
-    ext = 0.05 if mode == "slice" else 0.0  # plates and hubs overhang a periodic slice
+    ext = 0.05 if mode == "slice" else 0.0  # liners, hubs, gates overhang a periodic slice
     roof = machine.roof_z_m
     chute_h = 0.4
     top = roof + chute_h
@@ -289,10 +290,7 @@ def build_scene(
             rot = Rotation(axis_point_m=(x, 0.0, z), axis_dir=(0.0, 1.0, 0.0), omega_rad_s=om)
             sim.add_cylinder((x, y0 - ext, z), (x, y1 + ext, z), r_in, material="steel", tag="hub", group=g,
                              rotation=rot, inside=False)
-            # slice: one continuous plate per flinger across the whole periodic length (plus overhang), so
-            # no plate side edge lies inside the periodic box (see module docstring)
-            plates = [(0, yc, yh)] if mode == "slice" else [
-                (j, machine.row_y_m(j), machine.flinger_width_m / 2) for j in rows]
+            plates = [(j, machine.row_y_m(j), machine.flinger_width_m / 2) for j in rows]
             for j, yr, hy in plates:
                 for k in range(machine.flingers_per_row):
                     th = math.radians(machine.flinger_phase_deg(j, k))
