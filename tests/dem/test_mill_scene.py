@@ -56,25 +56,71 @@ def test_scene_tags_groups_and_feed_scaling():
     assert big.info["slice_rows"] == 2 and big.feed_kg_s == pytest.approx(40 / 3.6 * 0.2 / 0.6)
 
 
-def test_mass_balance_exact_per_particle(small_run):
-    sim = small_run.scene.sim
+@pytest.fixture(scope="module")
+def full_mixed_run():
+    """Full mill (end walls, all six rows) fed a two-size PSD."""
+    settings = RunSettings(max_time_s=0.6, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0,
+                           measure_s=0.3, snapshot_every_s=0.005)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        return run_mill(MACHINE, OP, feed_psd=([20.0, 30.0], [0.4, 0.6]), mode="full", settings=settings)
+
+
+def _check_mass_balance(run, r_max_m: float) -> None:
+    sim = run.scene.sim
     now = sim.snapshot()
-    rem = small_run.removed
-    ever = set(small_run.snapshots["particle_id"]) | set(small_run.events["particle_id"]) | set(rem["particle_id"])
+    rem = run.removed
+    ever = set(run.snapshots["particle_id"]) | set(run.events["particle_id"]) | set(rem["particle_id"])
     ids_now, ids_out = set(now["particle_id"]), set(rem["particle_id"])
     assert not ids_now & ids_out
     assert len(rem["particle_id"]) == len(ids_out)  # removed once
     assert ever <= ids_now | ids_out
     assert set(rem["tag"]) <= {"outlet"}  # nothing lost through the domain walls
-    rho = small_run.scene.rock.density_kg_m3
+    rho = run.scene.rock.density_kg_m3
     fed = rho * 4 / 3 * np.pi * (np.sum(now["radius_m"] ** 3) + np.sum(rem["radius_m"] ** 3))
-    in_mill = small_run.timeseries["mass_kg"].iloc[-1]
-    out = small_run.timeseries["mass_out_kg"].iloc[-1]
+    in_mill = run.timeseries["mass_kg"].iloc[-1]
+    out = run.timeseries["mass_out_kg"].iloc[-1]
     assert fed == pytest.approx(in_mill + out, rel=1e-12)
     assert len(rem) > 0  # rock did leave through the outlet
     # the source delivered the requested feed (to within one particle)
-    m1 = rho * 4 / 3 * np.pi * 0.01**3
-    assert abs(fed - small_run.scene.feed_kg_s * sim.time_s) < 2 * m1
+    m1 = rho * 4 / 3 * np.pi * r_max_m**3
+    assert abs(fed - run.scene.feed_kg_s * sim.time_s) < 2 * m1
+
+
+def test_mass_balance_exact_per_particle(small_run):
+    _check_mass_balance(small_run, 0.01)
+
+
+def test_full_mill_mixed_feed_mass_balance_and_size_mix(full_mixed_run):
+    _check_mass_balance(full_mixed_run, 0.015)
+    sim = full_mixed_run.scene.sim
+    assert full_mixed_run.scene.info["mode"] == "full"
+    assert sim.geometry().query("tag == 'flinger'").shape[0] == 4 * 6 * MACHINE.flingers_per_row
+    # fed mass fractions of the two sizes follow the PSD (0.4 / 0.6) to within sampling noise
+    now, rem = sim.snapshot(), full_mixed_run.removed
+    r = np.concatenate([now["radius_m"].to_numpy(), rem["radius_m"].to_numpy()])
+    m = r**3
+    assert set(np.round(r * 2000, 6)) == {20.0, 30.0}
+    assert m[np.isclose(r, 0.01)].sum() / m.sum() == pytest.approx(0.4, abs=0.12)
+
+
+def test_full_mill_statistics_regions_and_streams_by_size(full_mixed_run):
+    st = full_mixed_run.stats.run
+    assert st.mode == "full"
+    for s in st.stages:
+        assert s.kickback + s.refeed + s.pass_through == pytest.approx(1.0)
+        # six horizontal regions along the shafts (full mode only)
+        assert len(s.region_weights) == 6 and sum(s.region_weights) == pytest.approx(1.0)
+        assert np.allclose(np.sum(s.region_streams, axis=1), 1.0)
+    by_size = full_mixed_run.stats.streams_by_size
+    assert set(by_size["size_class"]) == {0, 1}
+    assert np.allclose(by_size[["kickback", "refeed", "pass_through"]].sum(axis=1), 1.0)
+    # each stage's overall streams are the mass-weighted mean of its per-size streams
+    for stage, grp in by_size.groupby("stage_from"):
+        if stage < 1 or stage > MACHINE.n_stages:
+            continue
+        mean_pt = np.average(grp["pass_through"], weights=grp["mass_kg"])
+        assert st.stages[stage - 1].pass_through == pytest.approx(mean_pt, abs=1e-9)
 
 
 def test_primary_impacts_bounded_by_tip_speed_plus_rock_speed(small_run):
