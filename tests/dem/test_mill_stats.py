@@ -111,3 +111,24 @@ def test_steady_state_detection():
     onset, detected = detect_steady_state(t, n, window_s=0.4, rel_tol=0.03, trend_tol=0.05)
     assert 0.6 < onset < 2.0 and detected == pytest.approx(onset + 0.8)
     assert detect_steady_state(t, 100 * t, window_s=0.4) is None
+
+
+def test_touches_are_dropped_as_events_but_blow_ups_drop_the_rock():
+    removed = pd.DataFrame({"particle_id": [5], "time_s": [0.13], "radius_m": [R], "mass_kg": [1.0],
+                            "tag": ["outlet"]})
+    ts = pd.DataFrame({"time_s": TIMES, "n_particles": 5, "mass_kg": 2.0, "kinetic_energy_j": 0.0,
+                       "mass_out_kg": 0.0})
+    design = DesignPoint(size_mm=10, feed_tph=30, speed_rpm=1500, gate_deg=40, stage_speeds_rpm=[1500, 3000])
+    touch = pd.DataFrame([(0.125, 1, 1, 1, -0.01, 1.05, "liner", -1)], columns=_events().columns)
+    st = compute_statistics(M2, design, pd.concat([_events(), touch], ignore_index=True), removed, ts,
+                            _snaps(), window_s=(0.0, 0.2), characteristic_time_s=0.05).run
+    # the touch of rock A is ignored, A's impacts still count: same as without it
+    assert st.stages[0].n_primary_impacts == 2 and st.stages[0].secondary_lambda == pytest.approx(2.0)
+    assert st.provenance["stats"]["n_touch_events_vn_le_0"] == 1
+    assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 0
+    # an impossible speed (above 2 x 59.7 + 20 m/s) drops rock A altogether
+    boom = pd.DataFrame([(0.125, 1, 1, 1, 500.0, 1.05, "liner", -1)], columns=_events().columns)
+    st = compute_statistics(M2, design, pd.concat([_events(), boom], ignore_index=True), removed, ts,
+                            _snaps(), window_s=(0.0, 0.2), characteristic_time_s=0.05).run
+    assert st.stages[0].n_primary_impacts == 0
+    assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 1

@@ -33,8 +33,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 * **Hit probability**: mass fraction of the tagged rocks of stage ``s`` that
   receive at least one primary impact from a stage-``s`` rotor within
   ``(t, t + tau]``.
-* **Numerical blow-ups**: a rock with any contact at ``vn <= 0``, non-finite
-  or above ``2 x`` the fastest tip speed ``+ 20 m/s`` (impossible here; an
+* **Touches**: contacts recorded at ``vn <= 0`` (opened without approach,
+  e.g. a rock resting between two surfaces) are not impacts and are removed
+  before anything else; their number is reported in ``provenance["stats"]``.
+* **Numerical blow-ups**: a rock with any contact at a non-finite speed or
+  above ``2 x`` the fastest tip speed ``+ 20 m/s`` (impossible here; an
   engine failure) is dropped from all tables; the number is reported in
   ``provenance["stats"]``.
 * **Sampling errors**: standard errors by batch means: the tag times (or
@@ -380,12 +383,17 @@ def compute_statistics(
     n = machine.n_stages
     t0, t1 = map(float, window_s)
     snaps_all = snapshots_frame(snapshots)
-    # guard against numerical blow-ups of the engine: a rock with a contact at vn <= 0, non-finite or
+    # contacts opened without approach (vn <= 0) are touches, not impacts
+    vn_all = events["vn_m_s"].to_numpy(dtype=float)
+    touch = np.isfinite(vn_all) & (vn_all <= 0)
+    n_touch = int(touch.sum())
+    events = events[~touch]
+    # guard against numerical blow-ups of the engine: a rock with a contact at a non-finite speed or
     # faster than 2 x the fastest tip speed + 20 m/s is physically impossible here; such rocks are
     # dropped from every table (and counted in the provenance)
     v_bad = 2.0 * max(machine.tip_speed_m_s(v) for v in design.stage_speeds_rpm) + 20.0
     vn_all = events["vn_m_s"].to_numpy(dtype=float)
-    bad_ev = ~np.isfinite(vn_all) | (vn_all <= 0) | (vn_all > v_bad)
+    bad_ev = ~np.isfinite(vn_all) | (vn_all > v_bad)
     bad_ids = np.unique(np.concatenate([
         events["particle_id"].to_numpy()[bad_ev],
         events["partner_id"].to_numpy()[bad_ev & (events["partner_kind"].to_numpy() == 0)],
@@ -551,7 +559,7 @@ def compute_statistics(
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
         "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
         "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
-        "n_events_blow_up": int(bad_ev.sum()),
+        "n_events_blow_up": int(bad_ev.sum()), "n_touch_events_vn_le_0": n_touch,
     })
     by_size = None
     if size_edges_m is not None and len(pairs):
