@@ -123,3 +123,71 @@ def test_restitution_at_the_production_step_is_unbiased_and_does_not_grow_with_s
     es = np.array(es)
     assert abs(es.mean() - 0.2) < 0.06 * 0.2
     assert es.min() > 0.7 * 0.2 and es.max() < 1.5 * 0.2
+
+
+def test_rolling_on_a_plane_across_the_boundary_is_one_contact():
+    """A primitive continuous along the periodic axis keeps its contact when the particle is wrapped."""
+    sim = _sim(gravity=(0.0, 0.0, -9.81))
+    sim.set_interaction("rock", "steel", restitution=0.5, friction=0.3)
+    sim.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), material="steel", tag="floor")
+    sim.add_particles([[0.0, 0.08, R - 9.3e-8]], R, [[0.0, 0.5, 0.0]], material="rock",
+                      angular_velocities_rad_s=[[0.5 / R, 0.0, 0.0]])
+    sim.run(0.08, progress=False, max_relative_speed_m_s=1.0)
+    assert 0.0 <= sim.particle_arrays()["pos"][0, 1] < 0.04  # crossed y = L and was wrapped
+    ev = sim.events()
+    assert len(ev) == 1 and np.isnan(ev.end_time_s.iloc[0])
+
+
+def test_image_contacts_survive_adding_geometry_between_runs():
+    """History keys do not depend on the number of primitives."""
+    sim = _sim()
+    sim.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), material="steel", tag="block")
+    sim.add_particles([[0.0, 0.0, 0.0]], 0.0102, [[0.0, 0.0, 0.0]], material="rock")  # touches block and image
+    sim.run(1e-3, progress=False, max_relative_speed_m_s=1.0)
+    sim.add_box((0.0, 0.05, -0.045), (0.001, 0.001, 0.001), material="steel", tag="far")
+    sim.run(1e-3, progress=False, max_relative_speed_m_s=1.0)
+    ev = sim.events()
+    assert len(ev) == 2 and ev.end_time_s.isna().all()
+
+
+def test_which_primitives_are_continuous_along_a_periodic_axis():
+    from msmill.dem.geometry import BOX, CYL, PLANE, spans_axis
+
+    still = np.zeros(8)
+    about_y = np.array([0, 0, 0, 0, 1, 0, 10.0, 1.0])
+    about_x = np.array([0, 0, 0, 1, 0, 0, 10.0, 1.0])
+    plane_xy = np.r_[0, 0, 0, 0, 0, 1, np.zeros(10)]
+    plane_xz = np.r_[0, 0, 0, 0, 1, 0, np.zeros(10)]
+    assert spans_axis(PLANE, plane_xy, still, 1, 0.1)  # parallel to y
+    assert not spans_axis(PLANE, plane_xz, still, 1, 0.1)  # normal to y: imaged
+    box = np.r_[0, 0, 0, np.eye(3).ravel(), 0.01, 0.06, 0.01, 0]
+    assert spans_axis(BOX, box, still, 1, 0.1) and spans_axis(BOX, box, about_y, 1, 0.1)
+    assert not spans_axis(BOX, box, about_x, 1, 0.1)  # turning about x it sweeps across y
+    short = box.copy()
+    short[13] = 0.04
+    assert not spans_axis(BOX, short, still, 1, 0.1)
+    c, s = np.cos(0.3), np.sin(0.3)
+    tilted = np.r_[0, 0, 0, np.array([[1, 0, 0], [0, c, s], [0, -s, c]]).ravel(), 0.01, 0.2, 0.01, 0]
+    assert not spans_axis(BOX, tilted, still, 1, 0.1)
+    cyl = np.r_[0, 0, 0, 0, 1, 0, 0.12, 0.05, 0, np.zeros(7)]
+    assert spans_axis(CYL, cyl, about_y, 1, 0.1) and not spans_axis(CYL, cyl, still, 1, 0.2)
+
+
+def test_static_hertz_overlap_at_the_production_step():
+    """Resting under 1 g: the trapezoidal dashpot leaves the Hertz equilibrium within 5 % (e = 0.2)."""
+    sim = Simulation((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), gravity_m_s2=(0, 0, -9.81))
+    sim.add_material("rock", youngs_modulus_pa=5e10, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.add_material("steel", youngs_modulus_pa=2.1e11, poisson_ratio=0.3, density_kg_m3=7850)
+    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
+    sim.set_interaction("rock", "steel", restitution=0.2, friction=0.3)
+    sim.add_plane((0, 0, 0), (0, 0, 1), material="steel", tag="liner")
+    sim.add_particles([[0, 0, R]], R, [[0, 0, 0]], material="rock")
+    dt = 0.2 * sim.contact_time_s(64.67)
+    sim.run(4000 * dt, dt_s=dt, max_relative_speed_m_s=64.67, progress=False)
+    p = sim.particle_arrays()
+    e_star = 1.0 / ((1 - 0.25**2) / 5e10 + (1 - 0.3**2) / 2.1e11)
+    k_h = 4.0 / 3.0 * e_star * np.sqrt(R)
+    s_hertz = (p["mass"][0] * 9.81 / k_h) ** (2.0 / 3.0)
+    s = R - p["pos"][0, 2]
+    assert abs(p["vel"][0, 2]) < 1e-6  # at rest
+    assert s == pytest.approx(s_hertz, rel=0.05)

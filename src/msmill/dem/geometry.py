@@ -121,6 +121,25 @@ def bound_row(kind: int, ref: np.ndarray, rot: np.ndarray) -> np.ndarray:
     return np.concatenate([pts.min(axis=0), pts.max(axis=0)])
 
 
+def spans_axis(kind: int, ref: np.ndarray, rot: np.ndarray, axis: int, period_m: float) -> bool:
+    """True if a primitive is unchanged by sliding along ``axis`` over one period.
+
+    Such a primitive (a plane parallel to the axis, a box or cylinder lying
+    along it and at least one period long; if rotating, only about an axis
+    parallel to it) is taken as continuous along a periodic axis; any other is
+    met through its periodic images.
+    """
+    tol = 1e-9
+    if rot[7] > 0 and abs(rot[3 + axis]) < 1.0 - tol:
+        return False
+    if kind == PLANE:
+        return abs(ref[3 + axis]) < tol
+    if kind == BOX:
+        axes = ref[3:12].reshape(3, 3)
+        return any(abs(axes[k, axis]) > 1.0 - tol and 2.0 * ref[12 + k] >= period_m for k in range(3))
+    return abs(ref[3 + axis]) > 1.0 - tol and ref[6] >= period_m
+
+
 def orthonormal_axes(name: str, axes) -> np.ndarray:
     """Validate a proper 3x3 rotation (rows are the box's local axes)."""
     if axes is None:

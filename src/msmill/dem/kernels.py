@@ -71,17 +71,21 @@ def _image_code(sx, sy, sz):
     return ((sx & 15) << 8) | ((sy & 15) << 4) | (sz & 15)
 
 
+#: geometry keys are ``g * KEY_STRIDE + image code`` (12 bits of image shifts)
+KEY_STRIDE = 4096
+
+
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_key_frame(key, ng, x, y, z, box_len):
-    """Decode a geometry candidate key ``g + ng * code``.
+def _geom_key_frame(key, x, y, z, box_len):
+    """Decode a geometry candidate key ``g * KEY_STRIDE + code``.
 
     Returns the primitive ``g`` and the particle position moved into the
     frame of that primitive (particle position + shift x box length), so that
     a particle near a periodic boundary meets the periodic image of a
     primitive on the other side.
     """
-    g = key % ng
-    code = key // ng
+    g = key // KEY_STRIDE
+    code = key % KEY_STRIDE
     if code == 0:
         return g, x, y, z
     return (g, x + _image_shift(code, 0) * box_len[0], y + _image_shift(code, 1) * box_len[1],
@@ -262,10 +266,11 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
     sq = np.sqrt(s)
     fel = kh * s * sq
     cn = ch * np.sqrt(sq)
-    # damping on the end-of-step normal velocity of this contact (implicit in the dashpot)
+    # the dashpot acts on the trapezoidal mean of v_n now and v_n' predicted for the end of the step
+    # from this contact's own force, v_n' = (v_n (1 - a) - F_el dt/m*)/(1 + a), a = C dt/(2 m*),
+    # i.e. F_n = (F_el + C v_n)/(1 + a): it cannot reverse the approach in one step (docs/dem.md)
     a_ = 0.5 * cn * dt / mstar
-    vn1 = (vn * (1.0 - a_) - fel * dt / mstar) / (1.0 + a_)
-    fn = fel + 0.5 * cn * (vn + vn1)
+    fn = (fel + cn * vn) / (1.0 + a_)
     if fn < 0.0:
         fn = 0.0
     fx = -fn * nx
@@ -434,7 +439,6 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     nch = diag.shape[0]
     smax = h_pid.shape[1]
     sgmax = g_gid.shape[1]
-    ng = gkind.shape[0]
     lx, ly, lz = box_len[0], box_len[1], box_len[2]
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
@@ -535,7 +539,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
         for k in range(gc_start[i], gc_start[i + 1]):
             key = gc_g[k]
-            g, xg, yg, zg = _geom_key_frame(key, ng, xi, yi, zi, box_len)
+            g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, box_len)
             ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
@@ -769,12 +773,13 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
 
 # --------------------------------------------------------------------------- neighbour search
 @njit(cache=True, fastmath=False)
-def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, ng):
+def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, gspan):
     """Map positions into the periodic box along periodic axes.
 
     A particle moved by ``-k`` box lengths keeps its geometry contacts: the
-    image shift in each history key grows by ``k`` (see
-    :func:`_geom_key_frame`), so the key still names the same image.
+    image shift in each history key grows by ``k`` along the axes its
+    primitive does not span (see :func:`_geom_key_frame`), so the key still
+    names the same image; a spanning primitive is met unshifted anyway.
     """
     for i in range(pos.shape[0]):
         kx = 0
@@ -800,11 +805,15 @@ def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, ng):
         if kx != 0 or ky != 0 or kz != 0:
             for q in range(g_n[i]):
                 key = g_gid[i, q]
-                code = key // ng
-                sx = min(max(_image_shift(code, 0) + kx, -8), 7)
-                sy = min(max(_image_shift(code, 1) + ky, -8), 7)
-                sz = min(max(_image_shift(code, 2) + kz, -8), 7)
-                g_gid[i, q] = key % ng + ng * _image_code(sx, sy, sz)
+                g = key // KEY_STRIDE
+                code = key % KEY_STRIDE
+                sx = _image_shift(code, 0) + (kx if gspan[g, 0] == 0 else 0)
+                sy = _image_shift(code, 1) + (ky if gspan[g, 1] == 0 else 0)
+                sz = _image_shift(code, 2) + (kz if gspan[g, 2] == 0 else 0)
+                sx = min(max(sx, -8), 7)
+                sy = min(max(sy, -8), 7)
+                sz = min(max(sz, -8), 7)
+                g_gid[i, q] = g * KEY_STRIDE + _image_code(sx, sy, sz)
 
 
 @njit(cache=True, fastmath=False)
@@ -992,13 +1001,12 @@ def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
 @njit(cache=True, fastmath=False, inline='always')
 def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
                    grid_start, grid_list, gc_start, gc_g, count_only, counts):
-    """Candidates of particle ``i``: keys ``g + ng * code`` of primitives and periodic images.
+    """Candidates of particle ``i``: keys ``g * KEY_STRIDE + code`` of primitives and periodic images.
 
     Along a periodic axis the particle is also tested shifted by one box
     length either way against every primitive that does not span that axis
     (``gspan``), i.e. against the primitive's periodic images.
     """
-    ng = gkind.shape[0]
     k = 0 if count_only else gc_start[i]
     cnt = 0
     px = 1 if periodic[0] != 0 else 0
@@ -1025,7 +1033,7 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
                         if count_only:
                             cnt += 1
                         else:
-                            gc_g[k] = g + ng * code
+                            gc_g[k] = g * KEY_STRIDE + code
                             k += 1
     if count_only:
         counts[i] = cnt
@@ -1054,7 +1062,7 @@ def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, peri
 
     Only the primitives listed in the particle's cell of the coarse geometry
     grid (:func:`build_geom_grid`) are tested; entries are keys
-    ``g + ng * image code`` (see :func:`_geom_key_frame`).
+    ``g * KEY_STRIDE + image code`` (see :func:`_geom_key_frame`).
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
@@ -1180,8 +1188,7 @@ def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len,
                 rstar = rad[i] * rad[j] / (rad[i] + rad[j])
                 e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
         for k in range(gc_start[i], gc_start[i + 1]):
-            g, xg, yg, zg = _geom_key_frame(gc_g[k], gkind.shape[0], pos[i, 0], pos[i, 1], pos[i, 2],
-                                            box_len)
+            g, xg, yg, zg = _geom_key_frame(gc_g[k], pos[i, 0], pos[i, 1], pos[i, 2], box_len)
             ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, rad[i])
             if ok:
                 e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5

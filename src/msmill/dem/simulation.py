@@ -26,6 +26,7 @@ from msmill.dem.geometry import (
     Rotation,
     bound_row,
     orthonormal_axes,
+    spans_axis,
     vec3,
 )
 from msmill.dem.io import write_parquet, write_vtu
@@ -436,15 +437,15 @@ class Simulation:
                                 ).reshape(len(g), 6)
         self._gcur = self._gref.copy()
         K.update_geometry(self._gref, self._grot, self._gkind, 0.0, self._gcur)
-        # along a periodic axis a primitive shorter than the period is met through its periodic
-        # images; one at least a period long is taken as continuous along the axis (no images)
+        # along a periodic axis a primitive is met through its periodic images unless it is
+        # continuous along the axis (geometry.spans_axis)
         L = self._hi - self._lo
         self._gaabb = np.array([np.concatenate(K._geom_aabb(k, self._gcur, self._grot, self._gkind,
                                                             self._gbound)) for k in range(len(g))]
                                ).reshape(len(g), 6)
-        ext = self._gaabb[:, 3:] - self._gaabb[:, :3]
-        self._gspan = np.where(self._periodic.astype(bool)[None, :], ext >= L[None, :], True
-                               ).astype(np.int8).reshape(len(g), 3)
+        self._gspan = np.array([[1 if not self._periodic[a] else
+                                 int(spans_axis(x["kind"], x["ref"], x["rot"], a, float(L[a])))
+                                 for a in range(3)] for x in g], np.int8).reshape(len(g), 3)
         self._ggrid = None
         self._sinkbox = np.array([np.concatenate([s["lo"], s["hi"]]) for s in self._sinks]
                                  ).reshape(len(self._sinks), 6)
@@ -550,7 +551,7 @@ class Simulation:
     def _rebuild(self) -> None:
         p = self._p
         K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic, p["g_gid"], p["g_n"],
-                         len(self._geoms))
+                         self._gspan)
         rmax = float(p["rad"].max()) if p["rad"].size else 0.0
         if rmax > self._rmax_cells:
             self._rmax_cells = rmax
