@@ -135,6 +135,7 @@ def run_mill(
     if rs.measure_s <= 0 or rs.max_time_s <= 0 or rs.chunk_s <= 0:
         raise MsmillInputError("settings", rs, "positive times")
     wall0 = time.perf_counter()
+    commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
     scene = build_scene(machine, op, size_mm=size_mm, feed_psd=feed_psd, mode=mode, rock=rock, ore=ore,
                         max_overlap_fraction=rs.max_overlap_fraction, seed=rs.seed)
     sim = scene.sim
@@ -173,6 +174,7 @@ def run_mill(
         steady_state_detected_s=found[1] if found else None, window_s=(float(t_start), float(sim.time_s)),
         wall_s=wall,
     )
+    run.extra["git_commit"] = commit0
     run.extra["dt_s"] = float(sim.dt_s)
     run.extra["n_particles_end"] = int(sim.n_particles)
     run.stats = _compute(run, stats_settings)
@@ -183,7 +185,7 @@ def _provenance(run: MillRun) -> dict[str, Any]:
     return {
         "generator": "msmill.dem.mill.run",
         "msmill_version": __version__,
-        "git_commit": git_commit(),
+        "git_commit": run.extra.get("git_commit", git_commit()),
         "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": run.scene.machine.name,
         "scene": run.scene.info,
