@@ -126,7 +126,7 @@ def test_touches_are_dropped_as_events_but_blow_ups_drop_the_rock():
     assert st.stages[0].n_primary_impacts == 2 and st.stages[0].secondary_lambda == pytest.approx(2.0)
     assert st.provenance["stats"]["n_touch_events_vn_le_0"] == 1
     assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 0
-    # an impossible speed (above 2 x 59.7 + 20 m/s) drops rock A altogether
+    # an impossible speed (above 3 x 59.7 + 20 m/s) drops rock A altogether
     boom = pd.DataFrame([(0.125, 1, 1, 1, 500.0, 1.05, "liner", -1)], columns=_events().columns)
     st = compute_statistics(M2, design, pd.concat([_events(), boom], ignore_index=True), removed, ts,
                             _snaps(), window_s=(0.0, 0.2), characteristic_time_s=0.05).run
