@@ -999,22 +999,38 @@ def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
+def _image_useful(p, s, L, lo, hi, m):
+    """Whether position ``p`` shifted by ``s`` periods ``L`` comes within ``m`` of ``[lo, hi]``."""
+    q = p + s * L
+    return q >= lo - m and q <= hi + m
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                   gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
     """Candidates of particle ``i``: keys ``g * KEY_STRIDE + code`` of primitives and periodic images.
 
     Along a periodic axis the particle is also tested shifted by one box
     length either way against every primitive that does not span that axis
-    (``gspan``), i.e. against the primitive's periodic images.
+    (``gspan``), i.e. against the primitive's periodic images; a shift is
+    only tried if the shifted position comes within ``r + skin`` of
+    ``img_box`` (lo 0:3, hi 3:6), the bounding box of those primitives.
     """
     k = 0 if count_only else gc_start[i]
     cnt = 0
+    m = rad[i] + skin
     px = 1 if periodic[0] != 0 else 0
     py = 1 if periodic[1] != 0 else 0
     pz = 1 if periodic[2] != 0 else 0
     for sx in range(-px, px + 1):
+        if sx != 0 and not _image_useful(pos[i, 0], sx, box_len[0], img_box[0], img_box[3], m):
+            continue
         for sy in range(-py, py + 1):
+            if sy != 0 and not _image_useful(pos[i, 1], sy, box_len[1], img_box[1], img_box[4], m):
+                continue
             for sz in range(-pz, pz + 1):
+                if sz != 0 and not _image_useful(pos[i, 2], sz, box_len[2], img_box[2], img_box[5], m):
+                    continue
                 x = pos[i, 0] + sx * box_len[0]
                 y = pos[i, 1] + sy * box_len[1]
                 z = pos[i, 2] + sz * box_len[2]
@@ -1040,24 +1056,24 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
+def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                   gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in prange(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                       gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                   grid_start, grid_list, gc_start, gc_g, count_only, counts):
+def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                   gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
     for i in range(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                       gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
 
 
 @njit(cache=True, fastmath=False)
-def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl,
-                          gnc, grid_start, grid_list, parallel):
+def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                          gcl, gnc, grid_start, grid_list, parallel):
     """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus.
 
     Only the primitives listed in the particle's cell of the coarse geometry
@@ -1069,20 +1085,20 @@ def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, peri
     gc_start = np.zeros(n + 1, np.int64)
     dummy = np.zeros(0, np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                       grid_start, grid_list, gc_start, dummy, True, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, dummy, True, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                       grid_start, grid_list, gc_start, dummy, True, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, dummy, True, counts)
     for i in range(n):
         gc_start[i + 1] = gc_start[i] + counts[i]
     gc_g = np.empty(gc_start[n], np.int32)
     if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                       grid_start, grid_list, gc_start, gc_g, False, counts)
+        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, gc_g, False, counts)
     else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, glo, gcl, gnc,
-                       grid_start, grid_list, gc_start, gc_g, False, counts)
+        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
+                       gnc, grid_start, grid_list, gc_start, gc_g, False, counts)
     return gc_start, gc_g
 
 

@@ -446,6 +446,13 @@ class Simulation:
         self._gspan = np.array([[1 if not self._periodic[a] else
                                  int(spans_axis(x["kind"], x["ref"], x["rot"], a, float(L[a])))
                                  for a in range(3)] for x in g], np.int8).reshape(len(g), 3)
+        # bounding box of the imaged primitives per axis: a shifted candidate test is only tried near it
+        self._img_box = np.array([np.inf] * 3 + [-np.inf] * 3)
+        for a in range(3):
+            im = self._gspan[:, a] == 0
+            if im.any():
+                self._img_box[a] = self._gaabb[im, a].min()
+                self._img_box[3 + a] = self._gaabb[im, 3 + a].max()
         self._ggrid = None
         self._sinkbox = np.array([np.concatenate([s["lo"], s["hi"]]) for s in self._sinks]
                                  ).reshape(len(self._sinks), 6)
@@ -581,7 +588,7 @@ class Simulation:
             self._ggrid_margin = margin
         self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
                                            self._grot, self._gkind, self._gbound, self._gspan,
-                                           self._periodic, self._box_len, self._lo,
+                                           self._periodic, self._box_len, self._img_box, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            self._parallel())
         self._disp[0] = 0.0
