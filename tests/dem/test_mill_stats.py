@@ -53,14 +53,14 @@ def _events():
     return ev
 
 
-def _run():
+def _run(events=None):
     removed = pd.DataFrame({"particle_id": [5], "time_s": [0.13], "radius_m": [R], "mass_kg": [1.0],
                             "tag": ["outlet"]})
     ts = pd.DataFrame({"time_s": TIMES, "n_particles": 5, "mass_kg": 2.0, "kinetic_energy_j": 0.0,
                        "mass_out_kg": 0.0})
     design = DesignPoint(size_mm=10, feed_tph=30, speed_rpm=1500, gate_deg=40, stage_speeds_rpm=[1500, 3000])
-    return compute_statistics(M2, design, _events(), removed, ts, _snaps(), window_s=(0.0, 0.2),
-                              characteristic_time_s=0.05)
+    return compute_statistics(M2, design, _events() if events is None else events, removed, ts, _snaps(),
+                              window_s=(0.0, 0.2), characteristic_time_s=0.05)
 
 
 def test_stage_of_z_bands():
@@ -114,21 +114,14 @@ def test_steady_state_detection():
 
 
 def test_touches_are_dropped_as_events_but_blow_ups_drop_the_rock():
-    removed = pd.DataFrame({"particle_id": [5], "time_s": [0.13], "radius_m": [R], "mass_kg": [1.0],
-                            "tag": ["outlet"]})
-    ts = pd.DataFrame({"time_s": TIMES, "n_particles": 5, "mass_kg": 2.0, "kinetic_energy_j": 0.0,
-                       "mass_out_kg": 0.0})
-    design = DesignPoint(size_mm=10, feed_tph=30, speed_rpm=1500, gate_deg=40, stage_speeds_rpm=[1500, 3000])
     touch = pd.DataFrame([(0.125, 1, 1, 1, -0.01, 1.05, "liner", -1)], columns=_events().columns)
-    st = compute_statistics(M2, design, pd.concat([_events(), touch], ignore_index=True), removed, ts,
-                            _snaps(), window_s=(0.0, 0.2), characteristic_time_s=0.05).run
+    st = _run(pd.concat([_events(), touch], ignore_index=True)).run
     # the touch of rock A is ignored, A's impacts still count: same as without it
     assert st.stages[0].n_primary_impacts == 2 and st.stages[0].secondary_lambda == pytest.approx(2.0)
     assert st.provenance["stats"]["n_touch_events_vn_le_0"] == 1
     assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 0
     # an impossible speed (above 3 x 59.7 + 20 m/s) drops rock A altogether
     boom = pd.DataFrame([(0.125, 1, 1, 1, 500.0, 1.05, "liner", -1)], columns=_events().columns)
-    st = compute_statistics(M2, design, pd.concat([_events(), boom], ignore_index=True), removed, ts,
-                            _snaps(), window_s=(0.0, 0.2), characteristic_time_s=0.05).run
+    st = _run(pd.concat([_events(), boom], ignore_index=True)).run
     assert st.stages[0].n_primary_impacts == 0
     assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 1
