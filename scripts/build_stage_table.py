@@ -50,9 +50,7 @@ def main() -> None:
         _restat(args)
         return
 
-    machine = Machine.default()
-    op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    machine, op, settings = _design(args)
     t_all = time.perf_counter()
     runs, per_run = [], []
     # cheapest (largest rocks) first; the table is rewritten after every run so a partial build is usable
@@ -75,15 +73,19 @@ def main() -> None:
         _write(args, machine, op, settings, runs, per_run, t_all)
 
 
+def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
+    """The machine, operating point and run settings the table is built at."""
+    op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
+    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+
+
 def _restat(args) -> None:
     """Recompute statistics from saved raw DEM data (events, snapshots) with the current code."""
     import tomllib
 
     from msmill.dem.mill.run import stats_from_dir
 
-    machine = Machine.default()
-    op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    machine, op, settings = _design(args)
     t_all = time.perf_counter()
     runs, per_run = [], []
     for size in sorted(args.sizes_mm, reverse=True):

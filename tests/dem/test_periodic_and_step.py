@@ -95,6 +95,18 @@ def test_periodic_source_never_inserts_onto_a_periodic_neighbour():
     assert len(sim.events()) == 0
 
 
+def _rock_on_steel_plane(z0: float, vz: float, gravity: float) -> Simulation:
+    """A 10 mm rock (50 GPa) at height ``z0`` above a steel plane, e = 0.2 between them."""
+    sim = Simulation((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), gravity_m_s2=(0, 0, gravity))
+    sim.add_material("rock", youngs_modulus_pa=5e10, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.add_material("steel", youngs_modulus_pa=2.1e11, poisson_ratio=0.3, density_kg_m3=7850)
+    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
+    sim.set_interaction("rock", "steel", restitution=0.2, friction=0.3)
+    sim.add_plane((0, 0, 0), (0, 0, 1), material="steel", tag="liner")
+    sim.add_particles([[0, 0, z0]], R, [[0, 0, vz]], material="rock")
+    return sim
+
+
 @pytest.mark.parametrize("v", [30.0, 120.0])
 def test_restitution_at_the_production_step_is_unbiased_and_does_not_grow_with_speed(v):
     """e = 0.2 rock on steel at dt = 0.2 t_c(64.7 m/s), eight onset phases.
@@ -104,14 +116,7 @@ def test_restitution_at_the_production_step_is_unbiased_and_does_not_grow_with_s
     growth with speed.
     """
     def make(z0):
-        sim = Simulation((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), gravity_m_s2=(0, 0, 0))
-        sim.add_material("rock", youngs_modulus_pa=5e10, poisson_ratio=0.25, density_kg_m3=2700)
-        sim.add_material("steel", youngs_modulus_pa=2.1e11, poisson_ratio=0.3, density_kg_m3=7850)
-        sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
-        sim.set_interaction("rock", "steel", restitution=0.2, friction=0.3)
-        sim.add_plane((0, 0, 0), (0, 0, 1), material="steel", tag="liner")
-        sim.add_particles([[0, 0, z0]], R, [[0, 0, -v]], material="rock")
-        return sim
+        return _rock_on_steel_plane(z0, -v, 0.0)
 
     vref = 64.67
     dt = min(0.2 * make(0.05).contact_time_s(vref), 0.1 * R / vref)
@@ -175,13 +180,7 @@ def test_which_primitives_are_continuous_along_a_periodic_axis():
 
 def test_static_hertz_overlap_at_the_production_step():
     """Resting under 1 g: the trapezoidal dashpot leaves the Hertz equilibrium within 5 % (e = 0.2)."""
-    sim = Simulation((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), gravity_m_s2=(0, 0, -9.81))
-    sim.add_material("rock", youngs_modulus_pa=5e10, poisson_ratio=0.25, density_kg_m3=2700)
-    sim.add_material("steel", youngs_modulus_pa=2.1e11, poisson_ratio=0.3, density_kg_m3=7850)
-    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
-    sim.set_interaction("rock", "steel", restitution=0.2, friction=0.3)
-    sim.add_plane((0, 0, 0), (0, 0, 1), material="steel", tag="liner")
-    sim.add_particles([[0, 0, R]], R, [[0, 0, 0]], material="rock")
+    sim = _rock_on_steel_plane(R, 0.0, -9.81)
     dt = 0.2 * sim.contact_time_s(64.67)
     sim.run(4000 * dt, dt_s=dt, max_relative_speed_m_s=64.67, progress=False)
     p = sim.particle_arrays()
