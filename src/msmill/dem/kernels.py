@@ -344,7 +344,7 @@ def _history_slot(keys, n, st, ev, pk, ds, i, key, smax):
     return q, True
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
     row = evn[c]
     if row >= evf.shape[1]:
@@ -368,7 +368,7 @@ def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, 
     return row * evf.shape[0] + c
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _close_event(evf, ref, t, peak, diss):
     nch = evf.shape[0]
     c = ref % nch
@@ -600,9 +600,15 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
-        # ---- end of contacts: slots not touched this step
-        _close_untouched(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
-        _close_untouched(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
+        # ---- end of contacts: slots not touched this step. Only particles with contacts
+        # enter the helper: numba wraps the inlined helper's array arguments in atomic
+        # reference counting that cost ~30 ns per particle and call even with nothing to
+        # close (docs/dem.md, Performance); for the same reason the event helpers it and
+        # the contact loops call are inlined
+        if h_n[i] > 0:
+            _close_untouched(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
+        if g_n[i] > 0:
+            _close_untouched(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
         frc[i, 0] = fx
         frc[i, 1] = fy
         frc[i, 2] = fz
