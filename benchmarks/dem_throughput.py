@@ -93,6 +93,8 @@ def main() -> None:
     args = ap.parse_args()
     import numba
 
+    import msmill.dem  # noqa: F401  (chooses numba's threading layer before the threads start)
+
     if args.threads:
         numba.set_num_threads(args.threads)
     load = os.getloadavg()

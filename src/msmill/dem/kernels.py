@@ -30,6 +30,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from msmill.dem.threads import prefer_openmp
+
+prefer_openmp()  # before any parallel kernel runs (see msmill.dem.threads)
+
 # geometry kinds (mirrors geometry.py)
 PLANE, BOX, CYL = 0, 1, 2
 

@@ -31,6 +31,7 @@ from msmill.dem.geometry import (
 )
 from msmill.dem.io import write_parquet, write_vtu
 from msmill.dem.recorder import EventRecorder
+from msmill.dem.threads import threads_usable
 from msmill.errors import MsmillError, MsmillInputError
 
 #: Largest time step as a fraction of the Hertz contact time. A rotating plate
@@ -499,7 +500,14 @@ class Simulation:
         return tc
 
     def _parallel(self) -> bool:
-        return self.n_particles >= self._par_min
+        if self.n_particles < self._par_min:
+            return False
+        if not threads_usable():
+            self._warn_once("fork", "this process was forked from one running numba's OpenMP threads, "
+                                    "which is not fork-safe: the DEM runs its serial kernels here "
+                                    "(start worker processes with 'spawn' to use threads)")
+            return False
+        return True
 
     def _choose_parallel(self) -> bool:
         """Threaded or serial step kernels for the next call (results are identical).
