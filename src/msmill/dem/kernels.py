@@ -985,7 +985,7 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     return nb_start, nb_j, nb_sh, rv_start, rv_k, top
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _geom_candidate(g, x, y, z, r, skin, gcur, grot, gkind, gbound):
     m = r + skin
     if grot[g, 7] > 0.0:
@@ -1017,7 +1017,7 @@ def _image_useful(p, s, L, lo, hi, m):
 
 @njit(cache=True, fastmath=False, inline='always')
 def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                   gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+                   gcl, gnc, grid_start, grid_list, pad, counts):
     """Candidates of particle ``i``: keys ``g * KEY_STRIDE + code`` of primitives and periodic images.
 
     Along a periodic axis the particle is also tested shifted by one box
@@ -1025,9 +1025,11 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
     (``gspan``), i.e. against the primitive's periodic images; a shift is
     only tried if the shifted position comes within ``r + skin`` of
     ``img_box`` (lo 0:3, hi 3:6), the bounding box of those primitives.
+    Keys go to row ``i`` of ``pad`` as far as it reaches; ``counts[i]`` gets
+    their number.
     """
-    k = 0 if count_only else gc_start[i]
     cnt = 0
+    width = pad.shape[1]
     m = rad[i] + skin
     px = 1 if periodic[0] != 0 else 0
     py = 1 if periodic[1] != 0 else 0
@@ -1056,60 +1058,65 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
                                     or (sz != 0 and gspan[g, 2] != 0)):
                         continue
                     if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
-                        if count_only:
-                            cnt += 1
-                        else:
-                            gc_g[k] = g * KEY_STRIDE + code
-                            k += 1
-    if count_only:
-        counts[i] = cnt
+                        if cnt < width:
+                            pad[i, cnt] = g * KEY_STRIDE + code
+                        cnt += 1
+    counts[i] = cnt
 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                   gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+                   gnc, grid_start, grid_list, pad, counts):
     for i in prange(pos.shape[0]):
         _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+                       gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
 def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                   gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts):
+                   gnc, grid_start, grid_list, pad, counts):
     for i in range(pos.shape[0]):
         _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, gc_start, gc_g, count_only, counts)
+                       gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
 def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                          gcl, gnc, grid_start, grid_list, parallel):
+                          gcl, gnc, grid_start, grid_list, parallel, maxg_hint):
     """Per-particle candidate primitives (CSR): static by distance, rotating by swept annulus.
 
     Only the primitives listed in the particle's cell of the coarse geometry
     grid (:func:`build_geom_grid`) are tested; entries are keys
-    ``g * KEY_STRIDE + image code`` (see :func:`_geom_key_frame`).
+    ``g * KEY_STRIDE + image code`` (see :func:`_geom_key_frame`). One sweep
+    fills padded rows of width ``maxg_hint`` (widened and redone if a row
+    overflows). Returns ``(start, keys, widest row)``.
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
+    maxg = max(maxg_hint, 1)
+    while True:
+        pad = np.empty((n, maxg), np.int32)
+        if parallel:
+            _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                           gcl, gnc, grid_start, grid_list, pad, counts)
+        else:
+            _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                           gcl, gnc, grid_start, grid_list, pad, counts)
+        top = 0
+        for i in range(n):
+            top = max(top, counts[i])
+        if top <= maxg:
+            break
+        maxg = top + top // 4 + 4
     gc_start = np.zeros(n + 1, np.int64)
-    dummy = np.zeros(0, np.int32)
-    if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, dummy, True, counts)
-    else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, dummy, True, counts)
     for i in range(n):
         gc_start[i + 1] = gc_start[i] + counts[i]
     gc_g = np.empty(gc_start[n], np.int32)
-    if parallel:
-        _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, gc_g, False, counts)
-    else:
-        _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
-                       gnc, grid_start, grid_list, gc_start, gc_g, False, counts)
-    return gc_start, gc_g
+    for i in range(n):
+        o = gc_start[i]
+        for q in range(counts[i]):
+            gc_g[o + q] = pad[i, q]
+    return gc_start, gc_g, top
 
 
 @njit(cache=True, fastmath=False)

@@ -162,6 +162,7 @@ class Simulation:
         self._need_rebuild = True
         self._n_rebuilds = 0
         self._maxn = 16
+        self._maxg = 4
         self._disp = np.zeros(1)  # displacement bound since the last neighbour build (m)
         self._warned: set[str] = set()
         self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
@@ -598,7 +599,8 @@ class Simulation:
                                            self._grot, self._gkind, self._gbound, self._gspan,
                                            self._periodic, self._box_len, self._img_box, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
-                                           self._parallel())
+                                           self._parallel(), self._maxg)
+        self._maxg = int(self._gc[2] * 1.25) + 2
         self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
