@@ -1,0 +1,61 @@
+"""Benchmark: cost of the DEM step in the default mill slice, per rock and step.
+
+Builds the default slice (10 mm rock, 30 t/h, 1500 rpm, gates 40 deg), runs
+it to ``--warm-s`` of mill time, then times ``--window-s`` windows with the
+serial and the threaded step kernels alternately. Prints, per window, the
+wall time and the step-kernel time per rock-step (ns) and the steps per
+neighbour rebuild; the last line is
+``serial_ns_per_rock_step=<wall> kernel=<kernel>`` (best serial window;
+the mill runs serial at this size, the threads start at 3000 particles).
+
+Run: ``python benchmarks/mill_step_cost.py [--warm-s 0.6] [--window-s 0.02]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import msmill.dem  # noqa: F401  (chooses numba's threading layer first)
+from msmill.dem.mill.scene import build_scene
+from msmill.machine import Machine, OperatingPoint
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--warm-s", type=float, default=0.6, help="mill time before timing (s)")
+    ap.add_argument("--window-s", type=float, default=0.02, help="mill time per timed window (s)")
+    ap.add_argument("--windows", type=int, default=3, help="timed windows per kernel kind")
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")  # the transient's overlap warnings are not the point here
+    sc = build_scene(Machine.default(), OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0),
+                     size_mm=10.0)
+    sim = sc.sim
+    kw = {"max_relative_speed_m_s": sc.max_impact_speed_m_s, "progress": False}
+    t0 = time.perf_counter()
+    sim.run(args.warm_s, **kw)
+    print(f"warm-up to {args.warm_s} s: {time.perf_counter() - t0:.1f} s wall (compilation included), "
+          f"{sim.n_particles} rocks, dt {sim.dt_s:.3g} s")
+    best = {False: (float("inf"), float("inf")), True: (float("inf"), float("inf"))}
+    for _ in range(args.windows):
+        for threaded in (False, True):
+            sim._par_mode = threaded
+            sim._par_min = 1  # allow threads at this size (the default switches them on from 3000)
+            s0, r0, k0 = sim.stats["steps"], sim.stats["rebuilds"], sim.stats["loop_time_s"]
+            t0 = time.perf_counter()
+            sim.run(args.window_s, **kw)
+            wall = time.perf_counter() - t0
+            steps = sim.stats["steps"] - s0
+            rock_steps = steps * sim.n_particles
+            w, k = wall / rock_steps * 1e9, (sim.stats["loop_time_s"] - k0) / rock_steps * 1e9
+            best[threaded] = min(best[threaded], (w, k))
+            print(f"{'threaded' if threaded else 'serial  '}: {w:.0f} ns/rock-step wall, kernel {k:.0f}, "
+                  f"{steps / max(1, sim.stats['rebuilds'] - r0):.1f} steps/rebuild, {sim.n_particles} rocks")
+    print(f"threaded best: {best[True][0]:.0f} ns/rock-step wall, kernel {best[True][1]:.0f}")
+    w, k = best[False]
+    print(f"serial_ns_per_rock_step={w:.0f} kernel={k:.0f}")
+
+
+if __name__ == "__main__":
+    main()
