@@ -315,3 +315,40 @@ def test_rotating_plate_kick_returns_one_plus_e_times_the_plate_speed():
 
     with pytest.raises(MsmillInputError, match="safety"):
         _plate_kick(0.3)
+
+
+def test_geometry_candidates_do_not_depend_on_the_row_width_guess():
+    # candidates are swept into padded rows of a guessed width; a row that overflows
+    # makes the sweep run again wider, and the result must be the same list, which
+    # must equal a brute-force test of every primitive
+    from msmill.dem import kernels as K
+
+    sim = Simulation((0, 0, 0), (0.2, 0.2, 0.2), gravity_m_s2=(0, 0, 0))
+    sim.add_material("rock", youngs_modulus_pa=1e9, poisson_ratio=0.25, density_kg_m3=2700)
+    sim.add_material("steel", youngs_modulus_pa=2e11, poisson_ratio=0.3, density_kg_m3=7800)
+    sim.set_interaction("rock", "steel", restitution=0.5, friction=0.3)
+    sim.set_interaction("rock", "rock", restitution=0.5, friction=0.3)
+    for k in range(6):  # a fan of plates through one corner: every particle there sees several
+        a = k * math.pi / 12
+        sim.add_box((0.05, 0.05, 0.1), (0.04, 0.002, 0.09),
+                    axes=((math.cos(a), math.sin(a), 0), (-math.sin(a), math.cos(a), 0), (0, 0, 1)),
+                    material="steel")
+    sim.add_plane((0, 0, 0), (0, 0, 1), material="steel")
+    rng = np.random.default_rng(5)
+    sim.add_particles(rng.uniform(0.01, 0.09, (40, 3)), 0.004, material="rock")
+    sim.run(1e-6, dt_s=1e-7, progress=False)
+    p = sim._p
+    args = (p["pos"], p["rad"], sim._skin, sim._gcur, sim._grot, sim._gkind, sim._gbound, sim._gspan,
+            sim._periodic, sim._box_len, sim._img_box, sim._lo, sim._gcl, sim._gnc, sim._ggrid[0],
+            sim._ggrid[1], False)
+    narrow = K.build_geom_candidates(*args, 1)
+    wide = K.build_geom_candidates(*args, 64)
+    assert narrow[2] == wide[2] >= 3
+    np.testing.assert_array_equal(narrow[0], wide[0])
+    np.testing.assert_array_equal(narrow[1], wide[1])
+    for i in range(p["pos"].shape[0]):
+        x, y, z = p["pos"][i]
+        brute = [g for g in range(len(sim._geoms))
+                 if K._geom_candidate(g, x, y, z, p["rad"][i], sim._skin, sim._gcur, sim._grot,
+                                      sim._gkind, sim._gbound)]
+        assert sorted(wide[1][wide[0][i]:wide[0][i + 1]] // K.KEY_STRIDE) == brute
