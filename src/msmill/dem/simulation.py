@@ -92,8 +92,11 @@ class Simulation:
     max_contacts_per_particle, max_geometry_contacts : int
         History slots per particle (particle and geometry partners).
     parallel_min_particles : int
-        Use the threaded kernels from this many particles on (below, the
-        thread wake-up per pass costs more than it saves).
+        Consider the threaded kernels from this many particles on (below,
+        opening the parallel regions costs more than it saves; with OpenMP on
+        two cores the mill slice gains from threads at ~800 rocks and loses at
+        ~500, ``docs/dem.md``). Above it, ``parallel=None`` times both kinds
+        and uses the faster.
     event_buffer_rows : int
         Initial event rows per chunk (buffers are flushed and grown as needed).
     parallel : bool, optional
@@ -105,7 +108,7 @@ class Simulation:
                  periodic=(False, False, False), gravity_m_s2=(0.0, 0.0, -9.81), *,
                  neighbor_skin_m: float | None = None, sort_every: int = 10,
                  n_chunks: int | None = None, max_contacts_per_particle: int = 16,
-                 max_geometry_contacts: int = 8, parallel_min_particles: int = 3000,
+                 max_geometry_contacts: int = 8, parallel_min_particles: int = 1000,
                  event_buffer_rows: int = 4096, parallel: bool | None = None) -> None:
         self._lo = vec3("domain_min_m", domain_min_m)
         self._hi = vec3("domain_max_m", domain_max_m)
@@ -133,6 +136,7 @@ class Simulation:
         self._par_min = int(parallel_min_particles)
         self._cells_n = 0  # particle count the cell grid was sized for
         self._par_mode = None if parallel is None else bool(parallel)
+        self._last_par = False  # kind of the last step-kernel call (rebuilds follow it)
         self._perf: dict[bool, float | None] = {True: None, False: None}
         self._calls = 0
         self._smax = int(max_contacts_per_particle)
@@ -581,7 +585,7 @@ class Simulation:
             order = np.arange(cell.size, dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
-                                      self._parallel(), self._maxn)
+                                      self._last_par, self._maxn)
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
@@ -599,7 +603,7 @@ class Simulation:
                                            self._grot, self._gkind, self._gbound, self._gspan,
                                            self._periodic, self._box_len, self._img_box, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
-                                           self._parallel(), self._maxg)
+                                           self._last_par, self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
         self._disp[0] = 0.0
         self._n_rebuilds += 1
@@ -851,6 +855,7 @@ class Simulation:
                 p = self._p
                 diag[:] = 0.0
                 use_par = self._choose_parallel()
+                self._last_par = use_par  # the next rebuild follows the step kernels' choice
                 tic = _time.perf_counter()
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
