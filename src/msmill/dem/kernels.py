@@ -252,10 +252,14 @@ def geom_contact(kind, gall, g, x, y, z, r):
 
 
 # --------------------------------------------------------------------------- contact law
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, strat, dt,
                 sx, sy, sz):
     """Paper Eqs. 4-10 for one contact in canonical orientation.
+
+    Inlined into the force pass: as a call it cost ~8 ns per particle-step
+    in the dense benchmark gas (0.14 contacts per particle), for ~2 s more
+    cold compilation.
 
     ``n`` points from body a to body b, ``v`` is the velocity of a relative to
     b at the contact point, ``(sx, sy, sz)`` the tangential displacement
@@ -412,7 +416,7 @@ def _close_untouched(keys, n, st, ev, pk, ds, tch, i, evf, t):
         ev[i, last] = -1
         n[i] = last
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline='always')
 def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
     """Work of a contact force on the pair over one symplectic-Euler step (J).
 
