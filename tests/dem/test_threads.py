@@ -17,7 +17,7 @@ SCENE = """
 import numpy as np
 from msmill.dem import Simulation
 
-def gas(parallel):
+def gas_sim(parallel):
     rng = np.random.default_rng(3)
     side = 0.2
     g = (np.arange(8) + 0.5) * side / 8
@@ -28,7 +28,10 @@ def gas(parallel):
     sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
     sim.add_particles(pos, 0.006, rng.normal(0, 10, pos.shape), material="rock")
     sim.run(2e-4, dt_s=1e-6, progress=False)
-    return sim.particle_arrays()["pos"]
+    return sim
+
+def gas(parallel):
+    return gas_sim(parallel).particle_arrays()["pos"]
 """
 
 
@@ -72,12 +75,15 @@ def test_a_child_forked_from_an_openmp_process_runs_serial_kernels():
     code = """
     import os, warnings
     import numpy as np
-    ref = gas(True)
+    sim = gas_sim(True)
+    ref = sim.particle_arrays()["pos"].copy()
     pid = os.fork()
     if pid == 0:
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
-            got = gas(True)
+            got = gas(True)  # a new simulation in the child
+            sim.add_particles([(0.1, 0.1, 0.1)], 0.006, material="rock")  # forces a rebuild
+            sim.run(1e-4, dt_s=1e-6, progress=False)  # and the parent's, continued
         ok = np.array_equal(got, ref) and any("forked" in str(x.message) for x in w)
         os._exit(0 if ok else 3)
     _, status = os.waitpid(pid, 0)

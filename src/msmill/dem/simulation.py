@@ -94,8 +94,8 @@ class Simulation:
     parallel_min_particles : int
         Consider the threaded kernels from this many particles on (below,
         opening the parallel regions costs more than it saves; with OpenMP on
-        two cores the mill slice gains from threads at ~800 rocks and loses at
-        ~500, ``docs/dem.md``). Above it, ``parallel=None`` times both kinds
+        two cores the mill slice gained from threads in every run from ~800
+        rocks, ``docs/dem.md``). Above it, ``parallel=None`` times both kinds
         and uses the faster.
     event_buffer_rows : int
         Initial event rows per chunk (buffers are flushed and grown as needed).
@@ -585,7 +585,7 @@ class Simulation:
             order = np.arange(cell.size, dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
-                                      self._last_par, self._maxn)
+                                      self._last_par and threads_usable(), self._maxn)
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
@@ -603,7 +603,7 @@ class Simulation:
                                            self._grot, self._gkind, self._gbound, self._gspan,
                                            self._periodic, self._box_len, self._img_box, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
-                                           self._last_par, self._maxg)
+                                           self._last_par and threads_usable(), self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
         self._disp[0] = 0.0
         self._n_rebuilds += 1
