@@ -934,6 +934,25 @@ def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodi
 
 
 @njit(cache=True, fastmath=False)
+def _widest_row(counts):
+    """Largest entry count of padded rows (0 for none)."""
+    top = 0
+    for i in range(counts.shape[0]):
+        top = max(top, counts[i])
+    return top
+
+
+@njit(cache=True, fastmath=False)
+def _row_starts(counts):
+    """CSR row starts for rows of ``counts`` entries each."""
+    n = counts.shape[0]
+    start = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        start[i + 1] = start[i] + counts[i]
+    return start
+
+
+@njit(cache=True, fastmath=False)
 def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel,
                      maxn_hint):
     """Half Verlet list (partners with a larger id) in CSR form plus its reverse.
@@ -956,15 +975,11 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
         else:
             _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic,
                                  box_len, pad_j, pad_sh, counts)
-        top = 0
-        for i in range(n):
-            top = max(top, counts[i])
+        top = _widest_row(counts)
         if top <= maxn:
             break
         maxn = top + top // 4 + 4
-    nb_start = np.zeros(n + 1, np.int64)
-    for i in range(n):
-        nb_start[i + 1] = nb_start[i] + counts[i]
+    nb_start = _row_starts(counts)
     nb_j = np.empty(nb_start[n], np.int32)
     nb_sh = np.empty((nb_start[n], 3), np.int8)
     for i in range(n):
@@ -1106,15 +1121,11 @@ def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, peri
         else:
             _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
                            gcl, gnc, grid_start, grid_list, pad, counts)
-        top = 0
-        for i in range(n):
-            top = max(top, counts[i])
+        top = _widest_row(counts)
         if top <= maxg:
             break
         maxg = top + top // 4 + 4
-    gc_start = np.zeros(n + 1, np.int64)
-    for i in range(n):
-        gc_start[i + 1] = gc_start[i] + counts[i]
+    gc_start = _row_starts(counts)
     gc_g = np.empty(gc_start[n], np.int32)
     for i in range(n):
         o = gc_start[i]
