@@ -1065,7 +1065,6 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
                 x = pos[i, 0] + sx * box_len[0]
                 y = pos[i, 1] + sy * box_len[1]
                 z = pos[i, 2] + sz * box_len[2]
-                shifted = sx != 0 or sy != 0 or sz != 0
                 code = _image_code(sx, sy, sz)
                 cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
                 cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
@@ -1073,8 +1072,9 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
                 cell = (cz * gnc[1] + cy) * gnc[0] + cx
                 for q in range(grid_start[cell], grid_start[cell + 1]):
                     g = grid_list[q]
-                    if shifted and ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
-                                    or (sz != 0 and gspan[g, 2] != 0)):
+                    # a spanning primitive is met unshifted only (it is its own image)
+                    if ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
+                            or (sz != 0 and gspan[g, 2] != 0)):
                         continue
                     if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
                         if cnt < width:

@@ -579,13 +579,14 @@ class Simulation:
         elif p["rad"].size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
             self._cells(self._rmax_cells)
         cell, start, order = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
+        par = self._last_par and threads_usable()  # rebuilds follow the step kernels' choice
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
             self._keep(order)
             cell = cell[order]
             order = np.arange(cell.size, dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
-                                      self._last_par and threads_usable(), self._maxn)
+                                      par, self._maxn)
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
@@ -603,7 +604,7 @@ class Simulation:
                                            self._grot, self._gkind, self._gbound, self._gspan,
                                            self._periodic, self._box_len, self._img_box, self._lo,
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
-                                           self._last_par and threads_usable(), self._maxg)
+                                           par, self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
         self._disp[0] = 0.0
         self._n_rebuilds += 1

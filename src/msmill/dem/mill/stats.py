@@ -392,11 +392,11 @@ def compute_statistics(
     touch = np.isfinite(vn_all) & (vn_all <= 0)
     n_touch = int(touch.sum())
     events = events[~touch]
+    vn_all = vn_all[~touch]
     # guard against numerical blow-ups of the engine: a rock with a contact at a non-finite speed or
     # faster than 3 x the fastest tip speed + 20 m/s is physically impossible here (module docstring);
     # such rocks are dropped from every table (and counted in the provenance)
     v_bad = 3.0 * max(machine.tip_speed_m_s(v) for v in design.stage_speeds_rpm) + 20.0
-    vn_all = events["vn_m_s"].to_numpy(dtype=float)
     bad_ev = ~np.isfinite(vn_all) | (vn_all > v_bad)
     bad_ids = np.unique(np.concatenate([
         events["particle_id"].to_numpy()[bad_ev],
