@@ -200,7 +200,7 @@ class _Driver:
             self.store.heartbeat([c.run_id for c in self.inflight.values()], self.token)
             self.last_beat = now
         if now - self.last_stale >= max(self.stale_s / 4, self.heartbeat_s):
-            self.report.replanned_stale += self.store.replan_stale(self.name, self.stale_s)
+            self.report.replanned_stale += self.store.replan_stale(self.name, self.stale_s, self.token)
             self.last_stale = now
 
     def release_all(self) -> None:

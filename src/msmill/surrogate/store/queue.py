@@ -228,8 +228,11 @@ class QueueMixin:
             return self._take(s, run_id, token, {"status": "planned", "claim_token": None, "heartbeat_at": None,
                                                  "attempts": RunRow.attempts - 1})
 
-    def replan_stale(self, name: str, stale_s: float) -> int:
-        """Running runs whose heartbeat is older than ``stale_s``: re-planned (or failed at the attempt limit)."""
+    def replan_stale(self, name: str, stale_s: float, exclude_token: str | None = None) -> int:
+        """Running runs whose heartbeat is older than ``stale_s``: re-planned (or failed at the attempt limit).
+
+        Runs held under ``exclude_token`` (the calling driver's own) are left alone.
+        """
         cutoff = utcnow() - timedelta(seconds=stale_s)
         n = 0
         with self.session() as s:
@@ -238,6 +241,8 @@ class QueueMixin:
                                                   (RunRow.heartbeat_at < cutoff) | RunRow.heartbeat_at.is_(None))
                              .with_for_update(skip_locked=True)).all()
             for r in rows:
+                if exclude_token is not None and r.claim_token == exclude_token:
+                    continue
                 status = "planned" if r.attempts < c.max_attempts else "failed"
                 note = (r.error or "") + f"attempt {r.attempts}: heartbeat stale for > {stale_s:g} s (driver lost)\n"
                 n += self._take(s, r.id, r.claim_token or "", {"status": status, "claim_token": None,
