@@ -27,7 +27,7 @@ def make_stats(size_mm: float = 30.0, seed: int = 0, steady: bool = True, feed_t
     n = MACHINE.n_stages
     stages = []
     for s in range(1, n + 1):
-        k, r, p = rng.dirichlet([1, 2, 3])
+        k, r, _ = rng.dirichlet([1, 2, 3])
         w = rng.dirichlet([1, 1])
         stages.append(StageStatistics(
             stage=s, kickback=k, refeed=r, pass_through=1 - k - r, primary_hit_probability=rng.uniform(),
