@@ -140,7 +140,7 @@ def _cluster_client(scheduler: str | None, n_workers: int | None) -> tuple[Any, 
     n = n_workers or os.cpu_count() or 1
     one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           env=one, silence_logs=40)
+                           env=one, silence_logs=50)  # task errors are recorded in the store
     return Client(cluster), cluster
 
 
