@@ -102,3 +102,33 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
     assert "error:" in capsys.readouterr().err
     assert cli(["db", "list", "--db", db, "--size-mm", "20", "--campaign", "k"]) == 0
     assert capsys.readouterr().out.strip().endswith("2 runs")  # 20 mm at 20 and 40 t/h (the CSV row was a duplicate)
+
+
+def test_cli_run_with_progress_and_resume(tmp_path, client, monkeypatch, capsys):
+    import msmill.surrogate.campaign as cm
+
+    real = cm.run_campaign
+    seen = []
+
+    def on_test_cluster(store, name, **kw):
+        assert kw["n_workers"] == 2 and kw["stale_s"] == 30.0
+        for k in ("scheduler", "n_workers"):
+            kw.pop(k)
+        wrapped = kw.pop("progress", None)
+
+        def progress(c, rep):
+            seen.append(dict(c))
+            if wrapped is not None:
+                wrapped(c, rep)
+
+        return real(store, name, client=client, executor=stand_in, progress=progress, **kw)
+
+    monkeypatch.setattr(cm, "run_campaign", on_test_cluster)
+    db = f"sqlite:///{tmp_path / 's.sqlite'}"
+    assert cli(["campaign", "create", "k", "--db", db]) == 0
+    assert cli(["campaign", "add", "k", "--db", db, "--size-mm", "10,11,12"]) == 0
+    assert cli(["campaign", "run", "k", "--db", db, "--workers", "2", "--stale-s", "30", "--heartbeat-s", "0.2"]) == 0
+    assert "now done 3 failed 0 running 0 planned 0" in capsys.readouterr().out
+    assert seen and seen[-1]["done"] == 3
+    assert cli(["campaign", "resume", "k", "--db", db, "--workers", "2", "--stale-s", "30", "--no-progress"]) == 0
+    assert "recorded 0" in capsys.readouterr().out
