@@ -161,6 +161,7 @@ class _Driver:
         self.me = f"driver {socket.gethostname()}:{os.getpid()}"
         self.info = store.campaign(name)
         self.inflight: dict[Any, Claim] = {}
+        self.workers: dict[int, str] = {}
         self.report = CampaignReport()
         self.last_beat = self.last_stale = time.monotonic()
 
@@ -198,10 +199,20 @@ class _Driver:
         now = time.monotonic()
         if now - self.last_beat >= self.heartbeat_s and self.inflight:
             self.store.heartbeat([c.run_id for c in self.inflight.values()], self.token)
+            self.note_workers()
             self.last_beat = now
         if now - self.last_stale >= max(self.stale_s / 4, self.heartbeat_s):
             self.report.replanned_stale += self.store.replan_stale(self.name, self.stale_s, self.token)
             self.last_stale = now
+
+    def note_workers(self) -> None:
+        """Record which Dask worker computes each run in flight (when it changed)."""
+        where = {k: addr for addr, keys in self.client.processing().items() for k in keys}
+        for fut, c in self.inflight.items():
+            addr = where.get(fut.key)
+            if addr is not None and self.workers.get(c.run_id) != addr:
+                self.store.heartbeat([c.run_id], self.token, worker=str(addr))
+                self.workers[c.run_id] = addr
 
     def release_all(self) -> None:
         for fut, c in list(self.inflight.items()):

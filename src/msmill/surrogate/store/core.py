@@ -400,10 +400,11 @@ class Store(QueueMixin):
                       steady_only: bool = True) -> list[tuple[RunRecord, RunStatistics]]:
         """Done runs with their statistics: the surrogate's training data.
 
-        ``steady_only`` keeps runs whose outcome is ``steady``.
+        ``steady_only`` keeps runs whose outcome is ``steady``. A campaign run whose
+        statistics equal an already stored run's (``content_hash`` None) is left out.
         """
         recs = [r for r in self.runs(campaign=campaign, status="done", machine_hash=machine_hash)
-                if r.content_hash is not None or r.source == "campaign"]
+                if r.content_hash is not None]
         if steady_only:
             recs = [r for r in recs if r.outcome == "steady"]
         return [(r, self.statistics(r.id)) for r in recs]
