@@ -72,7 +72,7 @@ def phase1(store: Store, n_runs: int) -> dict:
 
     log: dict = {}
     one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, env=one,
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", env=one,
                       silence_logs=50) as cl, Client(cl) as client:
         pids = client.run(os.getpid)
         killer = threading.Thread(target=kill_a_busy_worker, args=(client, pids, log), daemon=True)

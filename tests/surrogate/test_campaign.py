@@ -30,7 +30,7 @@ def stand_in(task: dict) -> dict:
 def client():
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cl, \
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
             Client(cl) as c:
         yield c
 
@@ -132,3 +132,12 @@ def test_cli_run_with_progress_and_resume(tmp_path, client, monkeypatch, capsys)
     assert seen and seen[-1]["done"] == 3
     assert cli(["campaign", "resume", "k", "--db", db, "--workers", "2", "--stale-s", "30", "--no-progress"]) == 0
     assert "recorded 0" in capsys.readouterr().out
+
+
+def test_run_on_an_existing_scheduler(store):
+    from distributed import LocalCluster
+
+    _plan(store, [10.0, 11.0])
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as cl:
+        rep = run_campaign(store, "c", scheduler=cl.scheduler_address, executor=stand_in, heartbeat_s=0.2)
+        assert rep.recorded == 2 and len(cl.scheduler.clients) <= 1  # the driver's client was closed

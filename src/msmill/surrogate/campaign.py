@@ -139,7 +139,7 @@ def _cluster_client(scheduler: str | None, n_workers: int | None) -> tuple[Any, 
         return Client(scheduler), None
     n = n_workers or os.cpu_count() or 1
     one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                            env=one, silence_logs=50)  # task errors are recorded in the store
     return Client(cluster), cluster
 
@@ -251,8 +251,9 @@ def run_campaign(
         Called after every event with the campaign's status counts and the report.
     """
     t0 = time.monotonic()
+    made = client is None
     own = None
-    if client is None:
+    if made:
         client, own = _cluster_client(scheduler, n_workers)
     drv = _Driver(store, name, client, executor, heartbeat_s, stale_s, max_runs)
     if retry_failed:
@@ -262,8 +263,9 @@ def run_campaign(
         _loop(drv, progress)
     finally:
         drv.release_all()
-        if own is not None:
+        if made:
             client.close()
+        if own is not None:
             own.close()
     drv.report.elapsed_s = time.monotonic() - t0
     drv.report.counts = store.counts(name)
