@@ -9,6 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import tomli_w
+from hypothesis import given, settings
+from hypothesis import strategies as st_
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
@@ -278,3 +280,20 @@ def test_campaign_settings_are_validated(store):
         store.create_campaign("x", MACHINE)
     with pytest.raises(MsmillInputError, match="campaign"):
         store.counts("nope")
+
+
+# --------------------------------------------------------------------------- properties
+@settings(max_examples=15, deadline=None)
+@given(seed=st_.integers(0, 2**31), size_mm=st_.floats(1.0, 200.0), feed_tph=st_.floats(1.0, 100.0))
+def test_any_statistics_round_trip_and_hash_ignores_provenance(tmp_path_factory, seed, size_mm, feed_tph):
+    store = Store(f"sqlite:///{tmp_path_factory.mktemp('h') / 's.sqlite'}")
+    stats = make_stats(size_mm, seed=seed, feed_tph=feed_tph)
+    run_id, created = store.record_run(stats, MACHINE)
+    assert created and store.statistics(run_id) == stats
+    moved = stats.model_copy(update={"provenance": {"elsewhere": True}})
+    assert store.record_run(moved, MACHINE) == (run_id, False)
+    other = make_stats(size_mm, seed=seed + 1, feed_tph=feed_tph)
+    assert store.record_run(other, MACHINE)[1]  # different numbers: a different run
+    [row] = store.stage_table(stage=MACHINE.n_stages).query(f"run_id == {run_id}").to_dict("records")
+    assert row["pass_through"] == stats.stages[-1].pass_through and row["size_mm"] == stats.design.size_mm
+    store.close()
