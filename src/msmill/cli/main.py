@@ -34,6 +34,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("predict", "predict", "predict"),
     ("db", "app", "db"),
     ("campaign", "app", "campaign"),
+    ("serve", "serve", "serve"),
 ]
 
 
