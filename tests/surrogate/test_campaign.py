@@ -12,7 +12,7 @@ from msmill.surrogate.campaign import design_grid, run_campaign
 from msmill.surrogate.store import Store
 from msmill.surrogate.store.queue import new_token
 
-FLAKY_MM, BROKEN_MM = 13.0, 14.0
+FLAKY_MM, BROKEN_MM, ODD_MM = 13.0, 14.0, 17.0
 
 
 def stand_in(task: dict) -> dict:
@@ -22,7 +22,8 @@ def stand_in(task: dict) -> dict:
         raise RuntimeError(f"planted failure at {size} mm, attempt {task['attempt']}")
     time.sleep(0.05)
     st = make_stats(size, seed=task["run_id"])
-    return {"statistics": st.model_dump_json(), "outcome": "steady", "wall_s": 0.05, "engine": "stand-in",
+    outcome = "half steady" if size == ODD_MM else "steady"  # an outcome the store does not know
+    return {"statistics": st.model_dump_json(), "outcome": outcome, "wall_s": 0.05, "engine": "stand-in",
             "package_version": "test", "git_commit": None, "raw_files": [], "worker": "thread"}
 
 
@@ -141,3 +142,11 @@ def test_run_on_an_existing_scheduler(store):
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as cl:
         rep = run_campaign(store, "c", scheduler=cl.scheduler_address, executor=stand_in, heartbeat_s=0.2)
         assert rep.recorded == 2 and len(cl.scheduler.clients) <= 1  # the driver's client was closed
+
+
+def test_an_invalid_result_is_a_failed_attempt(store, client):
+    _plan(store, [10.0, ODD_MM], max_attempts=1)
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2)
+    assert rep.counts["done"] == 1 and rep.counts["failed"] == 1 and rep.failed_attempts == 1
+    odd = next(r for r in store.runs(campaign="c") if r.design.size_mm == ODD_MM)
+    assert "invalid result" in odd.error and "half steady" in odd.error

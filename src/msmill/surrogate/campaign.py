@@ -183,10 +183,16 @@ class _Driver:
         c = self.inflight.pop(fut)
         if fut.status == "finished":
             r = fut.result()
-            stats = read_statistics(r["statistics"], source=f"run {c.run_id}")
-            ok = self.store.complete(c.run_id, c.token, stats, outcome=r["outcome"], wall_s=r["wall_s"],
-                                     engine=r["engine"], package_version=r["package_version"],
-                                     git_commit=r["git_commit"], raw_files=r["raw_files"], worker=r["worker"])
+            try:
+                stats = read_statistics(r["statistics"], source=f"run {c.run_id}")
+                ok = self.store.complete(c.run_id, c.token, stats, outcome=r["outcome"], wall_s=r["wall_s"],
+                                         engine=r["engine"], package_version=r["package_version"],
+                                         git_commit=r["git_commit"], raw_files=r["raw_files"],
+                                         worker=r["worker"])
+            except MsmillInputError as exc:  # an invalid result is a failed attempt, not a driver crash
+                self.store.fail(c.run_id, c.token, f"invalid result: {exc}")
+                self.report.failed_attempts += 1
+                return
             self.report.recorded += ok
             self.report.rejected += not ok
             return
