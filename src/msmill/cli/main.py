@@ -32,6 +32,8 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
     ("predict", "predict", "predict"),
+    ("db", "app", "db"),
+    ("campaign", "app", "campaign"),
     ("serve", "serve", "serve"),
 ]
 
