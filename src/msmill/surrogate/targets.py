@@ -61,6 +61,8 @@ LEVELS = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
 ZERO_FRACTION = 1e-4
 #: Floor of the mean secondary count before the log.
 MIN_COUNT = 1e-3
+#: Largest weight of the lower part of a rebuilt count mixture (keeps the upper part's mean finite).
+MAX_COUNT_WEIGHT = 0.99
 
 
 # ------------------------------------------------------------------ elementary transforms
@@ -177,8 +179,9 @@ def count_from_summary(mean: float, var_ratio: float, p_zero: float) -> tuple[np
 
     With ``var_ratio <= 1`` the answer is one Poisson of the mean. Otherwise
     the two-point mixing distribution with the requested mean and variance of
-    the rate is searched over its weight for the zero fraction (closest
-    achievable value when the target is out of reach).
+    the rate is searched over its weight (lower part up to
+    :data:`MAX_COUNT_WEIGHT`) for the zero fraction (closest achievable value
+    when the target is out of reach: mean and variance are always kept).
 
     Returns
     -------
@@ -198,7 +201,7 @@ def count_from_summary(mean: float, var_ratio: float, p_zero: float) -> tuple[np
         a, b = parts(w)
         return w * np.exp(-max(a, 0.0)) + (1 - w) * np.exp(-b)
 
-    grid = np.linspace(w_lo, 1 - 1e-9, 400)
+    grid = np.linspace(w_lo, MAX_COUNT_WEIGHT, 400)  # the upper part's weight >= 1 %
     err = np.array([p0(w) - p_zero for w in grid])
     sign = np.flatnonzero(np.sign(err[:-1]) != np.sign(err[1:]))
     if sign.size:
