@@ -52,6 +52,24 @@ def kernel_params(kernel: Any) -> dict[str, Any]:
             "white": float(w.noise_level)}
 
 
+def _refactor(gpr: Any, params: dict[str, Any]) -> None:
+    """Set a fitted GPR's kernel to exactly ``params`` and redo its final factorisation.
+
+    scikit-learn's ``fit`` without an optimiser passes the kernel through
+    ``theta = log(params)`` and back, which can move a value by one ulp; the
+    original fit's final step used the optimiser's values directly. Redoing
+    that step (the same operations as ``GaussianProcessRegressor.fit``) with
+    the stored values gives bit-for-bit the original factorisation.
+    """
+    from scipy.linalg import cholesky
+
+    gpr.kernel_ = make_kernel(params)
+    K = gpr.kernel_(gpr.X_train_)
+    K[np.diag_indices_from(K)] += gpr.alpha
+    gpr.L_ = cholesky(K, lower=True, check_finite=False)
+    gpr.alpha_ = cho_solve((gpr.L_, True), gpr.y_train_, check_finite=False)
+
+
 def _threads_one():
     try:
         from threadpoolctl import threadpool_limits
@@ -146,7 +164,11 @@ class SurrogateGP:
     def rebuild(cls, X, Y, noise_var, hyperparameters, design_space: DesignSpace | None = None) -> SurrogateGP:
         """A fitted instance from stored data and hyperparameters, without optimising."""
         gp = cls(design_space, optimize=False, warm_start=list(hyperparameters))
-        return gp.fit(X, Y, noise_var)
+        gp.fit(X, Y, noise_var)
+        for e, h in zip(gp.estimators_, hyperparameters, strict=True):
+            _refactor(e, h)
+        gp.white_ = np.array([e.kernel_.k2.noise_level for e in gp.estimators_])
+        return gp
 
     # ------------------------------------------------------------------ predicting
     def _outputs(self, outputs) -> np.ndarray:
