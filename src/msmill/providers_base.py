@@ -25,7 +25,6 @@ one operating point) leave it ``False``.
 
 from __future__ import annotations
 
-
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 

@@ -147,4 +147,4 @@ def with_band(result: MillResult, passing_pct: np.ndarray, p80_mm: np.ndarray) -
     p05, p50, p95 = np.percentile(p80_mm, [5.0, 50.0, 95.0])
     p80_band = (float(result.p80_mm + p05 - p50), float(result.p80_mm + p95 - p50))
     return dataclasses.replace(result, p80_band_mm=p80_band, psd_band=band, psd_table=table,
-                               band_samples=int(len(p80_mm)))
+                               band_samples=len(p80_mm))

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
@@ -85,7 +85,7 @@ class CostModel:
 
     coef: tuple[float, ...] = (0.0, PRIOR_COST_EXPONENTS[0], PRIOR_COST_EXPONENTS[1], 0.0, 0.0)
     n_timings: int = 0
-    design_space: DesignSpace = DesignSpace()
+    design_space: DesignSpace = field(default_factory=DesignSpace)
 
     def _features(self, X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
