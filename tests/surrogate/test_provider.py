@@ -53,7 +53,8 @@ def test_at_a_training_run_it_reproduces_the_run(provider, table_runs):
 def test_out_of_domain_says_by_how_much(provider):
     _, msgs = caught(lambda: provider.stage_parameters(np.array([3.0, 10.0, 60.0]), SPEEDS, 45.0, 70.0))
     text = " ".join(msgs)
-    assert "2 of 3 size classes outside the trained 6-30 mm" in text and "x2 beyond" in text
+    assert "2 of 3 size classes outside the trained 6-30 mm" in text
+    assert "down to 3 mm, 2x below the smallest" in text and "up to 60 mm, 2x above the largest" in text
     assert "feed_tph 45 t/h is 15 t/h outside the trained 30-30" in text
     assert "gate_deg 70 deg is 30 deg outside" in text
     _, msgs = caught(lambda: provider.stage_parameters(np.array([10.0]), SPEEDS, 70.0, 40.0))

@@ -77,9 +77,13 @@ class SurrogateProvider:
         out = ex[0, :, 0] > 1e-9
         if out.any():
             lo, hi = m.domain_[0]
+            parts = []
+            if sizes.min() < lo:
+                parts.append(f"down to {sizes.min():.3g} mm, {lo / sizes.min():.3g}x below the smallest")
+            if sizes.max() > hi:
+                parts.append(f"up to {sizes.max():.3g} mm, {sizes.max() / hi:.3g}x above the largest")
             msgs.append(f"{int(out.sum())} of {sizes.size} size classes outside the trained {lo:g}-{hi:g} mm "
-                        f"(down to {sizes[out].min():.3g} mm / up to {sizes[out].max():.3g} mm, "
-                        f"at most x{1 + ex[0, :, 0].max():.3g} beyond)")
+                        f"({'; '.join(parts)})")
         for k in (1, 3):
             if ex[0, 0, k] > 1e-9:
                 lo, hi = m.domain_[k]
