@@ -141,3 +141,35 @@ def test_cli_fit_score_plan(tmp_path, capsys, saved):
     assert len((tmp_path / "b.csv").read_text().splitlines()) == 4
     assert run(["surrogate", "fit", str(tmp_path / "nope.json")]) == 2
     assert "error: sources" in capsys.readouterr().err
+
+
+RUN = """
+title = "surrogate"
+[ore]
+name = "UG2"
+[feed]
+rate_tph = 30.0
+size_mm = [4.75, 9.5, 19.0, 26.5]
+passing_pct = [6.0, 18.0, 58.0, 100.0]
+[operating]
+speed_rpm = 1500.0
+gate_deg = 40.0
+[stage_parameters]
+file = "{path}"
+[model]
+band_samples = 8
+[grid]
+min_mm = 0.5
+[output]
+dir = "out"
+plots = false
+"""
+
+
+def test_predict_prints_and_writes_the_band(tmp_path, saved, capsys):
+    p = tmp_path / "run.toml"
+    p.write_text(RUN.format(path=saved), encoding="utf-8")
+    assert run(["predict", str(p)]) == 0
+    assert "P80 5-95 % band (mm, 8 GP samples)" in capsys.readouterr().out
+    header = (tmp_path / "out" / "product.csv").read_text().splitlines()[0]
+    assert header.endswith("product_passing_pct_p05,product_passing_pct_p95")

@@ -180,6 +180,7 @@ class Mill:
         self.band_quadrature_nodes = int(band_quadrature_nodes)
         self.band_damage_classes = int(band_damage_classes)
         self._cache: dict[tuple, tuple] = {}
+        self._band_cache: dict[tuple, tuple] = {}
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:
@@ -276,7 +277,13 @@ class Mill:
         else:
             res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
         if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
-            res = with_band(res, *self.product_band(feed_m, op, grid))
+            key = (grid.edges_mm.tobytes(), feed_m.fractions.tobytes(), tuple(op.stage_speeds(self.provider.n_stages)),
+                   float(op.feed_tph), float(op.gate_deg))
+            if key not in self._band_cache:
+                if len(self._band_cache) > 8:
+                    self._band_cache.pop(next(iter(self._band_cache)))
+                self._band_cache[key] = self.product_band(feed_m, op, grid)
+            res = with_band(res, *self._band_cache[key])
         return res
 
     def product_band(self, feed: PSD, op: Any, grid: SizeGrid) -> tuple[np.ndarray, np.ndarray]:
