@@ -117,3 +117,16 @@ def test_initial_design_is_space_filling_and_continues():
     np.testing.assert_allclose(np.vstack([a, b]), full)
     assert np.all((a >= SPACE.bounds[:, 0]) & (a <= SPACE.bounds[:, 1]))
     assert plan_batch(None, 3).method == "sobol"
+
+
+def test_group_weights_give_every_group_the_same_total():
+    from msmill.surrogate.active import group_weights
+    from msmill.surrogate.targets import TargetLayout
+
+    names = TargetLayout(2).names
+    w = group_weights(names)
+    totals = {}
+    for n, wi in zip(names, w, strict=True):
+        totals[n.rsplit(".", 1)[0]] = totals.get(n.rsplit(".", 1)[0], 0.0) + wi
+    assert set(totals) >= {"s1.streams", "s1.hit", "s2.primary_velocity", "run.log_time"}
+    np.testing.assert_allclose(list(totals.values()), 1.0)

@@ -143,12 +143,15 @@ def plan_cmd(
     import pandas as pd
 
     from msmill.surrogate import persist
-    from msmill.surrogate.active import CostModel, plan_batch
+    from msmill.surrogate.active import CostModel, group_weights, plan_batch
 
     model = None if surrogate.lower() == "none" else persist.load(surrogate)
-    cost = CostModel.from_runs(model.training_.runs) if model is not None else None
+    cost = weights = None
+    if model is not None:
+        cost = CostModel.from_runs(model.training_.runs)
+        weights = group_weights(model.training_.layout.names)
     plan = plan_batch(None if model is None else model.gp_, batch, n_initial=n_initial, cost=cost,
-                      cost_power=cost_power, seed=seed)
+                      cost_power=cost_power, weights=weights, seed=seed)
     frame = pd.DataFrame(plan.points, columns=["size_mm", "feed_tph", "speed_rpm", "gate_deg"])
     frame["score"] = plan.score
     frame["expected_cost_s"] = plan.expected_cost_s

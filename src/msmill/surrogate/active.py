@@ -136,6 +136,17 @@ class CostModel:
         return cls.from_timings(np.array(X).reshape(-1, 4), t, design_space)
 
 
+def group_weights(names: Sequence[str]) -> np.ndarray:
+    """Acquisition weights giving every target group (``s<stage>.<group>``) the same total weight.
+
+    Without them the 12 quantile targets of a velocity distribution would
+    outweigh a stage's single hit probability twelve to one.
+    """
+    groups = [n.rsplit(".", 1)[0] for n in names]
+    size = {g: groups.count(g) for g in set(groups)}
+    return np.array([1.0 / size[g] for g in groups])
+
+
 @dataclass(frozen=True)
 class BatchPlan:
     """A planned batch of DEM runs.
