@@ -4,7 +4,8 @@ PostgreSQL: ``MSMILL_TEST_PG_URL`` (``.ci/run`` starts a server and sets it),
 else a throwaway server started here if Debian's binaries are installed
 (``scripts/pg_throwaway.py``), else the PostgreSQL cases skip -- unless
 ``MSMILL_REQUIRE_PG=1`` (CI), which turns a missing server into a failure.
-Every test gets a fresh database.
+Every test gets a fresh database. Also: one surrogate fitted once on the shipped
+table's DEM runs (``fitted``, ``saved``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import uuid
 from pathlib import Path
 
 import pytest
+
+from msmill.model.providers import default_table_path
+from msmill.stageparams import StageParameterTable
 
 ROOT = Path(__file__).parents[2]
 
@@ -84,3 +88,23 @@ def store(store_url):
     st = Store(store_url)
     yield st
     st.close()
+
+
+
+@pytest.fixture(scope="session")
+def table_runs():
+    return list(StageParameterTable.from_json(default_table_path()).runs)
+
+
+@pytest.fixture(scope="session")
+def fitted(table_runs):
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    return StageSurrogate(n_restarts=0).fit(table_runs)
+
+
+@pytest.fixture(scope="session")
+def saved(fitted, tmp_path_factory):
+    from msmill.surrogate import persist
+
+    return persist.save(fitted, tmp_path_factory.mktemp("surrogate") / "s.json", {"note": "test"})

@@ -150,3 +150,24 @@ def test_an_invalid_result_is_a_failed_attempt(store, client):
     assert rep.counts["done"] == 1 and rep.counts["failed"] == 1 and rep.failed_attempts == 1
     odd = next(r for r in store.runs(campaign="c") if r.design.size_mm == ODD_MM)
     assert "invalid result" in odd.error and "half steady" in odd.error
+
+
+def test_active_planner_within_campaign_domain(tmp_path) -> None:
+    """The registered planner fits the store's runs and plans apart from pending points, in the size range."""
+    from msmill.machine import Machine
+    from msmill.model.providers import default_table_path
+    from msmill.stageparams import StageParameterTable
+    from msmill.surrogate.campaign import PLANNERS
+
+    st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
+    machine = Machine.default()
+    for run in StageParameterTable.from_json(default_table_path()).runs:
+        st.record_run(run, machine)
+    st.create_campaign("al", machine, options={"size_range_mm": [8.0, 20.0]})
+    first = PLANNERS["active"](st, "al", 3)
+    st.add_points("al", first)
+    second = PLANNERS["active"](st, "al", 3)
+    pts = [(d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg) for d in first + second]
+    assert all(8.0 <= p[0] <= 20.0 and 10 <= p[1] <= 60 and 1200 <= p[2] <= 1900 and 0 <= p[3] <= 80 for p in pts)
+    assert len(set(pts)) == 6  # the second batch believes the first (pending) and goes elsewhere
+    assert all(d.stage_speeds_rpm[-1] == 2 * d.speed_rpm for d in first)

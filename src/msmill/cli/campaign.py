@@ -54,6 +54,9 @@ def create_cmd(
     max_attempts: Annotated[int, typer.Option("--max-attempts", help="Attempts per run before it fails.")] = 3,
     ore: Annotated[str | None, typer.Option("--ore", help="Ore (rock material) name.")] = None,
     raw_dir: Annotated[Path | None, typer.Option("--raw-dir", help="Workers save raw run folders here.")] = None,
+    size_range_mm: Annotated[tuple[float, float] | None, typer.Option(
+        "--size-range-mm", help="Rock sizes the active-learning planner may choose (mm), LOW HIGH; "
+                                "default the paper's 2-30 mm.")] = None,
     db: DbOpt = None,
 ) -> None:
     """Create a campaign: machine, slice/full and the DEM run settings."""
@@ -62,6 +65,11 @@ def create_cmd(
 
     machine = Machine.default() if machine_toml == "default" else Machine.from_toml(Path(machine_toml))
     opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None}
+    if size_range_mm is not None:
+        lo, hi = size_range_mm
+        if not 0 < lo < hi:
+            raise MsmillInputError("--size-range-mm", f"{lo} {hi}", "two sizes 0 < LOW < HIGH (mm)")
+        opts["size_range_mm"] = [lo, hi]
     info = open_store(db).create_campaign(name, machine, mode="full" if full else "slice",
                                           run_settings=run_settings_dict(_settings(set_ or [])),
                                           max_attempts=max_attempts, options={k: v for k, v in opts.items() if v})

@@ -35,6 +35,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("db", "app", "db"),
     ("campaign", "app", "campaign"),
     ("serve", "serve", "serve"),
+    ("surrogate", "app", "surrogate"),
 ]
 
 

@@ -60,6 +60,8 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("feed rate (t/h)", f"{result.feed_tph:g}"),
         ("F80 (mm)", f"{result.f80_mm:.3g}"),
         ("P80 (mm)", f"{result.p80_mm:.3g}"),
+        *([(f"P80 5-95 % band (mm, {result.band_samples} GP samples)",
+            f"{result.p80_band_mm[0]:.3g} - {result.p80_band_mm[1]:.3g}")] if result.p80_band_mm else []),
         ("P50 (mm)", f"{result.p50_mm:.3g}"),
         ("reduction ratio F80/P80", f"{result.reduction_ratio:.3g}"),
         *[(f"passing {s:g} mm (%)", f"{v:.3g}") for s, v in result.passing_pct.items()],

@@ -26,11 +26,12 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
     file = "my_mill.toml"        # optional; default Machine.default()
 
     [stage_parameters]
-    file = "default"             # the packaged DEM-derived table, or a path
+    file = "default"             # the packaged DEM-derived table, or a path (a surrogate JSON too)
 
     [model]                      # sub-models and solver (msmill.model.Mill)
     solver = "expected_value"
     damage = "tavares"
+    band_samples = 64            # GP posterior samples of the 5-95 % band (surrogate only; 0: off)
 
     [grid]
     min_mm = 0.038
@@ -124,6 +125,7 @@ class ModelSection(_Section):
     parcels_per_step: int = Field(default=2000, ge=1)
     mc_steps: int | None = Field(default=None, ge=2)
     seed: int | None = None
+    band_samples: int = Field(default=64, ge=0, le=1024)  # GP posterior samples behind the 5-95 % band
 
 
 class GridSection(_Section):
@@ -286,7 +288,8 @@ class RunFile(_Section):
                         breakage=m.breakage, damage=m.damage, solver=m.solver, impacted=m.impacted,
                         grid=self.model_grid(feed), damage_classes=m.damage_classes,
                         quadrature_nodes=m.quadrature_nodes, parcels_per_step=m.parcels_per_step,
-                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm)
+                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm,
+                        band_samples=m.band_samples)
         except MsmillInputError as exc:
             field = exc.field
             model_fields = ("solver", "impacted", "damage_classes", "quadrature_nodes", "parcels_per_step")

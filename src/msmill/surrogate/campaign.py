@@ -56,6 +56,45 @@ DEFAULT_STALE_S = 120.0
 PLANNERS: dict[str, Callable[[Store, str, int], list[DesignPoint]]] = {}
 
 
+def active_planner(store: Store, name: str, n: int, seed: int = 0) -> list[DesignPoint]:
+    """Next ``n`` design points of a campaign by the surrogate's cost-aware active learning.
+
+    Fits :class:`msmill.surrogate.stage_model.StageSurrogate` to the store's
+    steady runs of the campaign's machine (a space-filling Sobol design while
+    there are too few), within the campaign's size range (option
+    ``size_range_mm``, default the paper's 2-30 mm), avoids the campaign's planned and running points
+    (kriging believer) and weights the acquisition by the DEM cost learnt from
+    the runs' timings (:func:`msmill.surrogate.active.plan_batch`).
+    """
+    import numpy as np
+
+    from msmill.machine import OperatingPoint
+    from msmill.surrogate.active import CostModel, plan_batch
+    from msmill.surrogate.space import DesignSpace
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    info = store.campaign(name)
+    size_range = info.options.get("size_range_mm")
+    space = DesignSpace(size_mm=tuple(size_range)) if size_range else DesignSpace()
+    machine = info.machine
+    pairs = store.training_runs(machine_hash=info.machine_hash)
+    runs = [st for _, st in pairs]
+    pending = [r.design for r in store.runs(campaign=name) if r.status in ("planned", "running")]
+    pend = np.array([[d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg] for d in pending]).reshape(-1, 4)
+    model = StageSurrogate().fit(runs).gp_ if len(runs) >= 2 else None
+    plan = plan_batch(model, n, space, n_existing=len(runs), pending=pend if len(pend) else None,
+                      cost=CostModel.from_runs(runs, space), seed=seed)
+    out = []
+    for size, feed, speed, gate in plan.points:
+        op = OperatingPoint(feed_tph=float(feed), speed_rpm=float(speed), gate_deg=float(gate))
+        out.append(DesignPoint(size_mm=float(size), feed_tph=float(feed), speed_rpm=float(speed),
+                               gate_deg=float(gate), stage_speeds_rpm=op.stage_speeds(machine.n_stages)))
+    return out
+
+
+PLANNERS["active"] = active_planner
+
+
 def run_settings_dict(values: dict[str, Any]) -> dict[str, Any]:
     """Validate ``RunSettings`` fields (names and types) and return them as a plain dict."""
     from msmill.dem.mill.run import RunSettings
