@@ -32,6 +32,8 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
     ("predict", "predict", "predict"),
+    ("validate", "validate", "validate"),
+    ("validate", "calibrate", "calibrate"),
 ]
 
 

@@ -148,10 +148,26 @@ class VogelSwebrecBreakage(AbT10Breakage):
             _APPEARANCE_TABLES[key] = tab
         return tab
 
+    def direct_fragments(self, edges_mm: np.ndarray, pb: np.ndarray) -> np.ndarray:
+        """Exact Swebrec columns ``[parent, class]`` at one ``pb`` per parent (no table)."""
+        return swebrec_columns_per_parent(edges_mm, self.params.A_pct * np.asarray(pb), self.params.swebrec_b)
+
     def __repr__(self) -> str:
         p = self.params
         return (f"VogelSwebrecBreakage({p.name}: A={p.A_pct:.4g} %, k={p.k_t_kwh:.4g} t/kWh, "
                 f"E_min={p.e_min_kwh_t:.4g} kWh/t at L_ref={p.l_ref_mm:.4g} mm, beta={p.swebrec_b:.4g})")
+
+
+def swebrec_columns_per_parent(edges_mm: np.ndarray, t10_pct: np.ndarray, beta: float) -> np.ndarray:
+    """Fragment mass fractions ``[parent j, class i]`` with one ``t10`` per parent class."""
+    edges = np.asarray(edges_mm, dtype=float)
+    mids = np.sqrt(edges[:-1] * edges[1:])
+    rel = edges[None, 1:] / mids[:, None]
+    cum = swebrec_passing(rel, np.asarray(t10_pct, dtype=float)[:, None], beta) / 100.0
+    cum[..., -1] = 1.0
+    cum = np.maximum.accumulate(cum, axis=-1)
+    frac = np.clip(np.diff(np.concatenate([np.zeros((cum.shape[0], 1)), cum], axis=-1), axis=-1), 0.0, None)
+    return frac / frac.sum(axis=-1, keepdims=True)
 
 
 def swebrec_columns(edges_mm: np.ndarray, t10_pct: np.ndarray, beta: float) -> np.ndarray:

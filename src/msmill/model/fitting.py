@@ -108,9 +108,26 @@ def single_impact_product(breakage: Any, grid: SizeGrid, feed_fractions: np.ndar
     e = float(specific_energy_kwh_t(speed_m_s))
     mids = grid.mids_mm
     pb = np.asarray(breakage.probability(np.full(mids.size, e), mids, np.zeros(mids.size)))
-    cols = breakage.fragments(grid.edges_mm, np.arange(mids.size), pb)  # (parent, class)
+    cols = _direct_columns(breakage, grid, pb)  # (parent, class)
     f = np.asarray(feed_fractions, dtype=float)
     return f * (1.0 - pb) + (f * pb) @ cols
+
+
+def _direct_columns(breakage: Any, grid: SizeGrid, pb: np.ndarray) -> np.ndarray:
+    """Appearance columns ``[parent, class]`` at one ``pb`` per parent, without the tabulation.
+
+    A fit changes ``A`` (or ``beta``) at every step, so the 1025-node tables
+    the mill solvers use would be rebuilt each time; here the columns are
+    computed exactly at the parents' own ``t10``.
+    """
+    from msmill import breakage as _bk
+
+    if hasattr(breakage, "direct_fragments"):
+        return breakage.direct_fragments(grid.edges_mm, pb)
+    if isinstance(breakage, sm.AbT10Breakage):
+        B = _bk.appearance_matrix(grid, breakage.ore.A_pct * pb, breakage.ore.tn)  # (class, parent)
+        return np.ascontiguousarray(B.T)
+    return breakage.fragments(grid.edges_mm, np.arange(grid.n_classes), pb)
 
 
 def _passing_at(grid: SizeGrid, fractions: np.ndarray, sizes_mm: np.ndarray) -> np.ndarray:
@@ -499,3 +516,21 @@ def _direct_solver(model: Any, fit: tuple[str, ...], bnd: dict, f_obj: Callable)
         return as_params(res.x)
 
     return solve, predict
+
+
+def calibrated_ore(ore: Any, cal: SurveyCalibration) -> Any:
+    """Copy of an ``msmill.ore.Ore`` with the parameters of ``cal`` and its provenance."""
+    text = cal.provenance()
+    new = ore.with_l_ref(cal.params["l_ref_mm"], text) if "l_ref_mm" in cal.fitted else ore
+    upd: dict[str, Any] = {}
+    for field_name, ore_field in (("A_pct", "A_pct"), ("b_t_kwh", "b_t_per_kwh"), ("gamma", "gamma")):
+        if field_name in cal.fitted:
+            upd[ore_field] = cal.params[field_name]
+    if upd:
+        srcs = dict(new.sources)
+        for key, names in (("breakage", ("A_pct", "b_t_per_kwh")), ("damage", ("gamma",))):
+            if any(n in upd for n in names):
+                srcs[key] = text
+        upd["sources"] = srcs
+        new = new.model_copy(update=upd)
+    return new
