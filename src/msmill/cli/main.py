@@ -34,6 +34,8 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("predict", "predict", "predict"),
     ("validate", "validate", "validate"),
     ("validate", "calibrate", "calibrate"),
+    ("sweep", "sweep", "sweep"),
+    ("sweep", "optimize", "optimize"),
 ]
 
 
