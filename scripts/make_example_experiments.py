@@ -35,12 +35,11 @@ import numpy as np
 
 from msmill import __version__
 from msmill.errors import OutOfDomainWarning
+from msmill.model.experiments import experiment_from_dict, write_experiment
 from msmill.model.fitting import build_breakage, impact_grid, single_impact_product
 from msmill.model.mill import breakage_parameters
 from msmill.model.power import power_estimate
-from msmill.model.synthetic import SIEVES_MM, synthetic_impact_test, synthetic_survey
-from msmill.model.validation import SurveyModel
-from msmill.model.experiments import experiment_from_dict, write_experiment
+from msmill.model.synthetic import SIEVES_MM, model_surveys, synthetic_impact_test
 from msmill.psd import PSD
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,32 +69,19 @@ LAB_SPEEDS_M_S = (15.0, 25.0, 35.0, 45.0)
 def surveys(rng: np.random.Generator) -> list:
     out = []
     for ore_name, points in POINTS.items():
-        drafts = []
-        for j, (tph, rpm, gate, feeds) in enumerate(points):
-            for fk in feeds:
-                drafts.append(experiment_from_dict({
-                    "kind": "survey", "id": f"{ore_name.lower()}-p{j + 1}-{fk}", "ore": ore_name, "source": "draft",
-                    "feed": {"rate_tph": tph, **FEEDS[fk]},
-                    "operating": {"speed_rpm": rpm, "bottom_speed_factor": 2.0, "gate_deg": gate},
-                    "product": {"size_mm": [1.0, 2.0], "passing_pct": [50.0, 100.0]}}))
-        model = SurveyModel(ore_name, drafts)
-        true = model.with_ore(l_ref_mm=TRUE_L_REF_MM[ore_name])
-        prods = model.products(true)
-        from msmill.model.mill import Mill
-
-        mill = Mill(true, "default", grid=model.grid)
-        for e, frac in zip(drafts, prods, strict=True):
-            psd = PSD(model.grid, frac, validate=False)
-            power = None
-            if ore_name == "UG2":
-                res = mill.run(e.feed_psd, e.operating_point(), timeseries=False)
-                power = power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
-            how = (f"msmill {__version__} expected-value model, ab_t10 breakage with L_ref = "
-                   f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, packaged DEM stage table"
-                   + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
-                      if power is not None else ""))
-            out.append(synthetic_survey(e.id, ore_name, e.raw["feed"], e.feed_tph, e.operating, psd,
-                                        SIGMA, rng, how, power))
+        specs = [(f"{ore_name.lower()}-p{j + 1}-{fk}", FEEDS[fk], tph,
+                  {"speed_rpm": rpm, "bottom_speed_factor": 2.0, "gate_deg": gate})
+                 for j, (tph, rpm, gate, feeds) in enumerate(points) for fk in feeds]
+        power = None
+        if ore_name == "UG2":
+            def power(e, res):
+                return power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
+        how = (f"msmill {__version__} expected-value model, ab_t10 breakage with L_ref = "
+               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, packaged DEM stage table"
+               + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
+                  if power is not None else ""))
+        out += model_surveys(ore_name, specs, {"l_ref_mm": TRUE_L_REF_MM[ore_name]}, SIGMA, rng, how=how,
+                             power=power)
     return out
 
 

@@ -36,6 +36,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("validate", "calibrate", "calibrate"),
     ("sweep", "sweep", "sweep"),
     ("sweep", "optimize", "optimize"),
+    ("report", "report", "report"),
 ]
 
 

@@ -61,10 +61,10 @@ def sweep(
     no_load_kw: Annotated[float, typer.Option(help="Stated no-load power (kW) in the specific energy.")] = 0.0,
 ) -> None:
     """P80, throughput, specific energy and hold-up over one or two operating variables."""
+    from msmill.cli.validate import _console, write_files
     from msmill.model.operating import sweep as run_sweep
     from msmill.plots.model import png_bytes
     from msmill.plots.validation import sweep_plot
-    from msmill.cli.validate import _console, write_files
 
     t0 = time.perf_counter()
     axes = dict(_parse_range(v, "--var", True) for v in var)

@@ -183,7 +183,7 @@ def swebrec_columns(edges_mm: np.ndarray, t10_pct: np.ndarray, beta: float) -> n
     cum = swebrec_passing(rel[None], np.asarray(t10_pct, dtype=float)[:, None, None], beta) / 100.0
     cum[..., -1] = 1.0
     cum = np.maximum.accumulate(cum, axis=-1)
-    frac = np.diff(np.concatenate([np.zeros(cum.shape[:-1] + (1,)), cum], axis=-1), axis=-1)
+    frac = np.diff(np.concatenate([np.zeros((*cum.shape[:-1], 1)), cum], axis=-1), axis=-1)
     frac = np.clip(frac, 0.0, None)
     return frac / frac.sum(axis=-1, keepdims=True)
 

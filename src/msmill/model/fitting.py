@@ -48,8 +48,8 @@ from msmill.model import submodels as sm
 from msmill.model.breakage_swebrec import VogelSwebrecBreakage
 from msmill.model.mill import DEFAULT_MIN_SIZE_MM, breakage_parameters
 from msmill.model.submodels import specific_energy_kwh_t
-from msmill.psd import PSD, SizeGrid, ks_statistic
 from msmill.model.validation import measured_ks
+from msmill.psd import PSD, SizeGrid, ks_statistic
 
 __all__ = [
     "FITTABLE",
@@ -97,7 +97,7 @@ def impact_grid(tests: Sequence[Any], min_mm: float = DEFAULT_MIN_SIZE_MM) -> Si
     sizes = np.unique(np.concatenate([np.concatenate([t.feed_psd.sizes_mm, t.product_psd.sizes_mm])
                                       for t in tests]))
     lo = float(sizes[0])
-    n_ext = max(int(math.ceil(math.log(lo / min_mm) / math.log(math.sqrt(2.0)))), 1) if lo > min_mm else 1
+    n_ext = max(math.ceil(math.log(lo / min_mm) / math.log(math.sqrt(2.0))), 1) if lo > min_mm else 1
     below = lo / math.sqrt(2.0) ** np.arange(n_ext, 0, -1)
     return SizeGrid(np.concatenate([below, sizes]))
 

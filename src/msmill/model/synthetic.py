@@ -21,7 +21,7 @@ import numpy as np
 from msmill.model.experiments import Experiment, experiment_from_dict
 from msmill.psd import PSD
 
-__all__ = ["SIEVES_MM", "noisy_passing", "synthetic_impact_test", "synthetic_survey"]
+__all__ = ["SIEVES_MM", "model_surveys", "noisy_passing", "synthetic_impact_test", "synthetic_survey"]
 
 #: Sieve series (mm) used for synthetic products: the sqrt(2) series up to 13.2 mm, then the
 #: 2^(1/4) series (16, 22.4, 31.5, 45 mm added) where the products' curves are steep.
@@ -78,3 +78,37 @@ def synthetic_impact_test(ident: str, ore_name: str, feed: dict[str, list[float]
            "source": f"SYNTHETIC (not measured): {how}; product noise sigma = {sigma:g} on retained masses",
            "feed": feed, "product": _table(sizes[: pas.size], pas)}
     return experiment_from_dict(doc, origin=ident)
+
+
+def model_surveys(ore_name: str, specs: list[tuple[str, dict, float, dict]], true_changes: dict[str, float],
+                  sigma: float, rng: np.random.Generator, stage_parameters: Any = "default",
+                  how: str = "", power: Any = None) -> list[Experiment]:
+    """SYNTHETIC surveys of one ore made by the model at ``true_changes`` (e.g. ``{"l_ref_mm": 20}``).
+
+    Parameters
+    ----------
+    specs : list of (id, feed table, feed_tph, operating dict)
+        ``feed table`` has ``size_mm`` and ``passing_pct``.
+    power : callable, optional
+        ``(experiment, MillResult) -> power_kw`` giving a synthetic "measured" power.
+    """
+    from msmill.model.mill import Mill
+    from msmill.model.validation import SurveyModel
+
+    drafts = [experiment_from_dict({"kind": "survey", "id": i, "ore": ore_name, "source": "draft",
+                                    "feed": {"rate_tph": tph, **feed}, "operating": opr,
+                                    "product": {"size_mm": [1.0, 2.0], "passing_pct": [50.0, 100.0]}})
+              for i, feed, tph, opr in specs]
+    model = SurveyModel(ore_name, drafts, stage_parameters)
+    true = model.with_ore(**true_changes)
+    prods = model.products(true)
+    mill = Mill(true, model.mill.provider, grid=model.grid) if power is not None else None
+    out = []
+    for e, frac in zip(drafts, prods, strict=True):
+        kw = None
+        if mill is not None:
+            kw = power(e, mill.run(e.feed_psd, e.operating_point(), timeseries=False))
+        text = how or ("msmill expected-value model at " + ", ".join(f"{k} = {v:g}" for k, v in true_changes.items()))
+        out.append(synthetic_survey(e.id, ore_name, e.raw["feed"], e.feed_tph, e.operating,
+                                    PSD(model.grid, frac, validate=False), sigma, rng, text, kw))
+    return out

@@ -159,7 +159,7 @@ class SurveyModel:
         with _single_threaded_blas():
             for key in dict.fromkeys(self.keys):
                 idx = [i for i, k in enumerate(self.keys) if k == key]
-                params, streams, stats = self._stage_stats(key, self.ops[idx[0]])
+                _params, streams, stats = self._stage_stats(key, self.ops[idx[0]])
                 lm = assemble(self.grid.edges_mm, streams, stats, brk, dmg, m.damage_classes,
                               m.quadrature_nodes, m.impacted)
                 for i in idx:
