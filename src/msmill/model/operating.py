@@ -173,8 +173,10 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     -----
     After the grid, the variable that drives the goal (``feed_tph`` for
     ``max_feed``; ``speed_rpm`` for ``min_energy`` when swept) is refined by
-    bisection between the best feasible grid point and its infeasible
-    neighbour, assuming the target is monotone along it between the two.
+    bisection between the best feasible grid point and its failing grid
+    neighbour, for every combination of the other variables (for
+    ``max_feed`` only those that can still beat the best), assuming the target
+    is monotone along it between the two grid values.
     """
     if goal not in GOALS:
         raise MsmillInputError("goal", goal, " or ".join(GOALS))
@@ -210,8 +212,8 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     best = max(ok, key=score) if ok else None
     drive = "feed_tph" if goal == "max_feed" else ("speed_rpm" if "speed_rpm" in bounds else None)
     if best is not None and drive is not None and bounds[drive][1] > bounds[drive][0]:
-        best = _refine(evaluate, best, names, drive, bounds[drive], axes[names.index(drive)], margin, rows,
-                       refine_tol, score)
+        best = _refine_all(evaluate, ok, names, drive, axes[names.index(drive)], margin, rows, refine_tol,
+                           score, goal)
     cand = pd.DataFrame(rows)
     cand["meets_target"] = [bool(r["feasible"] and margin(r) >= 0) for r in rows]
     feas = cand[cand["feasible"]]
@@ -220,12 +222,39 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     return OptimumResult(settings, best, cand, front, goal, target)
 
 
-def _refine(evaluate, best, names, drive, bound, axis, margin, rows, tol, score) -> dict:
-    """Bisect ``drive`` between ``best`` and the neighbouring grid value in the direction of the goal."""
+def _refine_all(evaluate, ok, names, drive, axis, margin, rows, tol, score, goal) -> dict:
+    """Refine ``drive`` in every group of the other variables; best refined point.
+
+    For ``max_feed`` a group whose upper limit (its first failing grid value)
+    cannot beat the best so far is skipped.
+    """
+    others = [n for n in names if n != drive]
+    groups: dict[tuple, dict] = {}
+    for r in ok:  # best feasible grid point per combination of the other variables
+        key = tuple(r[n] for n in others)
+        if key not in groups or score(r) > score(groups[key]):
+            groups[key] = r
     step = axis[1] - axis[0] if axis.size > 1 else 0.0
     direction = 1.0 if drive == "feed_tph" else -1.0  # more feed / less speed is better
+    lo, hi = float(axis[0]), float(axis[-1])
+
+    def limit(r: dict) -> float:
+        return min(max(r[drive] + direction * step, lo), hi)
+
+    order = sorted(groups.values(), key=lambda r: direction * limit(r), reverse=True)
+    best = max(ok, key=score)
+    for r in order:
+        if goal == "max_feed" and limit(r) <= best[drive]:
+            break
+        cand = _refine(evaluate, r, names, drive, limit(r), margin, rows, tol, score)
+        if score(cand) > score(best):
+            best = cand
+    return best
+
+
+def _refine(evaluate, best, names, drive, b, margin, rows, tol, score) -> dict:
+    """Bisect ``drive`` between ``best`` (meets the target) and ``b`` (the next grid value)."""
     a = best[drive]
-    b = min(max(a + direction * step, bound[0]), bound[1])
     if b == a:
         return best
     good = best
@@ -234,7 +263,7 @@ def _refine(evaluate, best, names, drive, bound, axis, margin, rows, tol, score)
             break
         mid = float(0.5 * (a + b))
         s = {k: best[k] for k in names}
-        s[drive] = float(mid)
+        s[drive] = mid
         r = {**evaluate(s), **s}
         rows.append(r)
         if r["feasible"] and margin(r) >= 0:
