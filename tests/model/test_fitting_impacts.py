@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from msmill.model.experiments import experiment_from_dict
 from msmill.model.fitting import (
     build_breakage,
     compare_submodels,
@@ -18,7 +19,6 @@ from msmill.model.fitting import (
     impact_grid,
     single_impact_product,
 )
-from msmill.model.experiments import experiment_from_dict
 from msmill.model.mill import breakage_parameters
 from msmill.model.synthetic import SIEVES_MM, synthetic_impact_test
 from msmill.psd import PSD
