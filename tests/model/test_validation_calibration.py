@@ -72,3 +72,15 @@ def test_calibrate_refuses_b_with_l_ref(clean_surveys):
 
     with pytest.raises(MsmillInputError, match="b/L_ref"):
         calibrate_surveys(SurveyModel("UG2", clean_surveys), fit=("l_ref_mm", "b_t_kwh"))
+
+
+def test_calibrate_several_parameters_on_exact_solves():
+    # one operating point, noise-free: A (start 71.8 %) from products made with A = 60 %
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        sv = model_surveys("UG2", specs()[:2], {"A_pct": 60.0, "l_ref_mm": 20.0}, 0.0, np.random.default_rng(1))
+        model = SurveyModel("UG2", sv)
+        model.ore = model.with_ore(l_ref_mm=20.0)
+        cal = calibrate_surveys(model, fit=("A_pct",), cross_validate=False)
+    assert cal.params["A_pct"] == pytest.approx(60.0, rel=0.02)
+    assert cal.table["ks_fit"].max() < 0.012

@@ -122,6 +122,8 @@ def calibrate(
     stage_parameters: Annotated[str, typer.Option(help="Stage-parameter table ('default' = packaged).")] = "default",
     impact_tests: Annotated[bool, typer.Option("--impact-tests/--no-impact-tests",
                                                help="Also fit the single-impact tests.")] = True,
+    bound: Annotated[list[str] | None, typer.Option("--bound", help="NAME=LOW:HIGH bounds of a fitted "
+                                                    "parameter (repeatable; defaults in docs/validation.md).")] = None,
 ) -> None:
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
@@ -142,7 +144,7 @@ def calibrate(
             surveys = [e for e in es.surveys if e.ore == ore_name]
             t1 = time.perf_counter()
             cal = calibrate_surveys(SurveyModel(ore_name, surveys, stage_parameters), fit or ("l_ref_mm",),
-                                    objective)
+                                    objective, bounds=_bounds(bound))
             new = calibrated_ore(get_ore(ore_name), cal)
             files[f"{ore_name}_calibrated.toml"] = tomli_w.dumps(new.to_dict()).encode()
             files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
@@ -154,6 +156,22 @@ def calibrate(
     dest = out if out is not None else folder / "calibration"
     write_files(dest, files)
     con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def _bounds(texts: list[str] | None) -> dict[str, tuple[float, float]]:
+    from msmill.model.fitting import SURVEY_FITTABLE
+
+    out = {}
+    for t in texts or []:
+        name, _, rng = t.partition("=")
+        try:
+            lo, hi = (float(x) for x in rng.split(":"))
+        except ValueError:
+            raise MsmillInputError("--bound", t, "NAME=LOW:HIGH with numbers") from None
+        if name not in SURVEY_FITTABLE or not 0 < lo < hi:
+            raise MsmillInputError("--bound", t, f"NAME one of {', '.join(SURVEY_FITTABLE)}, 0 < LOW < HIGH")
+        out[name] = (lo, hi)
+    return out
 
 
 def _print_calibration(con, cal, seconds: float) -> None:

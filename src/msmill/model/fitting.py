@@ -508,11 +508,18 @@ def _direct_solver(model: Any, fit: tuple[str, ...], bnd: dict, f_obj: Callable)
     def as_params(x: np.ndarray) -> dict[str, float]:
         return dict(zip(fit, _from_x(np.clip(x, lo, hi), bounds), strict=True))
 
-    x0 = np.clip(_to_x(np.array([float(getattr(model.ore, f)) for f in fit]), bounds), lo, hi)
+    state = {"x": np.clip(_to_x(np.array([float(getattr(model.ore, f)) for f in fit]), bounds), lo, hi),
+             "step": 0.1, "first": True}
 
     def solve(idx: np.ndarray) -> dict[str, float]:
+        """First call from the ore's values; later (leave-one-out) calls warm-start from the first fit."""
+        x0 = state["x"]
+        simplex = np.vstack([x0, x0 + state["step"] * np.eye(len(fit))])
         res = minimize(lambda x: f_obj(predict(as_params(x)), idx), x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-6, "maxfev": 60 * len(fit)})
+                       options={"xatol": 1e-3, "fatol": 1e-8, "maxfev": 60 * len(fit),
+                                "initial_simplex": simplex})
+        if state["first"]:
+            state.update(x=np.clip(res.x, lo, hi), step=0.02, first=False)
         return as_params(res.x)
 
     return solve, predict
