@@ -28,7 +28,6 @@ def main() -> None:
     ap.add_argument("--objective", default="ssq")
     args = ap.parse_args()
     import make_example_experiments as mk
-
     from msmill.errors import OutOfDomainWarning
     from msmill.model.fitting import calibrate_surveys
     from msmill.model.synthetic import model_surveys
