@@ -32,6 +32,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
     ("predict", "predict", "predict"),
+    ("serve", "serve", "serve"),
     ("validate", "validate", "validate"),
     ("validate", "calibrate", "calibrate"),
     ("sweep", "sweep", "sweep"),
