@@ -56,7 +56,10 @@ def test_sweep_and_optimize(tmp_path, capsys):
     t = pd.read_csv(tmp_path / "s" / "sweep.csv")
     assert t["p80_mm"].is_monotonic_decreasing and t["specific_energy_kwh_t"].is_monotonic_increasing
     assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--goal", "min_energy",
-                "--target-p80-mm", "16", "--n-grid", "4", "--out", str(tmp_path / "o")]) == 0
+                "--target-p80-mm", "16", "--n-grid", "4", "--l-ref-se-mm", "3", "--out", str(tmp_path / "o")]) == 0
     assert "best (min_energy" in capsys.readouterr().out
     assert (tmp_path / "o" / "pareto.png").is_file()
+    sens = pd.read_csv(tmp_path / "o" / "optimum_sensitivity.csv")
+    # a smaller L_ref breaks more easily, so the target is reached at a lower speed
+    assert sens["speed_rpm"].is_monotonic_increasing and sens["speed_rpm"].nunique() == 3
     assert run(["sweep", str(run_file), "--var", "colour=1:2"]) == 2

@@ -105,3 +105,14 @@ def test_outside_design_space_warns(tmp_path):
         warnings.simplefilter("always")
         read_experiment(p)
     assert any(issubclass(w.category, OutOfDomainWarning) for w in caught)
+
+
+def test_product_from_csv_file(tmp_path):
+    (tmp_path / "prod.csv").write_text("# SYNTHETIC\nsize_mm,passing_pct\n0.075,1\n0.6,5\n2.36,15\n9.5,50\n"
+                                       "19,85\n31.5,100\n", encoding="utf-8")
+    doc = {**SURVEY, "product": {"file": "prod.csv"}}
+    e = read_experiment(write(tmp_path, "a.toml", doc))
+    inline = read_experiment(write(tmp_path, "b.toml", SURVEY))
+    assert np.allclose(e.product_psd.passing_pct, inline.product_psd.passing_pct)
+    with pytest.raises(MsmillInputError, match=r"^c\.toml\.product\.file"):
+        read_experiment(write(tmp_path, "c.toml", {**SURVEY, "product": {"file": "missing.csv"}}))

@@ -32,6 +32,11 @@ Two kinds share one folder (``docs/validation.md``):
   ``impact_speed_m_s``, ``[feed]`` (``size_mm``, ``passing_pct``; no rate)
   and ``[product]``.
 
+Instead of inline ``size_mm`` / ``passing_pct`` a ``[feed]`` or ``[product]``
+section may give ``file = "product.csv"`` (columns ``size_mm, passing_pct``;
+``#`` lines are comments; relative to the experiment file). Written back
+(:func:`write_experiment`) the table is inline.
+
 Every error is one line naming the file and the field
 (``ug2-s01.toml.feed.rate_tph: got -3; allowed: ...``).
 """
@@ -180,10 +185,45 @@ class Experiment:
         return out
 
 
+def _inline_csv(data: dict[str, Any], origin: str, base: Path | None) -> dict[str, Any]:
+    """Replace ``file = "x.csv"`` in ``[feed]`` / ``[product]`` by the table it holds."""
+    import pandas as pd
+
+    out = dict(data)
+    for sec in ("feed", "product"):
+        tab = out.get(sec)
+        if not isinstance(tab, dict) or "file" not in tab:
+            continue
+        tab = dict(tab)
+        name = tab.pop("file")
+        field = f"{origin}.{sec}.file"
+        if "size_mm" in tab or "passing_pct" in tab:
+            raise MsmillInputError(field, name, "either file or size_mm + passing_pct, not both")
+        p = Path(str(name))
+        p = p if p.is_absolute() or base is None else base / p
+        if not p.is_file():
+            raise MsmillInputError(field, str(name), "an existing CSV file (relative to the experiment file)")
+        try:
+            frame = pd.read_csv(p, comment="#", skipinitialspace=True)
+        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+            raise MsmillInputError(field, str(name), f"a readable CSV file ({exc})") from None
+        frame.columns = [str(c).strip() for c in frame.columns]
+        if not {"size_mm", "passing_pct"} <= set(frame.columns):
+            raise MsmillInputError(f"{field}.columns", list(frame.columns), "columns size_mm and passing_pct")
+        vals = frame[["size_mm", "passing_pct"]].apply(pd.to_numeric, errors="coerce")
+        if vals.isna().any().any():
+            raise MsmillInputError(f"{field}.rows", str(name), "numbers in every row")
+        tab["size_mm"] = [float(v) for v in vals["size_mm"]]
+        tab["passing_pct"] = [float(v) for v in vals["passing_pct"]]
+        out[sec] = tab
+    return out
+
+
 def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path: Path | None = None) -> Experiment:
     """Validate a parsed experiment document (errors name ``origin`` and the field)."""
     if not isinstance(data, dict):
         raise MsmillInputError(origin, type(data).__name__, "a TOML table")
+    data = _inline_csv(data, origin, path.parent if path is not None else None)
     kind = data.get("kind")
     if kind not in KINDS:
         raise MsmillInputError(f"{origin}.kind", kind, " or ".join(repr(k) for k in KINDS))
