@@ -124,6 +124,8 @@ def calibrate(
                                                help="Also fit the single-impact tests.")] = True,
     bound: Annotated[list[str] | None, typer.Option("--bound", help="NAME=LOW:HIGH bounds of a fitted "
                                                     "parameter (repeatable; defaults in docs/validation.md).")] = None,
+    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model of the survey fits (default ab_t10).")] = None,
+    damage: Annotated[str | None, typer.Option(help="Damage sub-model of the survey fits (default tavares).")] = None,
 ) -> None:
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
@@ -143,8 +145,8 @@ def calibrate(
         for ore_name in es.ores("survey"):
             surveys = [e for e in es.surveys if e.ore == ore_name]
             t1 = time.perf_counter()
-            cal = calibrate_surveys(SurveyModel(ore_name, surveys, stage_parameters), fit or ("l_ref_mm",),
-                                    objective, bounds=_bounds(bound))
+            model = SurveyModel(ore_name, surveys, stage_parameters, breakage=breakage, damage=damage)
+            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound))
             new = calibrated_ore(get_ore(ore_name), cal)
             files[f"{ore_name}_calibrated.toml"] = tomli_w.dumps(new.to_dict()).encode()
             files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
