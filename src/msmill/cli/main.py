@@ -36,6 +36,11 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("campaign", "app", "campaign"),
     ("serve", "serve", "serve"),
     ("surrogate", "app", "surrogate"),
+    ("validate", "validate", "validate"),
+    ("validate", "calibrate", "calibrate"),
+    ("sweep", "sweep", "sweep"),
+    ("sweep", "optimize", "optimize"),
+    ("report", "report", "report"),
 ]
 
 

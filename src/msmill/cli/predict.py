@@ -48,6 +48,12 @@ def predict(
     _print_summary(rf, mill, result, folder, list(files))
 
 
+def _impact_kw(result) -> float:
+    from msmill.model.power import power_estimate
+
+    return power_estimate(result).impact_kw
+
+
 def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -70,6 +76,7 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("primary impacts per rock (mass-weighted)", f"{result.primary_impacts_per_t:.3g}"),
         ("secondary impacts per rock (mass-weighted)", f"{result.secondary_impacts_per_t:.3g}"),
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
+        ("impact power (kW; no-load not included, docs/validation.md)", f"{_impact_kw(result):.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
     ]
     for r in rows:
