@@ -14,7 +14,8 @@ linear operator averaged over the velocity distribution by Gauss-Hermite
 quadrature per mixture component (velocities clipped at 0); a Poisson number of
 secondary impacts is ``expm(lambda (T - I))`` on a state augmented with the
 fragments made so far (which are not hit again in that step) and two counters
-(number of impacts and energy delivered). The steady state solves
+(number of impacts and energy delivered), and a Poisson-mixture number is the
+weighted sum of those per-component operators (:func:`secondary_series`). The steady state solves
 ``(I - M) x = f`` directly (sparse LU).
 """
 
@@ -156,6 +157,52 @@ def _block_diag(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
+def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Survivor operator and impact-weighted operator of a Poisson-mixture number of secondary impacts.
+
+    A Poisson(``lam``) number of impacts with one-impact survivor block ``S_i``
+    (size class ``i``) is ``expm(lam (T - I))`` on the state augmented with the
+    fragments made so far and two counters. Survivors keep their size, so the
+    survivor block is block-diagonal per size class with ``A_i = lam_i (S_i - I)``;
+    fragments and counters absorb, hence ``expm([[A, 0], [C, 0]]) = [[e^A, 0],
+    [C phi1(A), I]]`` with ``phi1(A) = int_0^1 e^(tA) dt``, both read off one
+    batched ``expm`` of ``[[A, 0], [I, 0]]``. A mixture ``sum_c w_c
+    Poisson(lam_c)`` is the same weighted sum of the per-component operators
+    (the step is linear in the count distribution), so it stays exact; a
+    component of mean 0 contributes ``e^A = I``, ``phi = 0``.
+
+    Parameters
+    ----------
+    survive : ndarray (N, nd, nd)
+        One-impact survivor blocks per size class.
+    weights, means : ndarray (N, C)
+        Count mixture per size class.
+
+    Returns
+    -------
+    eA, phi : ndarray (N, nd, nd)
+        ``sum_c w_c e^(A_c)`` and ``sum_c w_c lam_c phi1(A_c)`` (the expected
+        number of secondary impacts, by damage class, is ``phi`` applied to the mass).
+    """
+    n, nd, _ = survive.shape
+    eA = np.zeros((n, nd, nd))
+    phi = np.zeros((n, nd, nd))
+    w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
+    idle = (w > 0) & (lam <= 0)
+    eA += np.sum(w * idle, axis=1)[:, None, None] * np.eye(nd)[None]
+    i, c = np.nonzero((w > 0) & (lam > 0))
+    if i.size:
+        lam_ic = lam[i, c][:, None, None]
+        Z = np.zeros((i.size, 2 * nd, 2 * nd))
+        Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])
+        Z[:, nd:, :nd] = np.eye(nd)[None]
+        X = scipy.linalg.expm(Z)
+        wic = w[i, c][:, None, None]
+        np.add.at(eA, i, wic * X[:, :nd, :nd])
+        np.add.at(phi, i, wic * lam_ic * X[:, nd:, :nd])
+    return eA, phi
+
+
 def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, breakage, damage,
                    n_damage: int, n_nodes: int) -> StageOperator:
     """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
@@ -169,20 +216,9 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
     sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
     prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
     sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
-    lam = stats.secondary_lambda[stage]  # (N,)
     Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
-    # Poisson series of secondary impacts = expm(lam (T - I)) on the state augmented with
-    # the fragments made so far and two counters. Survivors keep their size, so the
-    # survivor block is block-diagonal per size class i with A_i = lam_i (S_i - I);
-    # fragments and counters absorb, hence expm([[A, 0], [C, 0]]) = [[e^A, 0], [C phi1(A), I]]
-    # with phi1(A) = int_0^1 e^(tA) dt, both read off one batched expm of [[A, 0], [I, 0]].
-    A = lam[:, None, None] * (sec.survive - np.eye(nd)[None])
-    Z = np.zeros((n, 2 * nd, 2 * nd))
-    Z[:, :nd, :nd] = A
-    Z[:, nd:, :nd] = np.eye(nd)[None]
-    X = scipy.linalg.expm(Z) if np.any(lam > 0) else np.broadcast_to(np.eye(2 * nd), Z.shape)
-    eA = X[:, :nd, :nd]
-    phi = X[:, nd:, :nd] * lam[:, None, None]  # (N, nd, nd), lam_i phi1(A_i)
+    counts = stats.count_mixture()
+    eA, phi = secondary_series(sec.survive, counts.weights[stage], counts.means[stage])
     # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
     surv = np.einsum("ide,ief->idf", eA, Sp)
     frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))
