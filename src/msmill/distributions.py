@@ -468,14 +468,16 @@ def count_batch_stderr(candidate: str, batches: list[np.ndarray]) -> dict[str, f
     The family ``candidate`` (a :data:`COUNT_CANDIDATES` name) is refitted to
     every non-empty batch of counts; ``SE = std(batch values, ddof=1) /
     sqrt(n_batches)`` per parameter (mixture components matched by ascending
-    mean). Keys: ``"<param>"`` and ``"mean"``.
+    mean). Keys: ``"<param>"``, ``"mean"``, ``"variance"`` and ``"p_zero"``
+    (the last three stay well defined where a native parameter runs to a
+    bound, e.g. a negative binomial's size in a nearly Poisson batch).
     """
     rows = []
     for b in batches:
         b = np.asarray(b)
         if b.size:
             d = COUNT_CANDIDATES[candidate]().fit(b).to_count_distribution()
-            rows.append({**d.params, "mean": d.mean})
+            rows.append({**d.params, "mean": d.mean, "variance": d.variance, "p_zero": d.p_zero})
     if len(rows) < 2:
         return {}
     keys = [k for k in rows[0] if all(k in r for r in rows)]
