@@ -185,21 +185,25 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
         number of secondary impacts, by damage class, is ``phi`` applied to the mass).
     """
     n, nd, _ = survive.shape
-    eA = np.zeros((n, nd, nd))
-    phi = np.zeros((n, nd, nd))
     w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
+    n_c = w.shape[1]
     idle = (w > 0) & (lam <= 0)
-    eA += np.sum(w * idle, axis=1)[:, None, None] * np.eye(nd)[None]
-    i, c = np.nonzero((w > 0) & (lam > 0))
-    if i.size:
-        lam_ic = lam[i, c][:, None, None]
-        Z = np.zeros((i.size, 2 * nd, 2 * nd))
+    eA = np.sum(w * idle, axis=1)[:, None, None] * np.eye(nd)[None]
+    phi = np.zeros((n, nd, nd))
+    active = np.flatnonzero((w > 0) & (lam > 0))  # flat (i, c) indices; only these need an expm
+    if active.size:
+        i = active // n_c
+        lam_ic = lam.ravel()[active][:, None, None]
+        Z = np.zeros((active.size, 2 * nd, 2 * nd))
         Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])
         Z[:, nd:, :nd] = np.eye(nd)[None]
         X = scipy.linalg.expm(Z)
-        wic = w[i, c][:, None, None]
-        np.add.at(eA, i, wic * X[:, :nd, :nd])
-        np.add.at(phi, i, wic * lam_ic * X[:, nd:, :nd])
+        wic = w.ravel()[active][:, None, None]
+        full = np.zeros((2, n * n_c, nd, nd))
+        full[0, active] = wic * X[:, :nd, :nd]
+        full[1, active] = wic * lam_ic * X[:, nd:, :nd]
+        full = full.reshape(2, n, n_c, nd, nd).sum(axis=2)
+        eA, phi = eA + full[0], full[1]
     return eA, phi
 
 
