@@ -29,15 +29,16 @@ def _random_counts(rng: np.random.Generator, shape: tuple[int, int], c: int = 3)
     return CountArrays(w, m)
 
 
-def test_secondary_series_equals_the_count_series():
-    """e^A-sum = sum_k P(k) S^k and phi = sum_k P(k) sum_{j<k} S^j, for a mixture of 0, 1.3, 6.2."""
+@pytest.mark.parametrize("method", ["series", "expm"])
+def test_secondary_series_equals_the_count_series(method):
+    """E[S^K] = sum_k P(k) S^k and phi = sum_k P(k) sum_{j<k} S^j, for a mixture of 0, 1.3, 6.2."""
     rng = np.random.default_rng(4)
     nd, n = 4, 3
     S = np.tril(rng.uniform(0, 1, (n, nd, nd)))
     S *= rng.uniform(0.3, 0.95, (n, 1, nd)) / S.sum(axis=1, keepdims=True)  # columns: survival < 1
     w = np.array([[0.2, 0.5, 0.3]] * n)
     m = np.array([[0.0, 1.3, 6.2]] * n)
-    eA, phi = secondary_series(S, w, m)
+    eA, phi = secondary_series(S, w, m, method)
     k = np.arange(80)
     pk = w[0] @ sps.poisson.pmf(k[None], m[0][:, None])
     for i in range(n):
@@ -49,6 +50,22 @@ def test_secondary_series_equals_the_count_series():
         assert np.allclose(phi[i], want_phi, atol=1e-11)
 
 
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), nd=st.integers(1, 6), size=st.floats(0.3, 50.0), mean=st.floats(0.0, 6.0))
+def test_power_series_equals_expm(seed, nd, size, mean):
+    """The two exact constructions agree to rounding (negative binomial + a random 3-mixture)."""
+    rng = np.random.default_rng(seed)
+    n = 4
+    S = rng.uniform(0, 1, (n, nd, nd))
+    S *= rng.uniform(0.0, 1.0, (n, 1, nd)) / S.sum(axis=1, keepdims=True)
+    nb = CountDistribution.negative_binomial(mean, size)
+    w = np.c_[np.tile(nb.weights, (n, 1)), rng.dirichlet(np.ones(3), n)] / 2
+    m = np.c_[np.tile(nb.means, (n, 1)), rng.uniform(0, 10, (n, 3))]
+    a, b = secondary_series(S, w, m, "series"), secondary_series(S, w, m, "expm")
+    assert np.max(np.abs(a[0] - b[0])) < 1e-13
+    assert np.max(np.abs(a[1] - b[1])) < 1e-12 * max(1.0, float(w[0] @ m[0]))
+
+
 def test_one_component_equals_poisson_path():
     rng = np.random.default_rng(1)
     streams, stats = random_parameters(rng, 3)
@@ -57,7 +74,7 @@ def test_one_component_equals_poisson_path():
                                    stats.secondary_velocity, counts)
     a = assemble(GRID.edges_mm, streams, stats, BREAKAGE, DAMAGE, 3, 6)
     b = assemble(GRID.edges_mm, streams, with_counts, BREAKAGE, DAMAGE, 3, 6)
-    assert abs(a.M - b.M).max() == 0.0
+    assert abs(a.M - b.M).max() == 0.0  # None means a one-component Poisson
     # and a ZIP with pi = 0.4 is 0.4 I + 0.6 x the Poisson operator on the survivors
     mix = _one_stage(stats)
     sec = impact_operator(GRID.edges_mm, mix, BREAKAGE, DAMAGE, 3, 6)
