@@ -44,6 +44,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
   impact exceeds ``2 V/(1 - e)`` = 2.5 V at e = 0.2 (2.8 V at the 0.29 the
   engine's step realises at worst, ``docs/dem.md``); the engine faults this
   guards against gave 10^2-10^4 m/s.
+* **Secondary counts**: the number of secondary impacts of each primary
+  impact (in the window) is kept as a histogram and fitted by every count
+  family of :class:`msmill.distributions.CountFamilySelection`; the family with
+  the lowest ``StatsSettings.count_criterion`` (BIC) becomes
+  ``secondary_count``, ``secondary_lambda`` is its mean.
 * **Sampling errors**: standard errors by batch means: the tag times (or
   primary impacts, for the secondary statistics) are split into
   ``n_batches`` consecutive blocks, the statistic is computed per block and
