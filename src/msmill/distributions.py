@@ -357,6 +357,10 @@ class PoissonMixtureKLFit(_CountKLFit):
             raise MsmillInputError("n_components", self.n_components, "an integer >= 1")
         best = max((self._em(w, mu) for w, mu in self._starts()), key=lambda t: t[2])
         w, mu = self._polish(best[0], best[1])
+        k = int(self.n_components)
+        poisson = (np.r_[1.0, np.zeros(k - 1)], np.full(k, self.mean_count_))  # the nested K = 1 solution
+        if self._nll(self._mix_pmf(*poisson, self.support_)) < self._nll(self._mix_pmf(w, mu, self.support_)):
+            w, mu = poisson  # a local optimum worse than one Poisson: keep the Poisson (nesting holds)
         order = np.argsort(mu, kind="stable")
         self.weights_, self.means_ = w[order] / w.sum(), mu[order]
 
