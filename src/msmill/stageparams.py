@@ -58,7 +58,6 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from scipy import linalg, special, stats
 
 from msmill.errors import MsmillInputError, from_validation_error
 
@@ -148,6 +147,8 @@ COUNT_FAMILIES = ("poisson", "negative_binomial", "zero_inflated_poisson", "pois
 
 def _gauss_rule(x: np.ndarray, w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``n``-point Gauss rule (nodes, weights) of the discrete measure ``sum w_i delta(x_i)`` (Lanczos)."""
+    from scipy import linalg
+
     n = min(n, int(np.count_nonzero(w > 0)))
     total = float(w.sum())
     q = np.zeros((n, x.size))
@@ -177,6 +178,8 @@ def negative_binomial_mixture(mean: float, size: float, n_nodes: int = NB_QUADRA
     ``s`` up to degree ``2 n - 1`` exactly, so the mixture's mean and variance
     equal the negative binomial's.
     """
+    from scipy import special, stats
+
     theta = mean / size
     if mean <= 0:
         return np.array([1.0]), np.array([0.0])
@@ -254,12 +257,16 @@ class CountDistribution(_Frozen):
 
     def pmf(self, k_max: int) -> np.ndarray:
         """Probabilities of ``k = 0..k_max`` (length ``k_max + 1``) of the stored mixture."""
+        from scipy import stats
+
         k = np.arange(int(k_max) + 1)
         return np.asarray(self.weights) @ stats.poisson.pmf(k[None, :], np.asarray(self.means)[:, None])
 
     def native_pmf(self, k_max: int) -> np.ndarray:
         """Probabilities of ``k = 0..k_max`` from ``family`` and ``params`` (differs from
         :meth:`pmf` only by the quadrature error of a negative binomial)."""
+        from scipy import stats
+
         if self.family != "negative_binomial":
             return self.pmf(k_max)
         m, r = self.params["mean"], self.params["size"]
