@@ -82,6 +82,9 @@ def test_known_counts_hit_probability_and_streams():
     # secondary counts per primary: [3, 1] -> lambda 2
     assert s1.secondary_lambda == pytest.approx(2.0)
     assert s1.n_secondary_impacts == 4
+    assert s1.secondary_count_histogram == [0, 1, 0, 1]  # one primary with 1, one with 3
+    assert s1.secondary_count.mean == pytest.approx(2.0)
+    assert set(s1.secondary_count_selection.candidates) >= {"poisson", "negative_binomial"}
     assert s1.n_primary_impacts == 2
     # A is hit within (t, t+0.05] for tags t = 0.06..0.13 (8 of 54 stage-1 tags)
     assert s1.primary_hit_probability == pytest.approx(8 / 54)

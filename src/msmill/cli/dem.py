@@ -81,7 +81,9 @@ def stats_cmd(
     plot_stage_impacts(ms, run_dir / "stage_impacts.png")
     for s in ms.run.stages:
         typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
-                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
+                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}"
+                   + (f" counts {s.secondary_count_selection.chosen} (KL {s.secondary_count_selection.kl:.3f})"
+                      if s.secondary_count_selection else ""))
     typer.echo(f"written {target}")
 
 

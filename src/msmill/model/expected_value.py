@@ -14,7 +14,8 @@ linear operator averaged over the velocity distribution by Gauss-Hermite
 quadrature per mixture component (velocities clipped at 0); a Poisson number of
 secondary impacts is ``expm(lambda (T - I))`` on a state augmented with the
 fragments made so far (which are not hit again in that step) and two counters
-(number of impacts and energy delivered). The steady state solves
+(number of impacts and energy delivered), and a Poisson-mixture number is the
+weighted sum of those per-component operators (:func:`secondary_series`). The steady state solves
 ``(I - M) x = f`` directly (sparse LU).
 """
 
@@ -156,6 +157,114 @@ def _block_diag(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Largest number of secondary impacts summed by the power series before falling back to expm.
+SERIES_MAX_IMPACTS = 2000
+_SERIES_TAIL = 1e-18  # P(K > k_max) and the neglected part of E[K] stay below this (per unit mass)
+
+
+def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray,
+                     method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Survivor operator and impact-weighted operator of a Poisson-mixture number of secondary impacts.
+
+    With one-impact survivor block ``S_i`` (size class ``i``; survivors keep
+    their size) and ``K ~ sum_c w_c Poisson(lam_c)`` impacts, the survivors of
+    the impacts are ``E[S^K] = sum_k P(K = k) S^k`` and the mass impacted by the
+    ``j``-th impact is ``P(K > j) S^j``, so the expected number of impacts
+    applied to the mass is ``phi = sum_j P(K > j) S^j``. Two exact constructions:
+
+    * ``"expm"``: per component ``A = lam_c (S - I)``, ``E[S^K] = e^A`` and
+      ``phi = lam_c phi1(A)``, ``phi1(A) = int_0^1 e^(tA) dt``, both read off one
+      batched ``expm`` of ``[[A, 0], [I, 0]]`` (``expm([[A, 0], [C, 0]]) =
+      [[e^A, 0], [C phi1(A), I]]``); a mixture is the ``w_c``-weighted sum of
+      the per-component operators (the step is linear in the count
+      distribution) and a component of mean 0 contributes ``e^A = I``,
+      ``phi = 0``. One ``expm`` per active (size class, component).
+    * ``"series"``: the two sums above, to the ``k_max`` where ``P(K > k_max)``
+      and ``sum_{j > k_max} P(K > j)`` are below 1e-18 (``S >= 0`` with
+      column sums <= 1, so the neglected part of every column is below that:
+      exact to rounding). All terms are non-negative, so there is no
+      cancellation; the cost is ``k_max`` batched products, independent of
+      the number of components.
+
+    ``"auto"`` (default) uses the series unless ``k_max`` would exceed
+    :data:`SERIES_MAX_IMPACTS`.
+
+    Parameters
+    ----------
+    survive : ndarray (N, nd, nd)
+        One-impact survivor blocks per size class.
+    weights, means : ndarray (N, C)
+        Count mixture per size class.
+    method : {"auto", "series", "expm"}
+
+    Returns
+    -------
+    eA, phi : ndarray (N, nd, nd)
+        ``E[S^K]`` and ``sum_j P(K > j) S^j``.
+    """
+    w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
+    if method not in ("auto", "series", "expm"):
+        raise ValueError(method)
+    if method != "expm":
+        tails = _count_tails(w, lam, SERIES_MAX_IMPACTS if method == "auto" else None)
+        if tails is not None:
+            return _power_series(survive, *tails)
+    return _expm_series(survive, w, lam)
+
+
+def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(P(K = k), P(K > k))`` for ``k = 0..k_max``, shape (N, k_max + 1); None beyond ``k_cap``."""
+    from scipy import special
+
+    lam_max = float(lam[w > 0].max()) if np.any(w > 0) else 0.0
+    k_max = int(lam_max + 12.0 * np.sqrt(lam_max) + 40)  # Poisson mass beyond: < 1e-30
+    if k_cap is not None and k_max > k_cap:
+        return None
+    k = np.arange(k_max + 2, dtype=float)
+    lp = special.xlogy(k, lam[..., None]) - lam[..., None] - special.gammaln(k + 1.0)  # (N, C, k_max + 2)
+    pk = np.einsum("nc,nck->nk", w, np.exp(lp))
+    pk /= pk.sum(axis=1, keepdims=True)  # the weights' and the pmf's rounding: total mass exactly 1
+    qk = np.cumsum(pk[:, ::-1], axis=1)[:, ::-1][:, 1:]  # P(K > k), summed from the tail: no cancellation
+    if qk[:, -1].max() > _SERIES_TAIL:  # pragma: no cover - the bound above is generous
+        return None
+    return pk[:, :-1], qk
+
+
+def _power_series(survive: np.ndarray, pk: np.ndarray, qk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n, nd, _ = survive.shape
+    power = np.broadcast_to(np.eye(nd), (n, nd, nd)).copy()
+    eA = np.zeros((n, nd, nd))
+    phi = np.zeros((n, nd, nd))
+    for j in range(pk.shape[1]):  # loop over the impact number, batched over size classes
+        eA += pk[:, j, None, None] * power
+        phi += qk[:, j, None, None] * power
+        power = survive @ power
+    return eA, phi
+
+
+def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n, nd, _ = survive.shape
+    n_c = w.shape[1]
+    idle = (w > 0) & (lam <= 0)
+    eA = np.sum(w * idle, axis=1)[:, None, None] * np.eye(nd)[None]
+    phi = np.zeros((n, nd, nd))
+    active = np.flatnonzero((w > 0) & (lam > 0))  # flat (i, c) indices; only these need an expm
+    if active.size:
+        i = active // n_c
+        lam_ic = lam.ravel()[active][:, None, None]
+        Z = np.zeros((active.size, 2 * nd, 2 * nd))
+        Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])
+        Z[:, nd:, :nd] = np.eye(nd)[None]
+        X = scipy.linalg.expm(Z)
+        wic = w.ravel()[active][:, None, None]
+        full = np.zeros((2, n * n_c, nd, nd))
+        full[0, active] = wic * X[:, :nd, :nd]
+        full[1, active] = wic * lam_ic * X[:, nd:, :nd]
+        full = full.reshape(2, n, n_c, nd, nd).sum(axis=2)
+        eA, phi = eA + full[0], full[1]
+    return eA, phi
+
+
 def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, breakage, damage,
                    n_damage: int, n_nodes: int) -> StageOperator:
     """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
@@ -169,20 +278,9 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
     sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
     prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
     sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
-    lam = stats.secondary_lambda[stage]  # (N,)
     Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
-    # Poisson series of secondary impacts = expm(lam (T - I)) on the state augmented with
-    # the fragments made so far and two counters. Survivors keep their size, so the
-    # survivor block is block-diagonal per size class i with A_i = lam_i (S_i - I);
-    # fragments and counters absorb, hence expm([[A, 0], [C, 0]]) = [[e^A, 0], [C phi1(A), I]]
-    # with phi1(A) = int_0^1 e^(tA) dt, both read off one batched expm of [[A, 0], [I, 0]].
-    A = lam[:, None, None] * (sec.survive - np.eye(nd)[None])
-    Z = np.zeros((n, 2 * nd, 2 * nd))
-    Z[:, :nd, :nd] = A
-    Z[:, nd:, :nd] = np.eye(nd)[None]
-    X = scipy.linalg.expm(Z) if np.any(lam > 0) else np.broadcast_to(np.eye(2 * nd), Z.shape)
-    eA = X[:, :nd, :nd]
-    phi = X[:, nd:, :nd] * lam[:, None, None]  # (N, nd, nd), lam_i phi1(A_i)
+    counts = stats.count_mixture()
+    eA, phi = secondary_series(sec.survive, counts.weights[stage], counts.means[stage])
     # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
     surv = np.einsum("ide,ief->idf", eA, Sp)
     frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))

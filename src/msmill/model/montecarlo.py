@@ -14,8 +14,10 @@ Per step (same semantics as the expected-value solver, docs/model.md):
    a primary impact with the hit probability, at a velocity drawn from the
    mixture (clipped at 0); break with ``P_b(E, L, D)``; survivors take the
    Tavares damage and break if it reaches the threshold; survivors of the
-   primary impact draw ``K ~ Poisson(lambda)`` secondary impacts, applied one
-   after another until the parcel breaks;
+   primary impact draw their number ``K`` of secondary impacts (a component
+   ``c`` of the Poisson-mixture count distribution with probability ``w_c``,
+   then ``K ~ Poisson(lambda_c)``; one component is the paper's Poisson),
+   applied one after another until the parcel breaks;
 3. a broken parcel keeps its mass and becomes one fragment parcel whose size
    class is drawn from the appearance column (probability = mass fraction), with
    damage 0 (unbiased for the expected PSD; mass conserved exactly);
@@ -32,7 +34,7 @@ import numpy as np
 
 from msmill.errors import MsmillError
 from msmill.model.expected_value import split_damage
-from msmill.model.parameters import MixtureArrays
+from msmill.model.parameters import CountArrays, MixtureArrays
 from msmill.model.submodels import ImpactStatistics, specific_energy_kwh_t
 
 
@@ -75,6 +77,15 @@ def _sample_mixture(rng: np.random.Generator, mix: MixtureArrays, st: np.ndarray
     mu = mix.means_m_s[st, cls, k]
     sd = mix.sigmas_m_s[st, cls, k]
     return np.maximum(mu + sd * rng.standard_normal(st.size), 0.0)
+
+
+def _sample_count(rng: np.random.Generator, counts: CountArrays, st: np.ndarray, cls: np.ndarray) -> np.ndarray:
+    """Secondary-impact counts: draw the mixture component, then the Poisson count of its mean."""
+    w = counts.weights[st, cls]  # (m, C)
+    if w.shape[1] == 1:
+        return rng.poisson(counts.means[st, cls, 0])
+    c = _sample_class(rng, w)
+    return rng.poisson(counts.means[st, cls, c])
 
 
 def _sample_class(rng: np.random.Generator, cols: np.ndarray) -> np.ndarray:
@@ -166,6 +177,8 @@ class MonteCarloSolver:
             dmg[s] = ds
             return broke
 
+        count_mix = stats.count_mixture()
+
         def impacts(idx: np.ndarray, collect: bool) -> None:
             st = comp[idx] - 1
             hit = rng.random(idx.size) < stats.hit_probability[st, cls[idx]]
@@ -174,7 +187,7 @@ class MonteCarloSolver:
                 return
             broke = impact(h, stats.primary_velocity, collect, "primary")
             alive = h[~broke]
-            k = rng.poisson(stats.secondary_lambda[comp[alive] - 1, cls[alive]])
+            k = _sample_count(rng, count_mix, comp[alive] - 1, cls[alive])
             j = 0
             while alive.size:
                 sel = k > j

@@ -14,7 +14,8 @@ Providers shipped here
     format defined in :func:`read_simple_table`. Values are interpolated
     linearly in ``ln(size)`` between runs; velocity mixtures are interpolated
     as a mixture of the two neighbouring mixtures (weights ``1 - w`` and
-    ``w``), which keeps every interpolated distribution valid.
+    ``w``), which keeps every interpolated distribution valid; secondary-impact
+    count distributions (Poisson mixtures) are interpolated the same way.
 :class:`RunProvider`
     The statistics of one DEM run (:class:`msmill.stageparams.RunStatistics`),
     applied to every size.
@@ -36,8 +37,18 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
-from msmill.providers_base import MixtureArrays, StageParameterProvider, StageParameters
-from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
+from msmill.providers_base import (
+    CountArrays,
+    MixtureArrays,
+    StageParameterProvider,
+    StageParameters,
+)
+from msmill.stageparams import (
+    CountDistribution,
+    RunStatistics,
+    StageParameterTable,
+    StageStatistics,
+)
 
 __all__ = [
     "RunProvider",
@@ -119,12 +130,25 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
             arr[1, i, :, : w.shape[1]] = m
             arr[2, i, :, : w.shape[1]] = sd
         out[key] = arr
+    out["sc"] = _count_rows(runs)
     has_regions = all(s.region_weights is not None and s.region_streams is not None
                       for r in runs for s in r.stages)
     if has_regions:
         out["rw"] = np.array([[s.region_weights for s in r.stages] for r in runs])
         out["rs"] = np.array([[s.region_streams for s in r.stages] for r in runs])
     return out
+
+
+def _count_rows(runs: list[RunStatistics]) -> np.ndarray:
+    """Secondary-count mixtures stacked as (2, R, S, C): weights, means (padding weight 0)."""
+    counts = [[s.secondary_count or CountDistribution.poisson(s.secondary_lambda) for s in r.stages] for r in runs]
+    c = max(d.n_components for row in counts for d in row)
+    arr = np.zeros((2, len(runs), runs[0].n_stages, c))
+    for i, row in enumerate(counts):
+        for j, d in enumerate(row):
+            arr[0, i, j, : d.n_components] = d.weights
+            arr[1, i, j, : d.n_components] = d.means
+    return arr
 
 
 def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
@@ -168,6 +192,15 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         sig = np.concatenate([p0[2], p1[2]], axis=-1)
         return MixtureArrays(weights, means, sig)
 
+    def count_mix(arr: np.ndarray) -> CountArrays:
+        # arr (2, R, S, C): as for velocities, the interpolated pmf is the (1-w, w) mixture of the
+        # neighbours' pmfs, so its mean is the interpolated secondary_lambda
+        p0 = np.moveaxis(arr[:, j], 1, 2)  # (2, S, N, C)
+        p1 = np.moveaxis(arr[:, j1], 1, 2)
+        ww = w[None, :, None]
+        return CountArrays(np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1),
+                           np.concatenate([p0[1], p1[1]], axis=-1))
+
     streams = lin(a["streams"])
     streams /= streams.sum(axis=-1, keepdims=True)
     rw = rs = None
@@ -194,6 +227,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         region_weights=rw,
         region_streams=rs,
         source=source,
+        secondary_count=count_mix(a["sc"]),
     )
 
 

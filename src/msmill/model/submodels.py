@@ -27,7 +27,7 @@ import numpy as np
 
 from msmill import breakage as _bk
 from msmill.errors import MsmillInputError
-from msmill.model.parameters import MixtureArrays, StageParameters
+from msmill.model.parameters import CountArrays, MixtureArrays, StageParameters
 from msmill.psd import SizeGrid
 
 KWH_T_PER_J_KG = 1.0 / _bk.J_KG_PER_KWH_T  # 1 kWh/t = 3600 J/kg
@@ -133,12 +133,22 @@ class ImpactStatistics:
         Poisson mean of secondary impacts after a non-breaking primary impact.
     secondary_velocity : MixtureArrays
         Secondary impact velocity (m/s), clipped at 0 when used.
+    secondary_count : CountArrays or None
+        Poisson-mixture distribution of the number of secondary impacts (mean
+        ``secondary_lambda``); None: Poisson of ``secondary_lambda``.
     """
 
     hit_probability: np.ndarray
     primary_velocity: MixtureArrays
     secondary_lambda: np.ndarray
     secondary_velocity: MixtureArrays
+    secondary_count: CountArrays | None = None
+
+    def count_mixture(self) -> CountArrays:
+        """The secondary-count distribution the solvers use (S, N, C)."""
+        if self.secondary_count is None:
+            return CountArrays.poisson(self.secondary_lambda)
+        return self.secondary_count
 
 
 @runtime_checkable
@@ -225,7 +235,7 @@ class DemImpacts:
 
     def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
         return ImpactStatistics(params.hit_probability, params.primary_velocity,
-                                params.secondary_lambda, params.secondary_velocity)
+                                params.secondary_lambda, params.secondary_velocity, params.secondary_count)
 
     def __repr__(self) -> str:
         return "DemImpacts()"
@@ -258,7 +268,8 @@ class SpeedScaledImpacts:
         ratio = np.where(design > 0, speeds / np.where(design > 0, design, 1.0), 1.0)
         f = ratio[:, None, None]
         return ImpactStatistics(params.hit_probability, params.primary_velocity.scaled(f),
-                                params.secondary_lambda, params.secondary_velocity.scaled(f))
+                                params.secondary_lambda, params.secondary_velocity.scaled(f),
+                                params.secondary_count)
 
     def __repr__(self) -> str:
         return "SpeedScaledImpacts()"

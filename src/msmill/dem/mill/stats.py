@@ -44,6 +44,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
   impact exceeds ``2 V/(1 - e)`` = 2.5 V at e = 0.2 (2.8 V at the 0.29 the
   engine's step realises at worst, ``docs/dem.md``); the engine faults this
   guards against gave 10^2-10^4 m/s.
+* **Secondary counts**: the number of secondary impacts of each primary
+  impact (in the window) is kept as a histogram and fitted by every count
+  family of :class:`msmill.distributions.CountFamilySelection`; the family with
+  the lowest ``StatsSettings.count_criterion`` (BIC) becomes
+  ``secondary_count``, ``secondary_lambda`` is its mean.
 * **Sampling errors**: standard errors by batch means: the tag times (or
   primary impacts, for the secondary statistics) are split into
   ``n_batches`` consecutive blocks, the statistic is computed per block and
@@ -58,7 +63,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from msmill.distributions import GaussianMixtureKLFit, PoissonKLFit
+from msmill.distributions import CountFamilySelection, GaussianMixtureKLFit, count_batch_stderr
 from msmill.machine import Machine
 from msmill.stageparams import (
     N_REGIONS,
@@ -97,12 +102,16 @@ class StatsSettings:
     min_fit_samples : int
         Fewer velocity samples than this: the mixture is a single Gaussian
         from the sample mean and standard deviation (KL still reported).
+    count_criterion : {"bic", "aic"}
+        Information criterion choosing the secondary-impact count family
+        (:class:`msmill.distributions.CountFamilySelection`).
     """
 
     min_secondary_speed_m_s: float = 0.5
     k_max: int = 4
     n_batches: int = 5
     min_fit_samples: int = 20
+    count_criterion: str = "bic"
 
 
 @dataclass
@@ -509,13 +518,8 @@ def compute_statistics(
         sel = pr_stage == s
         cnt = counts_all[pr_rows[sel]]
         v_sec = vn[sec_rows[sec_stage == s]]
-        if cnt.size:
-            pf = PoissonKLFit().fit(cnt)
-            lam, kl_l = pf.lambda_, pf.kl_
-            bl = [cnt[pr_batch[sel] == b].mean() for b in range(s_.n_batches) if np.any(pr_batch[sel] == b)]
-            se["secondary_lambda"] = _batch_se(np.asarray(bl))
-        else:
-            pf, lam, kl_l = None, 0.0, None
+        count_fit = _fit_counts(cnt, pr_batch[sel], s_, se)
+        pf = count_fit["fit"]
         gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
         if v_prim.size > 1:
             se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
@@ -539,14 +543,17 @@ def compute_statistics(
             region_weights=rw, region_streams=rs,
             primary_hit_probability=min(max(ph, 0.0), 1.0),
             primary_velocity=gm_p, primary_velocity_kl=kl_p,
-            secondary_lambda=float(lam), secondary_lambda_kl=kl_l,
+            secondary_lambda=count_fit["lambda"], secondary_lambda_kl=count_fit["poisson_kl"],
+            secondary_count=count_fit["distribution"], secondary_count_histogram=count_fit["histogram"],
+            secondary_count_selection=count_fit["selection"],
             secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
             n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
             n_transport_samples=n_tr, mean_holdup_kg=float(holdup_kg.get(s, 0.0)),
             sampling_error=se,
         ))
         samples[s] = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
-        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf}
+        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf,
+                   "secondary_count_families": count_fit["families"]}
 
     # ---- run level
     rem = removed
@@ -561,6 +568,7 @@ def compute_statistics(
     prov = dict(provenance or {})
     prov.setdefault("stats", {}).update({
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
+        "count_criterion": s_.count_criterion,
         "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
         "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
         "n_events_blow_up": int(bad_ev.sum()), "n_touch_events_vn_le_0": n_touch,
@@ -577,6 +585,26 @@ def compute_statistics(
         provenance=prov,
     )
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+
+
+def _fit_counts(cnt: np.ndarray, batch: np.ndarray, s_: StatsSettings, se: dict[str, float]) -> dict[str, Any]:
+    """Poisson and family-selected fits of one stage's secondary-impact counts (fills ``se``).
+
+    Standard errors by batch means: ``secondary_lambda`` (the mean count) and
+    every native parameter of the chosen family, as ``secondary_count.<name>``.
+    """
+    if cnt.size == 0:
+        return {"fit": None, "families": None, "lambda": 0.0, "poisson_kl": None, "distribution": None,
+                "histogram": [], "selection": None}
+    hist = np.bincount(cnt)
+    sel = CountFamilySelection(criterion=s_.count_criterion).fit_histogram(hist)
+    dist = sel.to_count_distribution()
+    batches = [cnt[batch == b] for b in range(s_.n_batches) if np.any(batch == b)]
+    se["secondary_lambda"] = _batch_se(np.asarray([b.mean() for b in batches]))
+    se.update({f"secondary_count.{k}": v for k, v in count_batch_stderr(sel.chosen_, batches).items()
+               if k != "mean"})
+    return {"fit": sel.fits_["poisson"], "families": sel, "lambda": dist.mean, "poisson_kl": sel.poisson_kl_,
+            "distribution": dist, "histogram": [int(h) for h in hist], "selection": sel.to_selection()}
 
 
 def _fit_velocity(v: np.ndarray, s_: StatsSettings) -> tuple[GaussianMixture, float | None, Any]:
