@@ -7,9 +7,9 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
+from msmill.cli.console import console
 from msmill.errors import MsmillInputError
 
 app = typer.Typer(help="Breakage of a single impact: energy, P_b, t10, t_n and fragment PSD.",
@@ -58,7 +58,7 @@ def table_cmd(
     parent = int(grid.class_of(size_mm))
     frag = br.fragment_psd(grid, parent, t10, ore.tn)
 
-    con = Console(width=120)
+    con = console(120)
     head = Table(title=f"impact of a {size_mm:g} mm {ore.name} rock at {velocity:g} m/s")
     head.add_column("quantity")
     head.add_column("value")

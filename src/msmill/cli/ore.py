@@ -6,12 +6,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
+from msmill.cli.console import console
 from msmill.errors import MsmillInputError
 
 if TYPE_CHECKING:
+    from rich.console import Console
+
     from msmill.ore import Ore
 
 app = typer.Typer(help="Ore parameter sets: list, show, calibrate L_ref from drop-weight data.",
@@ -19,7 +21,7 @@ app = typer.Typer(help="Ore parameter sets: list, show, calibrate L_ref from dro
 
 
 def _console() -> Console:
-    return Console(width=140, soft_wrap=False)
+    return console(140)
 
 
 def resolve_ore(name_or_path: str) -> Ore:

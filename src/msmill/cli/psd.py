@@ -6,8 +6,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
+
+from msmill.cli.console import console
 
 app = typer.Typer(help="Particle size distributions: percentiles and distribution fits.",
                   no_args_is_help=True)
@@ -24,7 +25,7 @@ def stats_cmd(
     from msmill.psd import PSD
 
     psd = PSD.read_csv(path)
-    con = Console(width=120)
+    con = console(120)
     pcts = sorted({50.0, 80.0, *(percentile or [])})
     table = Table(title=f"{path.name}: {len(psd.sizes_mm)} sieves, {psd.sizes_mm[0]:.4g}-{psd.sizes_mm[-1]:.4g} mm")
     table.add_column("statistic")

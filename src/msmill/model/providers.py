@@ -35,7 +35,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
+from msmill.errors import MsmillInputError, OutOfDomainWarning, SummaryNote, from_validation_error
 from msmill.model.parameters import MixtureArrays, StageParameters
 from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
 
@@ -154,7 +154,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
             f"{int(outside.sum())} of {sizes.size} size classes "
             f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
             f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
-            "to the nearest size", OutOfDomainWarning, stacklevel=3)
+            "to the nearest size", SummaryNote, stacklevel=3)
     a = _run_arrays(runs)
     _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
@@ -194,7 +194,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
-                      f"using their mean {times.mean():g} s as the time step", OutOfDomainWarning,
+                      f"using their mean {times.mean():g} s as the time step", SummaryNote,
                       stacklevel=3)
     d = runs[0].design
     return StageParameters(
