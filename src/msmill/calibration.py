@@ -88,19 +88,22 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", float(df[col].iloc[i]), allowed)
     if len(df) < 2:
         raise MsmillInputError(f"{origin}.rows", len(df), "at least 2 data rows")
+    for col in ("t10_pct", "ecs_kwh_t"):
+        v = df[col].to_numpy()
+        if np.ptp(v) == 0:
+            raise MsmillInputError(f"{origin}.{col}", f"{v[0]:g} in every row",
+                                   "values that vary between rows (a constant column has nothing to fit)")
+    if not (df["t10_pct"] > 0).any():
+        raise MsmillInputError(f"{origin}.t10_pct", "0 in every row", "some rows with t10 > 0 %")
     return df.reset_index(drop=True)
 
 
 def read_dropweight_csv(path: str | Path) -> pd.DataFrame:
     """Read and validate a drop-weight CSV (``#`` lines are comments)."""
+    from msmill.validate import read_csv
+
     p = Path(path)
-    if not p.is_file():
-        raise MsmillInputError("path", str(p), "an existing CSV file")
-    try:
-        frame = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise MsmillInputError("path", str(p), f"a readable CSV file ({exc})") from exc
-    return validate_dropweight_frame(frame, origin=p.name)
+    return validate_dropweight_frame(read_csv(p, "path", "drop-weight CSV file"), origin=p.name)
 
 
 @dataclass(frozen=True)
@@ -240,6 +243,8 @@ def calibrate(
     except np.linalg.LinAlgError:
         se = np.full(p, np.inf)
     ss_tot = float(np.sum((t10 - t10.mean()) ** 2))
+    at_bound = bool(np.any(np.isclose(sol.x, lo, rtol=1e-6) | np.isclose(sol.x, hi, rtol=1e-6)))
+    message = str(sol.message) + ("; a fitted parameter sits at its bound" if at_bound else "")
     fitted_vals = t10_model_pct(size, ecs, **params)
     table = df.assign(t10_fit_pct=fitted_vals, residual_pct=t10 - fitted_vals)
     return CalibrationResult(
@@ -250,6 +255,6 @@ def calibrate(
         rmse_pct=math.sqrt(ssr / n),
         n_points=n,
         residuals=table,
-        success=bool(sol.success),
-        message=str(sol.message),
+        success=bool(sol.success) and not at_bound and bool(np.all(np.isfinite(se))),
+        message=message,
     )

@@ -226,14 +226,10 @@ class Ore(BaseModel):
     @classmethod
     def from_toml(cls, path: str | Path) -> Ore:
         """Load an ore from a TOML file (layout in the module docstring)."""
-        p = Path(path)
-        if not p.is_file():
-            raise MsmillInputError("path", str(p), "an existing ore TOML file")
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise MsmillInputError("path", str(p), f"valid TOML ({exc})") from exc
-        return cls.from_dict(data, origin=p.name)
+        from msmill.validate import read_toml
+
+        data = read_toml(path, "ore file", "ore TOML file")
+        return cls.from_dict(data, origin=Path(path).name)
 
     def to_dict(self) -> dict[str, Any]:
         """The sectioned TOML layout (``l_ref_mm`` omitted when it is the default)."""

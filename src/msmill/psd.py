@@ -375,15 +375,9 @@ class PSD:
 
         Lines starting with ``#`` are comments.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise MsmillInputError("path", str(path), "an existing CSV file")
-        try:
-            frame = pd.read_csv(path, comment="#", skipinitialspace=True)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-            raise MsmillInputError("path", str(path), f"a readable CSV file ({exc})") from exc
-        frame.columns = [str(c).strip() for c in frame.columns]
-        return cls.from_frame(frame, grid)
+        from msmill.validate import read_csv
+
+        return cls.from_frame(read_csv(path, "path", "PSD CSV file"), grid)
 
     @classmethod
     def single_class(cls, grid: SizeGrid, size_mm: float) -> PSD:

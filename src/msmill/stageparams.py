@@ -213,8 +213,10 @@ class RunStatistics(_JsonDocument):
     @classmethod
     def from_json(cls, path_or_text: str | Path) -> RunStatistics:
         """Read from a JSON file path or JSON text; errors are one line."""
+        from msmill.validate import read_text
+
         p = Path(path_or_text) if not str(path_or_text).lstrip().startswith("{") else None
-        text = p.read_text(encoding="utf-8") if p is not None else str(path_or_text)
+        text = read_text(p, str(p), "JSON file") if p is not None else str(path_or_text)
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:

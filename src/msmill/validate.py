@@ -50,6 +50,7 @@ __all__ = [
     "number",
     "passing",
     "pydantic_errors",
+    "read_csv",
     "read_text",
     "read_toml",
     "sizes",
@@ -66,7 +67,7 @@ LIMITS: dict[str, tuple[int, str]] = {
     "damage_classes": (64, "damage classes"),
     "quadrature_nodes": (64, "quadrature nodes"),
     "grid_classes": (2_000, "size classes of the model grid"),
-    "dem_particles": (2_000_000, "DEM particles in the mill at once"),
+    "dem_particles": (5_000_000, "DEM rocks fed during a run"),
     "dem_steps": (100_000_000, "DEM time steps"),
     "csv_rows": (50_000_000, "CSV rows"),
 }
@@ -181,6 +182,29 @@ def read_toml(path: Any, field: str, kind: str = "TOML file") -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise MsmillInputError(Path(path).name, str(exc).split("\n")[0], f"valid TOML ({kind})") from None
+
+
+def read_csv(path: Any, field: str, kind: str = "CSV file") -> Any:
+    """Read an existing CSV file (``#`` lines are comments) into a pandas DataFrame.
+
+    Errors (not a file, not UTF-8, unparsable, no rows, more than
+    ``LIMITS["csv_rows"]`` rows) are one line naming the file.
+    """
+    import pandas as pd
+
+    p = existing_file(path, field, kind)
+    try:
+        frame = pd.read_csv(p, comment="#", skipinitialspace=True, encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise MsmillInputError(field, str(path), f"a UTF-8 {kind} (byte {exc.start} is not UTF-8)") from None
+    except pd.errors.EmptyDataError:
+        raise MsmillInputError(field, str(path), f"a {kind} with a header and rows (it is empty)") from None
+    except (pd.errors.ParserError, ValueError, OSError) as exc:
+        first = " ".join(str(exc).split())[:120]
+        raise MsmillInputError(field, str(path), f"a readable {kind} ({first})") from None
+    limit(len(frame), field, "csv_rows")
+    frame.columns = [str(c).strip() for c in frame.columns]
+    return frame
 
 
 def sizes(values: Any, field: str, min_len: int = 1, unit: str = "mm") -> np.ndarray:

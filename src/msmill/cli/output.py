@@ -167,3 +167,21 @@ def atomic_output(folder: str | Path, *, field: str = "--out", inputs: Iterable[
         _write_json(out / MANIFEST, manifest)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, field: str = "--out") -> Path:
+    """Write one file atomically: a hidden temporary file beside it, then ``os.replace``."""
+    p = Path(path).expanduser()
+    if p.is_dir():
+        raise MsmillInputError(field, str(path), "a file path (this is a directory)")
+    check_writable(p.parent if str(p.parent) else Path("."), field)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p

@@ -27,7 +27,6 @@ from the one the statistics were measured at also warns.
 from __future__ import annotations
 
 import csv
-import tomllib
 import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -38,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from msmill.errors import MsmillInputError, OutOfDomainWarning, SummaryNote, from_validation_error
 from msmill.model.parameters import MixtureArrays, StageParameters
 from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
+from msmill.validate import existing_file, read_text, read_toml
 
 __all__ = [
     "RunProvider",
@@ -237,9 +237,7 @@ class TableProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> TableProvider:
         """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing table file")
+        p = existing_file(path, "stage_parameters", "stage-parameter table file")
         if p.suffix.lower() in (".toml", ".csv"):
             return cls(read_simple_table(p), source=p.name)
         return cls(StageParameterTable.from_json(p), source=p.name)
@@ -278,9 +276,7 @@ class RunProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> RunProvider:
         """Read a :class:`RunStatistics` JSON file."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing run-statistics file")
+        p = existing_file(path, "stage_parameters", "run-statistics file")
         return cls(RunStatistics.from_json(p), source=p.name)
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
@@ -316,7 +312,7 @@ def load_provider(path: str | Path) -> TableProvider | RunProvider:
     p = default_table_path() if str(path) == DEFAULT_TABLE else Path(path)
     if p.suffix.lower() == ".json" and p.exists():
         try:
-            kind = json.loads(p.read_text(encoding="utf-8")).get("kind")
+            kind = json.loads(read_text(p, "stage_parameters", "JSON file")).get("kind")
         except (json.JSONDecodeError, AttributeError):
             kind = None
         if kind != "stage_parameter_table":
@@ -397,13 +393,10 @@ def read_simple_table(path: str | Path) -> StageParameterTable:
     """
     p = Path(path)
     if p.suffix.lower() == ".toml":
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
-            raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+        data = read_toml(p, "stage_parameters", "stage-parameter TOML file")
     else:
-        with p.open(newline="", encoding="utf-8") as fh:
-            raw = [r for r in csv.DictReader(line for line in fh if not line.lstrip().startswith("#"))]
+        lines = read_text(p, "stage_parameters", "stage-parameter CSV file").splitlines()
+        raw = [r for r in csv.DictReader(line for line in lines if not line.lstrip().startswith("#"))]
         if not raw:
             raise MsmillInputError(p.name, "no rows", "a CSV table with a header and rows")
         missing = [c for c in _DESIGN_COLS if c not in raw[0]]
