@@ -75,6 +75,10 @@ def from_validation_error(exc: Any, prefix: str = "") -> MsmillInputError:
     """
     err = exc.errors()[0]
     loc = ".".join(str(p) for p in err.get("loc", ()))
+    inner = (err.get("ctx") or {}).get("error")
+    if isinstance(inner, MsmillInputError):  # already one line: keep it, add the location
+        parts = [p for p in (prefix, loc, inner.field) if p]
+        return MsmillInputError(".".join(parts), inner.value, inner.allowed)
     msg = str(err.get("msg", "invalid value"))
     for lead in ("Value error, ", "Assertion failed, "):
         if msg.startswith(lead):

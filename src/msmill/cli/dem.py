@@ -37,7 +37,14 @@ def run_cmd(
 
     # every input is checked, and --out probed for writing, before the (long) simulation starts
     machine = Machine.default() if str(machine_toml) == "default" else Machine.from_toml(machine_toml)
-    op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor, gate_deg=gate_deg)
+    try:
+        op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor,
+                            gate_deg=gate_deg)
+    except MsmillInputError as exc:  # name the options as typed
+        names = {"feed_tph": "--feed-tph", "speed_rpm": "--speed-rpm", "bottom_speed_factor": "--bottom-factor",
+                 "gate_deg": "--gate-deg"}
+        field = "/".join(names.get(f, f) for f in exc.field.split("/"))
+        raise MsmillInputError(field, exc.value, exc.allowed) from None
     settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")

@@ -165,7 +165,7 @@ class RunFile(_Section):
     @classmethod
     def from_toml(cls, path: str | Path) -> RunFile:
         """Read and validate a run file; errors are one line naming the field."""
-        data = read_toml(path, "run file", "run TOML file")
+        data = read_toml(path, "run file", "TOML file")
         p = Path(path).expanduser()
         missing = [k for k in ("ore", "feed", "operating") if k not in data]
         if missing:
