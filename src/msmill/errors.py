@@ -77,14 +77,17 @@ def from_validation_error(exc: Any, prefix: str = "") -> MsmillInputError:
     loc = ".".join(str(p) for p in err.get("loc", ()))
     inner = (err.get("ctx") or {}).get("error")
     if isinstance(inner, MsmillInputError):  # already one line: keep it, add the location
-        parts = [p for p in (prefix, loc, inner.field) if p]
+        tail = inner.field if not loc.endswith(inner.field) else ""
+        parts = [p for p in (prefix, loc, tail) if p]
         return MsmillInputError(".".join(parts), inner.value, inner.allowed)
     msg = str(err.get("msg", "invalid value"))
     for lead in ("Value error, ", "Assertion failed, "):
         if msg.startswith(lead):
             msg = msg[len(lead):]
     value = err.get("input")
-    if isinstance(value, dict):
+    if err.get("type") == "missing":
+        value, msg = None, "a value (this field is required)"
+    elif isinstance(value, dict):
         # a model-level check: name the input keys its message mentions, not the whole dict
         import re
 

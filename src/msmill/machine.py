@@ -56,9 +56,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
+from msmill.validate import InputModel
 
 __all__ = ["DESIGN_SPACE", "Deflector", "Machine", "OperatingPoint"]
 
@@ -85,23 +86,10 @@ MAX_SPEED_RPM = 10_000.0
 MAX_FEED_TPH = 10_000.0
 
 
-class _Model(BaseModel):
+class _Model(InputModel):
     """Frozen, strict-keyed pydantic base: the constructor raises one-line ``MsmillInputError``."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as exc:
-            raise from_validation_error(exc) from None
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_bools(cls, data: Any) -> Any:
-        from msmill.validate import reject_bools
-
-        return reject_bools(cls, data)
 
 
 class Deflector(_Model):

@@ -37,16 +37,17 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
+from msmill.validate import InputModel
 
 SCHEMA_VERSION = 1
 N_REGIONS = 6  # horizontal regions along the rotor axis (paper Section 3.1.2)
 _SUM_TOL = 1e-6
 
 
-class _Frozen(BaseModel):
+class _Frozen(InputModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 

@@ -35,12 +35,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ValidationError, model_validator
 
 from msmill.errors import MsmillInputError
 
 __all__ = [
     "LIMITS",
     "MAX_TEXT_BYTES",
+    "InputModel",
     "InputWarning",
     "exclusive",
     "existing_dir",
@@ -71,6 +73,28 @@ LIMITS: dict[str, tuple[int, str]] = {
     "dem_steps": (100_000_000, "DEM time steps"),
     "csv_rows": (50_000_000, "CSV rows"),
 }
+
+
+class InputModel(BaseModel):
+    """pydantic base of msmill's public models: constructing one with bad input raises a one-line
+    :class:`MsmillInputError` naming the field (``OperatingPoint(feed_tph=-30)`` ->
+    ``feed_tph: got -30; allowed: ...``), not a multi-line ``ValidationError``; and ``true``/``false``
+    is not accepted for a number. ``model_validate`` still raises ``ValidationError`` (loaders convert
+    it with their file name as prefix).
+    """
+
+    def __init__(self, /, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            from msmill.errors import from_validation_error
+
+            raise from_validation_error(exc) from None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bools(cls, data: Any) -> Any:
+        return reject_bools(cls, data)
 
 
 class InputWarning(UserWarning):

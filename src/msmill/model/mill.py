@@ -40,6 +40,9 @@ J_PER_KWH = 3.6e6
 #: Fewest Monte-Carlo steps accepted (``mc_steps``): the mill needs ~100 characteristic
 #: times to fill, so a handful of steps reports the filling mill's first trickle.
 MIN_MC_STEPS = 50
+#: Shortfall of the Monte-Carlo product rate below the feed rate over the collection
+#: window above which the run is reported as not at steady state.
+MC_STEADY_TOL = 0.1
 #: Centred moving-average window (steps) of the Monte-Carlo product rate for the
 #: time to steady state.
 MC_SMOOTHING_STEPS = 25
@@ -340,6 +343,12 @@ class Mill:
         run = solver.run(grid.edges_mm, streams, stats, self.breakage, self.damage, feed.fractions,
                          tps, n_steps, warm, self.impacted)
         coll = run.product[warm:].sum(axis=0)
+        out_ratio = float(coll.sum()) / max((n_steps - warm) * tps, 1e-300)
+        if out_ratio < 1.0 - MC_STEADY_TOL:
+            warnings.warn(f"Monte Carlo with mc_steps={n_steps}: over its last {n_steps - warm} steps the mill "
+                          f"put out {100 * out_ratio:.3g} % of its feed, so it was still filling and the "
+                          "product PSD is not the steady one; raise mc_steps or leave it unset",
+                          InputWarning, stacklevel=4)
         per = {k: v / (n_steps - warm) for k, v in run.counts.items()}  # per step
         notes = [*notes, f"Monte Carlo: {self.parcels_per_step} parcels/step, {n_steps} steps, "
                  f"statistics over the last {n_steps - warm}, seed {self.seed}"]

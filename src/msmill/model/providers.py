@@ -77,7 +77,7 @@ def _check_operating_point(design, stage_speeds_rpm, feed_tph, gate_deg, source:
         a = np.asarray(stage_speeds_rpm, dtype=float)
         b = np.asarray(design.stage_speeds_rpm, dtype=float)
         if a.shape != b.shape or np.any(np.abs(a - b) > _REL_TOL * np.maximum(b, 1.0)):
-            diffs.append(f"stage speeds {list(np.round(a, 1))} rpm vs {list(np.round(b, 1))} rpm")
+            diffs.append(f"stage speeds {np.round(a, 1).tolist()} rpm vs {np.round(b, 1).tolist()} rpm")
     if feed_tph is not None and abs(feed_tph - design.feed_tph) > _REL_TOL * design.feed_tph:
         diffs.append(f"feed {feed_tph:g} t/h vs {design.feed_tph:g} t/h")
     if gate_deg is not None and abs(gate_deg - design.gate_deg) > 0.5:

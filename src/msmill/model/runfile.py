@@ -51,21 +51,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.mill import MIN_MC_STEPS
 from msmill.model.providers import DEFAULT_TABLE, default_table_path
-from msmill.validate import LIMITS, limit, read_toml, reject_bools
+from msmill.validate import InputModel, limit, read_toml
 
 
-class _Section(BaseModel):
+class _Section(InputModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_bools(cls, data: Any) -> Any:
-        return reject_bools(cls, data)
 
 
 class OreSection(_Section):
@@ -117,11 +119,18 @@ class ModelSection(_Section):
     breakage: str | None = None
     damage: str | None = None
     impacted: str = "refeed"
-    damage_classes: int = Field(default=8, ge=1, le=LIMITS["damage_classes"][0])
-    quadrature_nodes: int = Field(default=12, ge=1, le=LIMITS["quadrature_nodes"][0])
-    parcels_per_step: int = Field(default=2000, ge=1, le=LIMITS["parcels_per_step"][0])
-    mc_steps: int | None = Field(default=None, ge=MIN_MC_STEPS, le=LIMITS["mc_steps"][0])
+    damage_classes: int = Field(default=8, ge=1)
+    quadrature_nodes: int = Field(default=12, ge=1)
+    parcels_per_step: int = Field(default=2000, ge=1)
+    mc_steps: int | None = Field(default=None, ge=MIN_MC_STEPS)
     seed: int | None = Field(default=None, ge=0, lt=2**63)
+
+    @field_validator("damage_classes", "quadrature_nodes", "parcels_per_step", "mc_steps")
+    @classmethod
+    def _limits(cls, v: int | None, info: ValidationInfo) -> int | None:
+        if v is not None:
+            limit(v, info.field_name)  # resource limits, msmill.validate.LIMITS
+        return v
 
 
 class GridSection(_Section):
