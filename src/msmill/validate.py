@@ -65,7 +65,7 @@ MAX_TEXT_BYTES = 64 * 2**20
 LIMITS: dict[str, tuple[int, str]] = {
     "parcels_per_step": (1_000_000, "Monte-Carlo parcels per step"),
     "mc_steps": (200_000, "Monte-Carlo steps"),
-    "parcels_total": (200_000_000, "Monte-Carlo parcels (parcels_per_step x steps)"),
+    "parcels_total": (50_000_000, "Monte-Carlo parcels fed (parcels_per_step x steps)"),
     "damage_classes": (64, "damage classes"),
     "quadrature_nodes": (64, "quadrature nodes"),
     "grid_classes": (2_000, "size classes of the model grid"),

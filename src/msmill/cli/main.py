@@ -96,7 +96,7 @@ def run(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
-            app(args=argv, prog_name="msmill", standalone_mode=False)
+            status = app(args=argv, prog_name="msmill", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code
     except typer.Abort:
@@ -132,7 +132,8 @@ def run(argv: list[str] | None = None) -> int:
         typer.echo(f"error: internal error, a bug in msmill ({type(exc).__name__}: {msg}); "
                    "please report it (MSMILL_DEBUG=1 shows the traceback)", err=True)
         return 1
-    return 0
+    # click returns a command's typer.Exit(code) as the value in non-standalone mode
+    return status if isinstance(status, int) else 0
 
 
 def main() -> None:

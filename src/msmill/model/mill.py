@@ -339,6 +339,8 @@ class Mill:
             t_ss = time_to_steady_state(np.arange(1, prod.size + 1), prod / tps, 1.0, tol=0.001)
             warm = int(2 * (t_ss if np.isfinite(t_ss) else prod.size)) + 10
             n_steps = warm + 200
+        limit(self.parcels_per_step * n_steps, f"parcels_per_step x steps ({self.parcels_per_step} x {n_steps})",
+              "parcels_total")
         solver = MonteCarloSolver(self.parcels_per_step, self.seed)
         run = solver.run(grid.edges_mm, streams, stats, self.breakage, self.damage, feed.fractions,
                          tps, n_steps, warm, self.impacted)
