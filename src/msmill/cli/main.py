@@ -72,6 +72,10 @@ def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"warning: {text}\n"
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    (file or sys.stderr).write(_format_warning(message, category, filename, lineno))
+
+
 def _usage_error(exc: Exception) -> int:
     ctx = getattr(exc, "ctx", None)
     where = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
@@ -95,7 +99,8 @@ def run(argv: list[str] | None = None) -> int:
     warnings.formatwarning = _format_warning
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("default")
+            warnings.simplefilter("default")  # each distinct warning once
+            warnings.showwarning = _show_warning
             status = app(args=argv, prog_name="msmill", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code

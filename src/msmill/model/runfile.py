@@ -150,7 +150,7 @@ class OutputSection(_Section):
     def _sizes(self) -> OutputSection:
         c = self.csv
         if not c.endswith(".csv") or c == ".csv" or "/" in c or "\\" in c or c.startswith("."):
-            raise ValueError("csv must be a plain file name ending in .csv (no folder; see output.dir)")
+            raise ValueError("csv must be a plain file name ending in .csv, without a folder part")
         if any(not s > 0 for s in self.passing_sizes_mm):
             raise ValueError("passing_sizes_mm must be sizes > 0 mm")
         return self
