@@ -117,7 +117,7 @@ def test_calibrate_constant_t10_and_large_csv(tmp_path, capsys):
     s, e = rng.uniform(5, 50, n), rng.uniform(0.05, 3, n)
     t10 = np.clip(50 * (1 - np.exp(-0.8 * e * s / 25)) + rng.normal(0, 2, n), 0, 100)
     big = tmp_path / "big.csv"
-    big.write_text("size_mm,ecs_kwh_t,t10_pct\n" + "".join(f"{a:.4f},{b:.4f},{c:.3f}\n" for a, b, c in zip(s, e, t10)))
+    big.write_text("size_mm,ecs_kwh_t,t10_pct\n" + "".join(f"{a:.4f},{b:.4f},{c:.3f}\n" for a, b, c in zip(s, e, t10, strict=True)))
     assert run(["ore", "calibrate", str(big)]) == 0
     out = capsys.readouterr().out
     assert f"the 30 largest of {n} rows" in out

@@ -53,6 +53,12 @@ def t10_model_pct(
     return A_pct * -np.expm1(-x)
 
 
+#: Plausibility bounds of drop-weight data: drop-weight and JK rotary breakage tests span
+#: about 0.01-5 kWh/t on 10-100 mm rocks; beyond these a row is a unit or typing error.
+MAX_ECS_KWH_T = 100.0
+MAX_SIZE_MM = 1000.0
+
+
 def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.DataFrame:
     """Check a drop-weight table and return it with float columns ``size_mm, ecs_kwh_t, t10_pct``.
 
@@ -78,8 +84,9 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", df[col].iloc[i], "a finite number")
         df[col] = vals.astype(float)
     checks = (
-        ("size_mm", df["size_mm"] <= 0, "a size > 0 mm"),
-        ("ecs_kwh_t", df["ecs_kwh_t"] < 0, "a specific energy >= 0 kWh/t"),
+        ("size_mm", (df["size_mm"] <= 0) | (df["size_mm"] > MAX_SIZE_MM), f"a size in (0, {MAX_SIZE_MM:g}] mm"),
+        ("ecs_kwh_t", (df["ecs_kwh_t"] < 0) | (df["ecs_kwh_t"] > MAX_ECS_KWH_T),
+         f"a specific energy in [0, {MAX_ECS_KWH_T:g}] kWh/t"),
         ("t10_pct", (df["t10_pct"] < 0) | (df["t10_pct"] > 100), "t10 within 0-100 %"),
     )
     for col, mask, allowed in checks:

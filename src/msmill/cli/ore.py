@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -124,6 +125,9 @@ def calibrate_cmd(
               f"converged: {res.success}")
     if fit_ab:
         con.print("note: b and L_ref enter Eq. 11 only as b/L_ref; b is fitted for the held L_ref.")
+    if math.isfinite(res.r_squared) and res.r_squared < 0:
+        con.print(f"warning: R^2 = {res.r_squared:.3g} < 0: the fitted model describes t10 worse than its "
+                  "mean; check the data's units (size_mm, ecs_kwh_t, t10_pct)")
     if not res.success:
         con.print(f"warning: the fit did not converge cleanly ({res.message}); do not use these values")
     if residuals:

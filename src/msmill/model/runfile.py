@@ -47,6 +47,7 @@ field (``ug2.toml.feed.rate_tph: got -3; allowed: ...``).
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +64,7 @@ from pydantic import (
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.mill import MIN_MC_STEPS
 from msmill.model.providers import DEFAULT_TABLE, default_table_path
-from msmill.validate import InputModel, limit, read_toml
+from msmill.validate import InputModel, InputWarning, limit, read_toml
 
 
 class _Section(InputModel):
@@ -204,7 +205,14 @@ class RunFile(_Section):
                 rr = f.rosin_rammler
                 grid = SizeGrid.geometric(self.grid.min_mm, rr.top_mm, self.grid.ratio)
                 x = grid.edges_mm[1:]
-                passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
+                with np.errstate(over="ignore", under="ignore"):  # a huge spread is a step: exp(-inf) = 0
+                    passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
+                z = min(rr.spread * math.log(rr.top_mm / rr.size_63_mm), 700.0)  # ln((top / x63)^n)
+                at_top = 100.0 * (1.0 - math.exp(-math.exp(z)))
+                if at_top < 99.0:
+                    warnings.warn(f"{self.name}.feed.rosin_rammler: only {at_top:.3g} % passes top_mm = "
+                                  f"{rr.top_mm:g} mm; the other {100 - at_top:.3g} % is put in the top class",
+                                  InputWarning, stacklevel=2)
                 passing[-1] = 100.0
                 return PSD.from_passing(x, passing, grid=grid)
             return PSD.from_passing(f.size_mm, f.passing_pct, prefix=f"{self.name}.feed.")
@@ -219,6 +227,9 @@ class RunFile(_Section):
         feed_top = float(feed.grid.edges_mm[-1])
         top = self.grid.max_mm or feed_top
         if top <= self.grid.min_mm:
+            if self.grid.max_mm is None:
+                raise MsmillInputError(f"{self.name}.grid.min_mm", self.grid.min_mm,
+                                       f"a size < the feed's top size ({feed_top:.4g} mm)")
             raise MsmillInputError(f"{self.name}.grid.max_mm", top, f"a size > grid.min_mm ({self.grid.min_mm})")
         if top < feed_top * (1 - 1e-9):
             raise MsmillInputError(f"{self.name}.grid.max_mm", self.grid.max_mm,
