@@ -24,7 +24,7 @@ def write_run(folder: Path, replace: dict[str, str] | None = None, append: str =
     """The shipped example with lines replaced (key -> new line) and text appended."""
     text = EXAMPLE.read_text(encoding="utf-8")
     for key, line in (replace or {}).items():
-        text, n = re.subn(rf"^{re.escape(key)}\s*=.*$", line, text, count=1, flags=re.M)
+        text, n = re.subn(rf"^{re.escape(key)}\s*=.*$", lambda _m, new=line: new, text, count=1, flags=re.M)
         assert n == 1, key
     p = folder / "run.toml"
     p.write_text(text + append, encoding="utf-8")
@@ -57,9 +57,11 @@ def test_not_utf8_directory_and_existing_file(tmp_path, capsys):
 
 
 def test_markup_in_title_is_printed_verbatim(tmp_path, capsys):
-    run_file = write_run(tmp_path, {"title": 'title = "[/bold] closing tag [red]"', "plots": "plots = false"})
+    # Rich markup in the terminal and matplotlib mathtext in the plot titles
+    run_file = write_run(tmp_path, {"title": 'title = "[/bold] closing tag [red] $5 \\\\frac{ $"'})
     assert run(["predict", str(run_file), "--out", str(tmp_path / "o")]) == 0
-    assert "[/bold] closing tag [red]" in capsys.readouterr().out
+    assert "[/bold] closing tag [red] $5 \\frac{ $" in capsys.readouterr().out
+    assert (tmp_path / "o" / "ug2_product_psd.png").stat().st_size > 1000
 
 
 def test_seed_parcels_and_damage_classes(tmp_path, capsys):
