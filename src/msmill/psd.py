@@ -107,7 +107,8 @@ class SizeGrid:
             Ratio between consecutive edges (> 1), default ``sqrt(2)``.
         """
         for name, v in (("min_mm", min_mm), ("max_mm", max_mm), ("ratio", ratio)):
-            if not isinstance(v, int | float | np.floating | np.integer) or not math.isfinite(v):
+            if (isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer)
+                    or not math.isfinite(v)):
                 raise MsmillInputError(name, v, "a finite number")
         if min_mm <= 0:
             raise MsmillInputError("min_mm", min_mm, "a size > 0 mm")

@@ -65,6 +65,7 @@ MAX_TEXT_BYTES = 64 * 2**20
 LIMITS: dict[str, tuple[int, str]] = {
     "parcels_per_step": (1_000_000, "Monte-Carlo parcels per step"),
     "mc_steps": (200_000, "Monte-Carlo steps"),
+    "time_steps": (1_000_000, "time steps marched by the expected-value solver"),
     "parcels_total": (50_000_000, "Monte-Carlo parcels fed (parcels_per_step x steps)"),
     "damage_classes": (64, "damage classes"),
     "quadrature_nodes": (64, "quadrature nodes"),

@@ -267,6 +267,8 @@ class Mill:
         if not isinstance(feed, PSD):
             raise MsmillInputError("feed", type(feed).__name__, "a msmill.psd.PSD")
         op = _operating_point(operating_point)
+        max_steps = integer(max_steps, "max_steps", ge=1)
+        limit(max_steps, "max_steps", "time_steps")
         with _single_threaded_blas():
             return self._run(feed, op, timeseries, max_steps)
 
