@@ -107,7 +107,7 @@ def test_psd_stats_flags_extrapolated_percentiles(tmp_path, capsys):
     p.write_text("size_mm,passing_pct\n1,60\n2,85\n4,100\n")
     assert run(["psd", "stats", str(p)]) == 0
     out = capsys.readouterr().out
-    assert "extrapolated" in out and "P50 lie outside the sieves given (1-4 mm)" in out
+    assert "extrapolated" in out and "P50 lies outside the sieves given (1-4 mm)" in out
 
 
 def test_calibrate_constant_t10_and_large_csv(tmp_path, capsys):

@@ -299,6 +299,8 @@ def reject_bools(model_cls: Any, data: Any) -> Any:
         for key, v in data.items():
             f = model_cls.model_fields.get(key)
             items = v if isinstance(v, list) else [v]
-            if f is not None and "bool" not in str(f.annotation) and any(isinstance(x, bool) for x in items):
-                raise ValueError(f"{key} must be a number or text, not true/false")
+            ann = str(f.annotation) if f is not None else ""
+            if f is not None and "bool" not in ann and any(isinstance(x, bool) for x in items):
+                what = "a number" if ("float" in ann or "int" in ann) else "a value"
+                raise ValueError(f"{key} must be {what}, not true/false")
     return data

@@ -90,5 +90,5 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
     con.print(f"solver: {result.solver}; sub-models: "
               + ", ".join(f"{k}={v}" for k, v in result.submodels.items()))
     for note in result.notes:
-        con.print(f"note: {note}")
+        con.print(f"note: {note}", soft_wrap=True)
     con.print(f"wrote {', '.join(names)} to {folder}")

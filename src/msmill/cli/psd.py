@@ -53,5 +53,6 @@ def stats_cmd(
         table.add_row(name, f"{params}; R^2 = {fit.r_squared:.4f}, RMSE = {fit.rmse_pct:.3g} %")
     con.print(table)
     if outside:
-        con.print(f"note: {', '.join(outside)} lie outside the sieves given ({lo_mm:.4g}-{hi_mm:.4g} mm): "
-                  "they are extrapolated one sieve step (log-linear) beyond the data, not measured")
+        verb = "lies" if len(outside) == 1 else "lie"
+        con.print(f"note: {', '.join(outside)} {verb} outside the sieves given ({lo_mm:.4g}-{hi_mm:.4g} mm): "
+                  "extrapolated (log-linear) beyond the data, not measured", soft_wrap=True)

@@ -18,8 +18,7 @@ from msmill.validate import LIMITS, integer, number
 
 G_M_S2 = 9.81
 #: Fraction of the smallest rock radius a rock may travel per step (the engine's default
-#: ``travel_fraction``): dt <= this x r_min / v_max, so the step count is at least
-#: duration x v_max / (this x r_min).
+#: ``travel_fraction``): dt <= this x r_min / v_max.
 TRAVEL_FRACTION = 0.1
 
 
@@ -62,17 +61,25 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
                                    "feed chute, the gaps between stages and the liner gaps)")
 
 
+def estimated_dt_s(scene: Any, settings: Any) -> float:
+    """The time step the engine will choose (s): ``safety`` x the Hertz contact time at the
+    scene's largest impact speed, capped by the travel limit, or the explicit ``dt_s``."""
+    if settings.dt_s is not None:
+        return float(settings.dt_s)
+    v = float(scene.max_impact_speed_m_s)
+    r_min_m = float(min(scene.sizes_mm)) / 2000.0
+    return min(settings.safety * scene.sim.contact_time_s(v), TRAVEL_FRACTION * r_min_m / v)
+
+
 def check_run_budget(scene: Any, settings: Any) -> None:
     """Reject a run whose step count or number of rocks fed exceeds the resource limits.
 
-    Both are estimated from the scene before the first step: steps from the
-    travel limit of the time step (a lower bound), rocks fed from the feed rate
-    and the smallest rock's mass.
+    Both are estimated from the scene before the first step: steps from
+    :func:`estimated_dt_s`, rocks fed from the feed rate and the smallest rock's mass.
     """
     duration = settings.max_time_s + settings.measure_s
+    steps = duration / estimated_dt_s(scene, settings)
     r_min_m = float(min(scene.sizes_mm)) / 2000.0
-    v = float(scene.max_impact_speed_m_s)
-    steps = duration * v / (TRAVEL_FRACTION * r_min_m)
     cap, what = LIMITS["dem_steps"]
     if steps > cap:
         raise MsmillInputError("--max-time-s/--size-mm/--speed-rpm", f"~{steps:.3g} steps",
