@@ -77,6 +77,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 
 def _usage_error(exc: Exception) -> int:
+    if type(exc).__name__ == "NoArgsIsHelpError":  # a bare group: its help, as click shows it
+        exc.show()
+        return getattr(exc, "exit_code", 2)
     ctx = getattr(exc, "ctx", None)
     where = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
     msg = exc.format_message() if hasattr(exc, "format_message") else str(exc)
