@@ -105,6 +105,13 @@ class OperatingSection(_Section):
     gate_deg: float = Field(default=40.0, ge=0, le=90)
 
 
+#: A Rosin-Rammler feed is cut at ``top_mm`` and the tail above it put in the top class;
+#: below this % passing at ``top_mm`` the cut changes the feed materially and warns
+#: (``top_mm = 5`` with ``size_63_mm = 20`` lumps 88 % of the feed; the shipped
+#: platreef example cuts a 7.6 % tail and does not warn).
+RR_MIN_PASSING_AT_TOP_PCT = 80.0
+
+
 class MachineSection(_Section):
     file: str | None = None
 
@@ -209,7 +216,7 @@ class RunFile(_Section):
                     passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
                 z = min(rr.spread * math.log(rr.top_mm / rr.size_63_mm), 700.0)  # ln((top / x63)^n)
                 at_top = 100.0 * (1.0 - math.exp(-math.exp(z)))
-                if at_top < 99.0:
+                if at_top < RR_MIN_PASSING_AT_TOP_PCT:
                     warnings.warn(f"{self.name}.feed.rosin_rammler: only {at_top:.3g} % passes top_mm = "
                                   f"{rr.top_mm:g} mm; the other {100 - at_top:.3g} % is put in the top class",
                                   InputWarning, stacklevel=2)
