@@ -224,8 +224,9 @@ def test_summary_notes_are_not_reissued_by_the_mill():
 def test_note_lists_are_not_eaten_as_markup(tmp_path, capsys):
     f = write_run(tmp_path, {"speed_rpm": "speed_rpm = 1600.0", "plots": "plots = false"})
     assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
-    out = capsys.readouterr().out
-    assert "[1600.0, 1600.0, 1600.0, 1600.0, 3200.0] rpm" in " ".join(out.split())
+    cap = capsys.readouterr()
+    assert "[1600.0, 1600.0, 1600.0, 1600.0, 3200.0] rpm" in " ".join(cap.out.split())
+    assert cap.err.count("another operating point") == 1  # each warning once
 
 
 def test_oversize_warning_from_the_api():

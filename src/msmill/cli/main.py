@@ -81,8 +81,14 @@ def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"warning: {text}\n"
 
 
+_SHOWN: set[str] = set()
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    (file or sys.stderr).write(_format_warning(message, category, filename, lineno))
+    text = _format_warning(message, category, filename, lineno)
+    if text not in _SHOWN:  # each warning once per command, wherever it was raised from
+        _SHOWN.add(text)
+        (file or sys.stderr).write(text)
 
 
 def _usage_error(exc: Exception) -> int:
@@ -113,6 +119,7 @@ def run(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("default")  # each distinct warning once
             warnings.showwarning = _show_warning
+            _SHOWN.clear()
             status = app(args=argv, prog_name="msmill", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code
