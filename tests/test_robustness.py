@@ -285,3 +285,17 @@ def test_check_writable(tmp_path):
         check_writable(tmp_path / "f" / "sub")
     assert check_writable(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
     assert not (tmp_path / "new").exists()
+
+
+def test_dem_step_estimate_matches_the_engine():
+    """The budget check's analytic time step equals the engine's own rule (20 mm slice)."""
+    from msmill.dem.mill.checks import estimated_dt_s
+    from msmill.dem.mill.run import RunSettings
+    from msmill.dem.mill.scene import build_scene
+    from msmill.machine import Machine, OperatingPoint
+
+    rs = RunSettings()
+    scene = build_scene(Machine.default(), OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40), size_mm=20.0)
+    engine = min(rs.safety * scene.sim.contact_time_s(scene.max_impact_speed_m_s),
+                 0.1 * 0.01 / scene.max_impact_speed_m_s)
+    assert estimated_dt_s(scene, rs) == pytest.approx(engine, rel=1e-9)
