@@ -44,10 +44,12 @@ def validate(
     """Predict every survey and report its K-S statistic per experiment and per ore (paper Figs. 11-13)."""
     from rich.table import Table
 
+    from msmill.cli.output import check_writable
     from msmill.errors import OutOfDomainWarning
     from msmill.model.experiments import read_experiments
     from msmill.model.validation import validate as run_validation
 
+    check_writable(out if out is not None else folder / "validation", "--out")  # before any work
     t0 = time.perf_counter()
     es = read_experiments(folder)
     ores = _ore_files(ore_file)
@@ -130,12 +132,14 @@ def calibrate(
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
 
+    from msmill.cli.output import check_writable
     from msmill.errors import OutOfDomainWarning
     from msmill.model.experiments import read_experiments
     from msmill.model.fitting import calibrate_surveys, calibrated_ore
     from msmill.model.validation import SurveyModel
     from msmill.ore import get_ore
 
+    check_writable(out if out is not None else folder / "calibration", "--out")  # before any work
     t0 = time.perf_counter()
     es = read_experiments(folder)
     con = _console()
