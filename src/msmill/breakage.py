@@ -109,7 +109,8 @@ def _damage(value: Any, name: str = "damage") -> NDArray[np.float64]:
 def velocity_to_ecs_j_kg(v_m_s: ArrayLike) -> NDArray[np.float64] | float:
     """Specific impact energy ``E_cs = v**2 / 2`` (J/kg) from the normal impact speed (m/s)."""
     v = _arr(v_m_s, "velocity_m_s")
-    return _ret(0.5 * v * v)
+    with np.errstate(over="ignore"):  # |v| > 1e154 m/s gives inf, not numpy's overflow warning
+        return _ret(0.5 * v * v)
 
 
 def j_kg_to_kwh_t(e_j_kg: ArrayLike) -> NDArray[np.float64] | float:
@@ -171,7 +172,8 @@ def breakage_probability(
     bb = _pos(b, "b", "breakability (t/kWh)")
     lref = _pos(l_ref_mm, "l_ref_mm", "reference size (mm)")
     d = _damage(damage)
-    x = bb * e * size / (lref * (1.0 - d))
+    with np.errstate(over="ignore"):  # a product beyond 1e308 is +inf: P_b = 1, its correct limit
+        x = bb * e * size / (lref * (1.0 - d))
     return _ret(-np.expm1(-x))
 
 

@@ -53,6 +53,12 @@ def t10_model_pct(
     return A_pct * -np.expm1(-x)
 
 
+#: Plausibility bounds of drop-weight data: drop-weight and JK rotary breakage tests span
+#: about 0.01-5 kWh/t on 10-100 mm rocks; beyond these a row is a unit or typing error.
+MAX_ECS_KWH_T = 100.0
+MAX_SIZE_MM = 1000.0
+
+
 def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.DataFrame:
     """Check a drop-weight table and return it with float columns ``size_mm, ecs_kwh_t, t10_pct``.
 
@@ -78,8 +84,9 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", df[col].iloc[i], "a finite number")
         df[col] = vals.astype(float)
     checks = (
-        ("size_mm", df["size_mm"] <= 0, "a size > 0 mm"),
-        ("ecs_kwh_t", df["ecs_kwh_t"] < 0, "a specific energy >= 0 kWh/t"),
+        ("size_mm", (df["size_mm"] <= 0) | (df["size_mm"] > MAX_SIZE_MM), f"a size in (0, {MAX_SIZE_MM:g}] mm"),
+        ("ecs_kwh_t", (df["ecs_kwh_t"] < 0) | (df["ecs_kwh_t"] > MAX_ECS_KWH_T),
+         f"a specific energy in [0, {MAX_ECS_KWH_T:g}] kWh/t"),
         ("t10_pct", (df["t10_pct"] < 0) | (df["t10_pct"] > 100), "t10 within 0-100 %"),
     )
     for col, mask, allowed in checks:
@@ -88,19 +95,22 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", float(df[col].iloc[i]), allowed)
     if len(df) < 2:
         raise MsmillInputError(f"{origin}.rows", len(df), "at least 2 data rows")
+    for col in ("t10_pct", "ecs_kwh_t"):
+        v = df[col].to_numpy()
+        if np.ptp(v) == 0:
+            raise MsmillInputError(f"{origin}.{col}", f"{v[0]:g} in every row",
+                                   "values that vary between rows (a constant column has nothing to fit)")
+    if not (df["t10_pct"] > 0).any():
+        raise MsmillInputError(f"{origin}.t10_pct", "0 in every row", "some rows with t10 > 0 %")
     return df.reset_index(drop=True)
 
 
 def read_dropweight_csv(path: str | Path) -> pd.DataFrame:
     """Read and validate a drop-weight CSV (``#`` lines are comments)."""
+    from msmill.validate import read_csv
+
     p = Path(path)
-    if not p.is_file():
-        raise MsmillInputError("path", str(p), "an existing CSV file")
-    try:
-        frame = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise MsmillInputError("path", str(p), f"a readable CSV file ({exc})") from exc
-    return validate_dropweight_frame(frame, origin=p.name)
+    return validate_dropweight_frame(read_csv(p, "path", "drop-weight CSV file"), origin=p.name)
 
 
 @dataclass(frozen=True)
@@ -240,6 +250,8 @@ def calibrate(
     except np.linalg.LinAlgError:
         se = np.full(p, np.inf)
     ss_tot = float(np.sum((t10 - t10.mean()) ** 2))
+    at_bound = bool(np.any(np.isclose(sol.x, lo, rtol=1e-6) | np.isclose(sol.x, hi, rtol=1e-6)))
+    message = str(sol.message) + ("; a fitted parameter sits at its bound" if at_bound else "")
     fitted_vals = t10_model_pct(size, ecs, **params)
     table = df.assign(t10_fit_pct=fitted_vals, residual_pct=t10 - fitted_vals)
     return CalibrationResult(
@@ -250,6 +262,6 @@ def calibrate(
         rmse_pct=math.sqrt(ssr / n),
         n_points=n,
         residuals=table,
-        success=bool(sol.success),
-        message=str(sol.message),
+        success=bool(sol.success) and not at_bound and bool(np.all(np.isfinite(se))),
+        message=message,
     )

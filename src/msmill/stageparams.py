@@ -57,9 +57,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
+from msmill.validate import InputModel
 
 SCHEMA_VERSION = 2
 READABLE_SCHEMA_VERSIONS = (1, 2)
@@ -67,7 +68,7 @@ N_REGIONS = 6  # horizontal regions along the rotor axis (paper Section 3.1.2)
 _SUM_TOL = 1e-6
 
 
-class _Frozen(BaseModel):
+class _Frozen(InputModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
@@ -455,8 +456,10 @@ class RunStatistics(_JsonDocument):
     @classmethod
     def from_json(cls, path_or_text: str | Path) -> RunStatistics:
         """Read from a JSON file path or JSON text; errors are one line."""
+        from msmill.validate import read_text
+
         p = Path(path_or_text) if not str(path_or_text).lstrip().startswith("{") else None
-        text = p.read_text(encoding="utf-8") if p is not None else str(path_or_text)
+        text = read_text(p, str(p), "JSON file") if p is not None else str(path_or_text)
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:

@@ -125,8 +125,11 @@ def test_higher_speed_never_coarsens(provider, feed):
 
 def test_out_of_range_sizes_and_operating_point_warn(feed):
     prov = TableProvider(synthetic_table(sizes_mm=(2.0, 30.0)), source="SYNTHETIC")
-    with pytest.warns(OutOfDomainWarning, match="clamped"):
-        Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0))
+    # sizes clamped to the table are a summary note (MillResult.notes), not a warning (issue 16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutOfDomainWarning)
+        res = Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0))
+    assert any("clamped" in n for n in res.notes)
     with pytest.warns(OutOfDomainWarning, match="another operating point"):
         Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=45.0, speed_rpm=1700.0, gate_deg=40.0))
     grid = SizeGrid.geometric(2.0, 30.0)

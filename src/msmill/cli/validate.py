@@ -18,18 +18,18 @@ from msmill.errors import MsmillInputError
 
 
 def write_files(folder: Path, files: dict[str, bytes]) -> None:
-    """Write ``files`` into ``folder``: each to a temp name first, then renamed into place."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, data in files.items():
-        tmp = folder / f".{name}.tmp"
-        tmp.write_bytes(data)
-        tmp.replace(folder / name)
+    """Write ``files`` into ``folder`` as one atomic set with a manifest (``msmill.cli.output``)."""
+    from msmill.cli.output import atomic_output
+
+    with atomic_output(folder) as stage:
+        for name, data in files.items():
+            (stage / name).write_bytes(data)
 
 
 def _console():
-    from rich.console import Console
+    from msmill.cli.console import console
 
-    return Console(width=140, soft_wrap=False)
+    return console(140)
 
 
 def validate(
@@ -44,10 +44,12 @@ def validate(
     """Predict every survey and report its K-S statistic per experiment and per ore (paper Figs. 11-13)."""
     from rich.table import Table
 
+    from msmill.cli.output import check_writable
     from msmill.errors import OutOfDomainWarning
     from msmill.model.experiments import read_experiments
     from msmill.model.validation import validate as run_validation
 
+    check_writable(out if out is not None else folder / "validation", "--out")  # before any work
     t0 = time.perf_counter()
     es = read_experiments(folder)
     ores = _ore_files(ore_file)
@@ -130,12 +132,14 @@ def calibrate(
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
 
+    from msmill.cli.output import check_writable
     from msmill.errors import OutOfDomainWarning
     from msmill.model.experiments import read_experiments
     from msmill.model.fitting import calibrate_surveys, calibrated_ore
     from msmill.model.validation import SurveyModel
     from msmill.ore import get_ore
 
+    check_writable(out if out is not None else folder / "calibration", "--out")  # before any work
     t0 = time.perf_counter()
     es = read_experiments(folder)
     con = _console()

@@ -28,7 +28,6 @@ from the one the statistics were measured at also warns.
 from __future__ import annotations
 
 import csv
-import tomllib
 import warnings
 from pathlib import Path
 from typing import Any
@@ -36,7 +35,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
+from msmill.errors import MsmillInputError, OutOfDomainWarning, SummaryNote, from_validation_error
 from msmill.providers_base import (
     CountArrays,
     MixtureArrays,
@@ -49,6 +48,7 @@ from msmill.stageparams import (
     StageParameterTable,
     StageStatistics,
 )
+from msmill.validate import existing_file, read_text, read_toml
 
 __all__ = [
     "RunProvider",
@@ -71,7 +71,7 @@ def _check_operating_point(design, stage_speeds_rpm, feed_tph, gate_deg, source:
         a = np.asarray(stage_speeds_rpm, dtype=float)
         b = np.asarray(design.stage_speeds_rpm, dtype=float)
         if a.shape != b.shape or np.any(np.abs(a - b) > _REL_TOL * np.maximum(b, 1.0)):
-            diffs.append(f"stage speeds {list(np.round(a, 1))} rpm vs {list(np.round(b, 1))} rpm")
+            diffs.append(f"stage speeds {np.round(a, 1).tolist()} rpm vs {np.round(b, 1).tolist()} rpm")
     if feed_tph is not None and abs(feed_tph - design.feed_tph) > _REL_TOL * design.feed_tph:
         diffs.append(f"feed {feed_tph:g} t/h vs {design.feed_tph:g} t/h")
     if gate_deg is not None and abs(gate_deg - design.gate_deg) > 0.5:
@@ -161,7 +161,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
             f"{int(outside.sum())} of {sizes.size} size classes "
             f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
             f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
-            "to the nearest size", OutOfDomainWarning, stacklevel=3)
+            "to the nearest size", SummaryNote, stacklevel=3)
     a = _run_arrays(runs)
     _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
@@ -210,7 +210,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
-                      f"using their mean {times.mean():g} s as the time step", OutOfDomainWarning,
+                      f"using their mean {times.mean():g} s as the time step", SummaryNote,
                       stacklevel=3)
     d = runs[0].design
     return StageParameters(
@@ -254,9 +254,7 @@ class TableProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> TableProvider:
         """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing table file")
+        p = existing_file(path, "stage_parameters", "stage-parameter table file")
         if p.suffix.lower() in (".toml", ".csv"):
             return cls(read_simple_table(p), source=p.name)
         return cls(StageParameterTable.from_json(p), source=p.name)
@@ -295,9 +293,7 @@ class RunProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> RunProvider:
         """Read a :class:`RunStatistics` JSON file."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing run-statistics file")
+        p = existing_file(path, "stage_parameters", "run-statistics file")
         return cls(RunStatistics.from_json(p), source=p.name)
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
@@ -339,7 +335,7 @@ def load_provider(path: str | Path) -> Any:
         return SurrogateProvider.from_file(p)
     if p.suffix.lower() == ".json" and p.exists():
         try:
-            kind = json.loads(p.read_text(encoding="utf-8")).get("kind")
+            kind = json.loads(read_text(p, "stage_parameters", "JSON file")).get("kind")
         except (json.JSONDecodeError, AttributeError):
             kind = None
         if kind != "stage_parameter_table":
@@ -420,13 +416,10 @@ def read_simple_table(path: str | Path) -> StageParameterTable:
     """
     p = Path(path)
     if p.suffix.lower() == ".toml":
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
-            raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+        data = read_toml(p, "stage_parameters", "stage-parameter TOML file")
     else:
-        with p.open(newline="", encoding="utf-8") as fh:
-            raw = [r for r in csv.DictReader(line for line in fh if not line.lstrip().startswith("#"))]
+        lines = read_text(p, "stage_parameters", "stage-parameter CSV file").splitlines()
+        raw = [r for r in csv.DictReader(line for line in lines if not line.lstrip().startswith("#"))]
         if not raw:
             raise MsmillInputError(p.name, "no rows", "a CSV table with a header and rows")
         missing = [c for c in _DESIGN_COLS if c not in raw[0]]

@@ -64,6 +64,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.distributions import CountFamilySelection, GaussianMixtureKLFit, count_batch_stderr
+from msmill.errors import MsmillError
 from msmill.machine import Machine
 from msmill.stageparams import (
     N_REGIONS,
@@ -72,6 +73,11 @@ from msmill.stageparams import (
     RunStatistics,
     StageStatistics,
 )
+
+
+class DemStatisticsError(MsmillError, ValueError):
+    """The recorded run cannot give statistics (e.g. no rock ever reached the stages)."""
+
 
 __all__ = [
     "MillStatistics",
@@ -210,7 +216,8 @@ def characteristic_time(
     inside = (st >= 1) & (st <= machine.n_stages)
     v = np.sqrt(snaps["vx_m_s"] ** 2 + snaps["vy_m_s"] ** 2 + snaps["vz_m_s"] ** 2).to_numpy()[inside]
     if v.size == 0 or not np.isfinite(v.mean()) or v.mean() <= 0:
-        raise ValueError("no moving rocks inside the stages: cannot compute the characteristic time")
+        raise DemStatisticsError("no moving rocks inside the stages in the measurement window: cannot compute "
+                                 "the characteristic time (was the run long enough for rock to reach the stages?)")
     speed = float(v.mean())
     tau = machine.stage_spacing_m / speed
     if snapshot_interval_s:
