@@ -45,6 +45,9 @@ def main() -> None:
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
     ap.add_argument("--restat", action="store_true",
                     help="do not run the DEM: recompute the statistics of the runs saved in --runs-dir")
+    ap.add_argument("--stats-dir", type=Path, default=None,
+                    help="with --restat: write each run's recomputed statistics.json under this directory "
+                    "(size_<L>mm/statistics.json) instead of into --runs-dir")
     args = ap.parse_args()
     if args.restat:
         _restat(args)
@@ -98,7 +101,9 @@ def _restat(args) -> None:
         ms = stats_from_dir(d)
         st = ms.run.model_copy(update={"provenance": {**old.get("provenance", {}),
                                                       "statistics_recomputed_by": ms.run.provenance}})
-        st.to_json(d / "statistics.json")
+        out_dir = d if args.stats_dir is None else args.stats_dir / d.name
+        out_dir.mkdir(parents=True, exist_ok=True)
+        st.to_json(out_dir / "statistics.json")
         runs.append(st)
         res = saved["result"]
         per_run.append({"size_mm": size, "wall_s": round(res["wall_s"], 1),

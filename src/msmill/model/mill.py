@@ -90,7 +90,7 @@ class Mill:
         Mill geometry; only its ``n_stages`` is used (checked against the provider).
     transport, impacts, breakage, damage : str or object, optional
         Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
-        implementing the step's protocol. Defaults: ``regions``,
+        implementing the step's protocol. Defaults: ``dem_matrix``,
         ``speed_scaled``, ``ab_t10``, ``tavares``.
     solver : {"expected_value", "monte_carlo"}
         How to solve (default expected value).
@@ -203,7 +203,7 @@ class Mill:
             with warnings.catch_warnings(record=True) as caught, _single_threaded_blas():
                 warnings.simplefilter("always")
                 params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
-                streams = np.asarray(self.transport.streams(params), dtype=float)
+                streams = sm.transition_of(self.transport, params)
                 stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
                 lm = None
                 if self.solver == "expected_value" or self.mc_steps is None:
@@ -248,6 +248,7 @@ class Mill:
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        notes += [streams.note] if streams.note else []
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
             return self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)

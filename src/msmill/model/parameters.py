@@ -72,6 +72,12 @@ class StageParameters:
         Feed rate (t/h) and gate angle (deg) of the measurements.
     source : str
         Human-readable description of where the parameters came from.
+    transition : ndarray, shape (S+1, N, S+2) or None
+        One-step transition of every compartment (0 = inlet zone, 1..S stages)
+        to compartments ``0..S`` and ``S+1`` (left through the outlet), when the
+        DEM measured it (``destinations``); rows sum to 1.
+    extrapolated : ndarray, shape (N,) of bool or None
+        Size classes whose parameters were extrapolated outside the sizes measured.
     """
 
     sizes_mm: np.ndarray
@@ -87,6 +93,8 @@ class StageParameters:
     region_weights: np.ndarray | None = None
     region_streams: np.ndarray | None = None
     source: str = ""
+    transition: np.ndarray | None = None
+    extrapolated: np.ndarray | None = None
 
     @property
     def n_stages(self) -> int:

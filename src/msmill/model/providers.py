@@ -141,6 +141,8 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     if has_regions:
         out["rw"] = np.array([[s.region_weights for s in r.stages] for r in runs])
         out["rs"] = np.array([[s.region_streams for s in r.stages] for r in runs])
+    if all(r.inlet_destinations is not None and all(s.destinations is not None for s in r.stages) for r in runs):
+        out["tr"] = np.array([[r.inlet_destinations] + [s.destinations for s in r.stages] for r in runs])
     return out
 
 
@@ -187,10 +189,13 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
 
     streams = lin(a["streams"])
     streams /= streams.sum(axis=-1, keepdims=True)
-    rw = rs = None
+    rw = rs = tr = None
     if "rw" in a:
         rw = lin(a["rw"])
         rs = lin(a["rs"])
+    if "tr" in a:
+        tr = np.maximum(lin(a["tr"]), 0.0)
+        tr /= tr.sum(axis=-1, keepdims=True)
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
@@ -211,6 +216,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         region_weights=rw,
         region_streams=rs,
         source=source,
+        transition=tr,
     )
 
 

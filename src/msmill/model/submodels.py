@@ -182,7 +182,99 @@ class DamageModel(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class Transition:
+    """One-step transport of every compartment, as the solvers use it.
+
+    Attributes
+    ----------
+    matrix : ndarray (S+1, N, S+2)
+        ``matrix[c, i, c2]``: fraction of the class-``i`` mass in compartment ``c``
+        (0 = inlet zone, 1..S = stages) found one step later in ``c2``
+        (``S+1`` = left the mill as product). Rows sum to 1.
+    feed_compartment : int
+        Compartment the fresh feed of a step enters at the end of the step.
+    note : str
+        Remark for the result's notes (e.g. a fallback), or empty.
+    """
+
+    matrix: np.ndarray
+    feed_compartment: int = 1
+    note: str = ""
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages ``S``."""
+        return int(self.matrix.shape[0] - 1)
+
+    @classmethod
+    def from_streams(cls, streams: np.ndarray, note: str = "") -> Transition:
+        """Three streams per stage (S, N, 3): kickback to ``s - 1``, refeed, pass-through to ``s + 1``.
+
+        The inlet zone empties into stage 1 in one step and the fresh feed enters stage 1
+        (the paper's scheme, ``msmill.stageparams``).
+        """
+        st = np.asarray(streams, dtype=float)
+        n_st, n, _ = st.shape
+        T = np.zeros((n_st + 1, n, n_st + 2))
+        T[0, :, 1] = 1.0
+        s = np.arange(1, n_st + 1)
+        T[s, :, s - 1] = st[:, :, 0]
+        T[s, :, s] = st[:, :, 1]
+        T[s, :, s + 1] = st[:, :, 2]
+        return cls(T, 1, note)
+
+
+def as_transition(transport: Any) -> Transition:
+    """A :class:`Transition`, or three streams (S, N, 3) turned into one."""
+    if isinstance(transport, Transition):
+        return transport
+    return Transition.from_streams(transport)
+
+
+def transition_of(model: Any, params: StageParameters) -> Transition:
+    """The one-step transport a transport sub-model gives (its ``transition`` or its streams)."""
+    if hasattr(model, "transition"):
+        return model.transition(params)
+    return Transition.from_streams(np.asarray(model.streams(params), dtype=float))
+
+
 # -------------------------------------------------------------- implementations
+class MatrixTransport:
+    """The DEM's one-lag transition matrix of every compartment, the inlet zone included.
+
+    Rock tagged in compartment ``c`` (inlet zone or stage) is found one
+    characteristic time later in any compartment or has left
+    (``StageStatistics.destinations``, ``RunStatistics.inlet_destinations``),
+    so jumps over more than one stage and the time rock spends above stage 1
+    (feed chute, rock thrown up) are as measured; the fresh feed enters the
+    inlet zone. Stage parameters without these fields fall back to the
+    ``regions`` streams (with a note).
+    """
+
+    name = "dem_matrix"
+    requires = ("transition",)
+
+    def transition(self, params: StageParameters) -> Transition:
+        if params.transition is None:
+            return Transition.from_streams(RegionWeightedTransport().streams(params),
+                                           note="transport: the stage parameters have no one-lag destinations; "
+                                           "used the three streams ('regions')")
+        return Transition(np.asarray(params.transition, dtype=float), feed_compartment=0)
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        """The three streams per stage implied by the matrix (kickback / refeed / pass-through)."""
+        T = self.transition(params).matrix
+        s = np.arange(1, T.shape[0])
+        up = np.cumsum(T[1:], axis=-1)  # (S, N, S+2)
+        kick = up[np.arange(s.size), :, s - 1]
+        ref = T[s, :, s]
+        return np.stack([kick, ref, 1.0 - kick - ref], axis=-1)
+
+    def __repr__(self) -> str:
+        return "MatrixTransport()"
+
+
 class RegionWeightedTransport:
     """DEM streams; when region data exist, the solid-fraction-weighted average over regions.
 
@@ -381,6 +473,28 @@ class AbT10Breakage:
         return f"AbT10Breakage({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)"
 
 
+class NoBreakage:
+    """Rock that never breaks (``P_b = 0``): for transport checks against DEM runs of unbreakable rock."""
+
+    name = "none"
+    requires: tuple[str, ...] = ()
+
+    def __init__(self, ore: BreakageParameters | None = None) -> None:
+        self.ore = ore
+
+    def probability(self, ecs_kwh_t, size_mm, damage):
+        return np.zeros(np.broadcast(ecs_kwh_t, size_mm, damage).shape)
+
+    def fragments(self, edges_mm, parent, pb):
+        """The parent's own class (never used with ``P_b = 0``; keeps the protocol's invariants)."""
+        n = np.asarray(edges_mm).size - 1
+        parent = np.broadcast_to(np.asarray(parent, dtype=int), np.shape(pb))
+        return (parent[..., None] == np.arange(n)).astype(float)
+
+    def __repr__(self) -> str:
+        return "NoBreakage()"
+
+
 class TavaresDamage:
     """Tavares damage of surviving rocks, consistent with Eq. 11 (domain notes Sec. 4).
 
@@ -442,13 +556,13 @@ class NoDamage:
 #: One lookup table per step: name -> factory. Factories of breakage and damage
 #: models take the :class:`BreakageParameters`; the others take nothing.
 SUBMODELS: dict[str, dict[str, Any]] = {
-    "transport": {"regions": RegionWeightedTransport, "bulk": BulkTransport},
+    "transport": {"dem_matrix": MatrixTransport, "regions": RegionWeightedTransport, "bulk": BulkTransport},
     "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
                 "primary_only": NoSecondaryImpacts},
-    "breakage": {"ab_t10": AbT10Breakage},
+    "breakage": {"ab_t10": AbT10Breakage, "none": NoBreakage},
     "damage": {"tavares": TavaresDamage, "none": NoDamage},
 }
-DEFAULTS: dict[str, str] = {"transport": "regions", "impacts": "speed_scaled",
+DEFAULTS: dict[str, str] = {"transport": "dem_matrix", "impacts": "speed_scaled",
                             "breakage": "ab_t10", "damage": "tavares"}
 _NEEDS_ORE = ("breakage", "damage")
 _PROTOCOLS = {"transport": TransportModel, "impacts": ImpactModel,
