@@ -380,6 +380,8 @@ class AbT10Breakage:
 
     name = "ab_t10"
     requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")
+    #: t10 convention (``msmill.breakage.T10_CONVENTIONS``): broken rock ``t10 = A P_b``.
+    t10_convention = "paper"
 
     #: Breakage probabilities at which appearance columns are tabulated
     #: (``(k / 1024)**2``; the interpolation error in a column is below 5e-4).
@@ -470,7 +472,86 @@ class AbT10Breakage:
 
     def __repr__(self) -> str:
         o = self.ore
-        return f"AbT10Breakage({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)"
+        return (f"{type(self).__name__}({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, "
+                f"L_ref={o.l_ref_mm:g} mm)")
+
+
+class JkT10Breakage(AbT10Breakage):
+    """Ab-t10 breakage read in the JK drop-weight convention (the default).
+
+    ``P_b = 1 - exp(-b E_cs L / (L_ref (1 - D)))`` as in :class:`AbT10Breakage`,
+    but a broken rock's fragments have ``t10 = A``, so that after one impact the
+    t10 of the whole population (broken and unbroken rock) is the JK law
+    ``A (1 - exp(-b E_cs L / L_ref))`` in which ``A`` and ``b`` are published and
+    fitted (docs/breakage.md, "The t10 convention").
+    """
+
+    name = "jk_t10"
+    t10_convention = "jk"
+
+    def columns(self, edges_mm: np.ndarray) -> np.ndarray:
+        """Appearance columns at ``t10 = A``: ``(parent, class)``, cached per (grid, A, t_n constants)."""
+        edges = np.asarray(edges_mm, dtype=float)
+        tn = self.ore.tn
+        key = ("jk", edges.tobytes(), self.ore.A_pct, None if tn is None else (tuple(tn.k), tuple(tn.s)))
+        col = _APPEARANCE_TABLES.get(key)
+        if col is None:
+            B = _bk.appearance_matrix(SizeGrid(edges), self.ore.A_pct, tn)  # (class i, parent j)
+            col = np.ascontiguousarray(B.T)
+            if len(_APPEARANCE_TABLES) >= 16:
+                _APPEARANCE_TABLES.pop(next(iter(_APPEARANCE_TABLES)))
+            _APPEARANCE_TABLES[key] = col
+        return col
+
+    def fragments(self, edges_mm, parent, pb):
+        """The appearance column at ``t10 = A`` for every ``pb``."""
+        pb = np.asarray(pb, dtype=float)
+        parent = np.broadcast_to(np.asarray(parent, dtype=int), pb.shape)
+        return self.columns(edges_mm)[parent]
+
+    def expected_fragments(self, edges_mm, pb, weights):
+        """``sum_q weights * fragments`` (parents along axis 0): every column is the ``t10 = A`` one."""
+        w = np.asarray(weights, dtype=float).sum(axis=1)  # (N, D)
+        return np.einsum("id,ik->kid", w, self.columns(edges_mm))
+
+
+def simulate_lab_test(breakage: BreakageModel, size_mm: np.ndarray, ecs_kwh_t: np.ndarray) -> np.ndarray:
+    """Population t10 (%) of a drop-weight test simulated through a breakage sub-model.
+
+    One impact per rock of size ``size_mm`` at ``ecs_kwh_t`` (intact rock): a
+    fraction ``probability`` breaks into ``fragments``, the rest stays whole;
+    the result is the % of all the mass passing a tenth of the rock size. The
+    fragments are read on a grid (in units of the rock size, the appearance
+    function depends only on size ratios) with the parent class centred on the
+    rock size and an edge at a tenth of it.
+    """
+    size = np.asarray(size_mm, dtype=float)
+    e = np.asarray(ecs_kwh_t, dtype=float)
+    size, e = np.broadcast_arrays(size, e)
+    edges = np.concatenate([0.1 * 2.0 ** (np.arange(-20, 7) / 2.0), [1.25]])  # parent class [0.8, 1.25]
+    parent = edges.size - 2
+    below = int(np.flatnonzero(np.isclose(edges, 0.1))[0])  # classes < below lie under a tenth
+    pb = np.asarray(breakage.probability(e, size, np.zeros_like(e)), dtype=float)
+    cols = breakage.fragments(edges, np.full(pb.shape, parent), pb)
+    return 100.0 * pb * cols[..., :below].sum(axis=-1)
+
+
+def lab_test(name: str, tn: Any = None):
+    """``lab_test(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm) -> t10_pct`` for :func:`msmill.calibration.calibrate`.
+
+    Builds the named breakage sub-model at the trial parameters and simulates the
+    drop-weight test through it (:func:`simulate_lab_test`).
+    """
+    factory = SUBMODELS["breakage"].get(name)
+    if factory is None:
+        raise MsmillInputError("breakage", name, did_you_mean(name, list(SUBMODELS["breakage"])))
+
+    def run(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm):
+        ore = BreakageParameters("calibration", A_pct=A_pct, b_t_kwh=b_t_per_kwh, l_ref_mm=l_ref_mm, tn=tn)
+        return simulate_lab_test(factory(ore), size_mm, ecs_kwh_t)
+
+    run.convention = getattr(factory, "t10_convention", name)  # type: ignore[attr-defined]
+    return run
 
 
 class NoBreakage:
@@ -559,11 +640,11 @@ SUBMODELS: dict[str, dict[str, Any]] = {
     "transport": {"dem_matrix": MatrixTransport, "regions": RegionWeightedTransport, "bulk": BulkTransport},
     "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
                 "primary_only": NoSecondaryImpacts},
-    "breakage": {"ab_t10": AbT10Breakage, "none": NoBreakage},
+    "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "none": NoBreakage},
     "damage": {"tavares": TavaresDamage, "none": NoDamage},
 }
 DEFAULTS: dict[str, str] = {"transport": "dem_matrix", "impacts": "speed_scaled",
-                            "breakage": "ab_t10", "damage": "tavares"}
+                            "breakage": "jk_t10", "damage": "tavares"}
 _NEEDS_ORE = ("breakage", "damage")
 _PROTOCOLS = {"transport": TransportModel, "impacts": ImpactModel,
               "breakage": BreakageModel, "damage": DamageModel}
