@@ -16,6 +16,7 @@ Example
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import warnings
 from pathlib import Path
 from typing import Any
@@ -204,7 +205,8 @@ class Mill:
                 warnings.simplefilter("always")
                 params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
                 streams = sm.transition_of(self.transport, params)
-                stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+                stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
+                                                  np.asarray(speeds, dtype=float))
                 lm = None
                 if self.solver == "expected_value" or self.mc_steps is None:
                     lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage,
@@ -251,8 +253,10 @@ class Mill:
         notes += [streams.note] if streams.note else []
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
-            return self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
-        return self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+            res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
+        else:
+            res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+        return _with_extrapolated_share(res, params)
 
     def _march(self, lm: LinearMill, f: np.ndarray, max_steps: int) -> tuple[np.ndarray, ...]:
         x = np.zeros(lm.n_state)
@@ -371,6 +375,16 @@ class Mill:
             mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
             solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
         )
+
+
+def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
+    """The result with the feed and product mass % whose stage parameters were extrapolated."""
+    mask = getattr(params, "extrapolated", None)
+    if mask is None:
+        return res
+    mask = np.asarray(mask, dtype=bool)
+    return dataclasses.replace(res, extrapolated_feed_pct=100.0 * float(res.feed_psd.fractions[mask].sum()),
+                               extrapolated_product_pct=100.0 * float(res.product_psd.fractions[mask].sum()))
 
 
 def simulate(ore: Any, feed: PSD, operating_point: Any, stage_parameters: Any, machine: Any = None,

@@ -19,9 +19,13 @@ Providers shipped here
     The statistics of one DEM run (:class:`msmill.stageparams.RunStatistics`),
     applied to every size.
 
-Sizes outside the sizes covered are clamped to the nearest run, with one
-:class:`msmill.errors.OutOfDomainWarning`. An operating point that differs
-from the one the statistics were measured at also warns.
+Sizes outside the sizes covered are extrapolated (a table: the end run's
+values continued along the table's least-squares trend in ``ln(size)``, up to
+:data:`EXTRAPOLATION_SPANS` times the covered span, then held; one run:
+clamped) and flagged in ``StageParameters.extrapolated``; the mill result
+reports the share of feed and product mass concerned (no warning). An
+operating point that differs from the one the statistics were measured at
+warns.
 """
 
 from __future__ import annotations
@@ -146,21 +150,33 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     return out
 
 
+#: Extrapolation reach beyond the sizes covered, as a multiple of the covered ln-size span
+#: (docs/model.md, "Sizes outside the stage statistics"): a table covering 6-30 mm extrapolates
+#: its trends down to 1.2 mm and up to 150 mm, and holds the values reached there beyond.
+EXTRAPOLATION_SPANS = 1.0
+
+
+def _trend_slope(xr: np.ndarray, arr: np.ndarray) -> np.ndarray:
+    """Least-squares slope of ``arr`` (R, ...) against ``xr`` (R,) over all runs (per element)."""
+    dx = xr - xr.mean()
+    shape = (-1,) + (1,) * (arr.ndim - 1)
+    return np.sum(dx.reshape(shape) * (arr - arr.mean(axis=0)), axis=0) / np.sum(dx * dx)
+
+
 def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
     run_sizes = np.array([r.design.size_mm for r in runs])
     sizes = np.asarray(sizes_mm, dtype=float)
     lo, hi = run_sizes[0], run_sizes[-1]
     outside = (sizes < lo * (1 - 1e-9)) | (sizes > hi * (1 + 1e-9))
-    if np.any(outside):
-        warnings.warn(
-            f"{int(outside.sum())} of {sizes.size} size classes "
-            f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
-            f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
-            "to the nearest size", OutOfDomainWarning, stacklevel=3)
     a = _run_arrays(runs)
     _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
     xr = np.log(run_sizes)
+    # outside the sizes covered: the end run's value plus the table's ln-size trend (least squares over
+    # all runs) times the distance, the distance capped at EXTRAPOLATION_SPANS x the covered span
+    reach = EXTRAPOLATION_SPANS * (xr[-1] - xr[0])
+    x_out = np.clip(np.log(sizes), xr[0] - reach, xr[-1] + reach)
+    dx_out = np.where(outside, x_out - x, 0.0)  # 0 inside; one run: reach 0, i.e. clamped
     if len(runs) == 1:
         j = np.zeros(sizes.size, dtype=int)
         w = np.zeros(sizes.size)
@@ -175,7 +191,11 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         a0 = np.moveaxis(arr[j], 0, 1)
         a1 = np.moveaxis(arr[j1], 0, 1)
         ww = w.reshape((1, -1) + (1,) * (a0.ndim - 2))
-        return (1 - ww) * a0 + ww * a1
+        out = (1 - ww) * a0 + ww * a1
+        if len(runs) > 1 and np.any(outside):
+            slope = _trend_slope(xr, arr)[:, None]  # (S, 1, ...)
+            out = out + slope * dx_out.reshape((1, -1) + (1,) * (a0.ndim - 2))
+        return out
 
     def mix(arr: np.ndarray) -> MixtureArrays:
         # arr (3, R, S, K): concatenate neighbours' components with weights (1-w), w
@@ -185,14 +205,21 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         weights = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
         means = np.concatenate([p0[1], p1[1]], axis=-1)
         sig = np.concatenate([p0[2], p1[2]], axis=-1)
+        if len(runs) > 1 and np.any(outside):
+            # velocities scale with the trend of ln(mean velocity) in ln(size)
+            ln_mean = np.log(np.maximum(np.sum(arr[0] * arr[1], axis=-1), 1e-6))  # (R, S)
+            f = np.exp(_trend_slope(xr, ln_mean)[:, None, None] * dx_out[None, :, None])
+            means, sig = means * f, sig * f
         return MixtureArrays(weights, means, sig)
 
-    streams = lin(a["streams"])
+    streams = np.maximum(lin(a["streams"]), 0.0)
     streams /= streams.sum(axis=-1, keepdims=True)
     rw = rs = tr = None
     if "rw" in a:
-        rw = lin(a["rw"])
-        rs = lin(a["rs"])
+        rw = np.maximum(lin(a["rw"]), 0.0)
+        rw /= rw.sum(axis=-1, keepdims=True)
+        rs = np.maximum(lin(a["rs"]), 0.0)
+        rs /= rs.sum(axis=-1, keepdims=True)
     if "tr" in a:
         tr = np.maximum(lin(a["tr"]), 0.0)
         tr /= tr.sum(axis=-1, keepdims=True)
@@ -217,6 +244,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         region_streams=rs,
         source=source,
         transition=tr,
+        extrapolated=outside,
     )
 
 
@@ -290,7 +318,7 @@ class RunProvider:
         return cls(RunStatistics.from_json(p), source=p.name)
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
-        """The run's parameters at every size (other sizes are clamped, with a warning)."""
+        """The run's parameters at every size (other sizes are clamped and flagged as extrapolated)."""
         _check_operating_point(self.run.design, stage_speeds_rpm, feed_tph, gate_deg, self.source)
         return _interpolate([self.run], sizes_mm, self.source)
 

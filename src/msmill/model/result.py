@@ -57,6 +57,9 @@ class MillResult:
         The sub-models used, by step.
     notes : tuple of str
         Defaults in use, providers' sources, other remarks.
+    extrapolated_feed_pct, extrapolated_product_pct : float
+        Mass % of the feed and of the product in size classes whose stage
+        parameters were extrapolated outside the sizes the statistics cover.
     """
 
     feed_psd: PSD
@@ -80,6 +83,8 @@ class MillResult:
     solver: str
     submodels: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    extrapolated_feed_pct: float = float("nan")
+    extrapolated_product_pct: float = float("nan")
 
     def summary(self) -> pd.Series:
         """Headline figures as a Series (index names carry the units)."""
@@ -95,6 +100,8 @@ class MillResult:
             "secondary_impacts_per_t": self.secondary_impacts_per_t,
             "specific_impact_energy_kwh_t": self.specific_impact_energy_kwh_t,
             "mass_balance_error": self.mass_balance_error,
+            "extrapolated_feed_pct": self.extrapolated_feed_pct,
+            "extrapolated_product_pct": self.extrapolated_product_pct,
         })
 
 

@@ -19,6 +19,7 @@ sub-model".
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -139,6 +140,20 @@ class ImpactStatistics:
     primary_velocity: MixtureArrays
     secondary_lambda: np.ndarray
     secondary_velocity: MixtureArrays
+
+
+def without_stopped_rotors(stats: ImpactStatistics, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+    """The impact statistics with no primary impacts (hence no secondary ones) where a stage's rotors stand.
+
+    Whatever the impact sub-model: the DEM statistics were measured with turning
+    rotors; a stage at 0 rpm has no flinger impacts.
+    """
+    speeds = np.asarray(stage_speeds_rpm, dtype=float)
+    stopped = speeds <= 0.0
+    if not np.any(stopped):
+        return stats
+    h = np.where(stopped[:, None], 0.0, stats.hit_probability)
+    return dataclasses.replace(stats, hit_probability=h)
 
 
 @runtime_checkable
