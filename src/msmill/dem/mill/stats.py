@@ -82,6 +82,7 @@ __all__ = [
     "identify_impacts",
     "snapshots_frame",
     "stage_of_z",
+    "transition_matrix",
 ]
 
 _PLACEHOLDER = GaussianMixture.single(0.0, 1e-3)  # used (with n = 0 and kl None) when a stage has no sample
@@ -345,6 +346,31 @@ def _destinations(pairs: pd.DataFrame, n: int) -> dict[int, list[float]]:
     w = w.reindex(columns=range(n + 2), fill_value=0.0)
     f = w.div(w.sum(axis=1), axis=0)
     return {int(c): [float(v) for v in f.loc[c].to_numpy()] for c in f.index}
+
+
+def transition_matrix(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
+) -> np.ndarray:
+    """Mass-weighted transition matrix at ``lag`` snapshot intervals, tags in ``window_s``.
+
+    Row ``c`` (0 = inlet zone, 1..n stages): fractions of the rock in ``c`` at a
+    snapshot time in the window found ``lag`` snapshots later in ``0..n`` or
+    gone through the outlet (``n + 1``); shape ``(n + 1, n + 2)``, rows of
+    compartments without tags are NaN. The later snapshots may lie beyond the
+    window. With the lag of ``tau`` these are the ``destinations``; at
+    ``k tau`` they test whether the one-lag transport is Markov
+    (``P(k tau) = P(tau)^k``).
+    """
+    n = machine.n_stages
+    snaps = snapshots_frame(snapshots)
+    times = np.sort(snaps["time_s"].unique())
+    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+    pairs = pairs[(pairs["time_s"] >= window_s[0] - 1e-9) & (pairs["time_s"] <= window_s[1] + 1e-9)]
+    out = np.full((n + 1, n + 2), np.nan)
+    for c, row in _destinations(pairs, n).items():
+        out[c] = row
+    return out
 
 
 def _batch_se(values: np.ndarray) -> float:
