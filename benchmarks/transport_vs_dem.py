@@ -76,6 +76,11 @@ def main() -> None:
     path = args.table or default_table_path()
     table = StageParameterTable.from_json(path)
     print(f"table: {path}; transport: {args.transport}; rock: unbreakable")
+    n_dest = sum(r.inlet_destinations is not None and all(st.destinations is not None for st in r.stages)
+                 for r in table.runs)
+    if args.transport == "dem_matrix" and n_dest < len(table.runs):
+        print(f"note: {len(table.runs) - n_dest} of {len(table.runs)} runs have no one-lag destinations: "
+              "dem_matrix falls back to their three streams there")
     print(f"{'size_mm':>8} {'tau_s':>6} {'res_dem_s':>9} {'res_model_s':>11} {'rel_err':>8} "
           f"{'tss_dem_s':>9} {'tss_model_s':>11} {'abs_err_s':>9} {'tss_1pct_s':>10}")
     rel, err, no_ss = [], [], 0
@@ -93,7 +98,8 @@ def main() -> None:
         print(f"{run.design.size_mm:8.3g} {run.characteristic_time_s:6.3f} {r_dem:9.3f} {m['residence_s']:11.3f} "
               f"{e_rel:+8.3f} {t_dem_txt} {m['tss_s']:11.2f} {e_abs:+9.2f} {m['tss_product_1pct_s']:10.2f}")
     print(f"runs={len(table.runs)} residence_rel_err_max={max(rel):.3f} "
-          f"tss_abs_err_max_s={max(err) if err else math.nan:.2f} runs_without_dem_steady_state={no_ss}")
+          f"tss_abs_err_max_s={max(err) if err else math.nan:.2f} runs_without_dem_steady_state={no_ss} "
+          f"runs_with_destinations={n_dest}")
 
 
 if __name__ == "__main__":
