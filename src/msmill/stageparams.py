@@ -267,8 +267,8 @@ class StageParameterTable(_JsonDocument):
 
     This is the shipped default source of stage parameters for the mill model
     (``src/msmill/data/stage_parameters/*.json``) until the surrogate exists. The
-    model interpolates between runs in (log) rock size and clamps outside the
-    sizes covered, with a warning.
+    model interpolates between runs in (log) rock size and extrapolates outside the
+    sizes covered (docs/model.md section 9), reporting the mass share concerned.
     """
 
     schema_version: Literal[1] = SCHEMA_VERSION

@@ -92,7 +92,7 @@ class Mill:
     transport, impacts, breakage, damage : str or object, optional
         Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
         implementing the step's protocol. Defaults: ``dem_matrix``,
-        ``speed_scaled``, ``ab_t10``, ``tavares``.
+        ``speed_scaled``, ``jk_t10``, ``tavares``.
     solver : {"expected_value", "monte_carlo"}
         How to solve (default expected value).
     impacted : {"refeed", "all"}
