@@ -213,3 +213,22 @@ def test_stopped_stage_breaks_nothing():
     s = res.stages.set_index("stage")
     assert s.loc[2, "primary_impacts_per_t"] == 0.0 and s.loc[2, "impact_energy_kwh_t"] == 0.0
     assert s.loc[1, "primary_impacts_per_t"] > 0.0
+
+
+def test_matrix_measured_at_another_lag_is_converted_to_the_step():
+    """A matrix measured at half the model step is applied twice per step: P(step) = P(lag)^2."""
+    import dataclasses
+
+    rng = np.random.default_rng(11)
+    run = synthetic_run(10.0)
+    n = run.n_stages
+    inlet = rng.dirichlet(np.ones(2)).tolist() + [0.0] * n
+    dests = [rng.dirichlet(np.ones(n + 2)).tolist() for _ in run.stages]
+    prov = RunProvider(_with_destinations(run, inlet, dests))
+    p = prov.stage_parameters(np.array([5.0, 10.0]))
+    transport = resolve("transport", "dem_matrix", None)
+    assert np.allclose(transport.transition(p).matrix, p.transition)  # measured at the step: as is
+    half = dataclasses.replace(p, transition_lag_s=np.full(2, 0.5 * p.characteristic_time_s))
+    Q = np.eye(n + 2)
+    Q[: n + 1] = np.array([inlet, *dests])
+    assert np.allclose(transport.transition(half).matrix[:, 0, :], (Q @ Q)[: n + 1], atol=1e-9)

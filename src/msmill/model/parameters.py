@@ -76,6 +76,9 @@ class StageParameters:
         One-step transition of every compartment (0 = inlet zone, 1..S stages)
         to compartments ``0..S`` and ``S+1`` (left through the outlet), when the
         DEM measured it (``destinations``); rows sum to 1.
+    transition_lag_s : ndarray, shape (N,) or None
+        Lag (s) at which each class's ``transition`` was measured (the runs'
+        characteristic times, interpolated); the transport converts it to the step.
     extrapolated : ndarray, shape (N,) of bool or None
         Size classes whose parameters were extrapolated outside the sizes measured.
     """
@@ -95,6 +98,7 @@ class StageParameters:
     source: str = ""
     transition: np.ndarray | None = None
     extrapolated: np.ndarray | None = None
+    transition_lag_s: np.ndarray | None = None
 
     @property
     def n_stages(self) -> int:

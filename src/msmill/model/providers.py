@@ -245,6 +245,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         source=source,
         transition=tr,
         extrapolated=outside,
+        transition_lag_s=None if tr is None else (1 - w) * times[j] + w * times[j1],
     )
 
 

@@ -255,6 +255,26 @@ def transition_of(model: Any, params: StageParameters) -> Transition:
 
 
 # -------------------------------------------------------------- implementations
+def _to_step(T: np.ndarray, lag_s: np.ndarray, step_s: float) -> np.ndarray:
+    """Transition matrices measured at ``lag_s`` (per class) as matrices for one step of ``step_s``.
+
+    ``P(step) = P(lag)**(step / lag)`` (the Markov chain's own rule; real part of the
+    principal fractional power, clipped at 0 and re-normalised). Needed when a
+    table's runs have different characteristic times and the model steps at their mean.
+    """
+    import scipy.linalg
+
+    out = T.copy()
+    c = T.shape[0]
+    for i in np.flatnonzero(np.abs(lag_s / step_s - 1.0) > 1e-6):
+        Q = np.eye(c + 1)
+        Q[:c] = T[:, i, :]
+        R = np.real(scipy.linalg.fractional_matrix_power(Q, step_s / lag_s[i]))[:c]
+        R = np.maximum(R, 0.0)
+        out[:, i, :] = R / R.sum(axis=-1, keepdims=True)
+    return out
+
+
 class MatrixTransport:
     """The DEM's one-lag transition matrix of every compartment, the inlet zone included.
 
@@ -263,8 +283,10 @@ class MatrixTransport:
     (``StageStatistics.destinations``, ``RunStatistics.inlet_destinations``),
     so jumps over more than one stage and the time rock spends above stage 1
     (feed chute, rock thrown up) are as measured; the fresh feed enters the
-    inlet zone. Stage parameters without these fields fall back to the
-    ``regions`` streams (with a note).
+    inlet zone. A class whose matrix was measured at a lag other than the
+    model step (a table whose runs have different characteristic times) gets
+    the matrix's fractional power ``step / lag``. Stage parameters without
+    these fields fall back to the ``regions`` streams (with a note).
     """
 
     name = "dem_matrix"
@@ -275,7 +297,11 @@ class MatrixTransport:
             return Transition.from_streams(RegionWeightedTransport().streams(params),
                                            note="transport: the stage parameters have no one-lag destinations; "
                                            "used the three streams ('regions')")
-        return Transition(np.asarray(params.transition, dtype=float), feed_compartment=0)
+        T = np.asarray(params.transition, dtype=float)
+        lag = params.transition_lag_s
+        if lag is not None:
+            T = _to_step(T, np.asarray(lag, dtype=float), float(params.characteristic_time_s))
+        return Transition(T, feed_compartment=0)
 
     def streams(self, params: StageParameters) -> np.ndarray:
         """The three streams per stage implied by the matrix (kickback / refeed / pass-through)."""
