@@ -11,8 +11,10 @@ known answer. Nothing here is measured; every file says SYNTHETIC.
 "True" values used (chosen to differ from the msmill defaults so calibration
 has something to find):
 
-* UG2 surveys and lab tests: ``ab_t10`` breakage, ``L_ref = 20 mm`` (default 29 mm), Tavares damage.
-* Platreef surveys: ``ab_t10``, ``L_ref = 40 mm``; Platreef lab tests:
+* UG2 surveys: the model's default sub-models (``jk_t10`` breakage, ``dem_matrix``
+  transport), ``L_ref = 20 mm`` (default 29 mm), Tavares damage; UG2 lab tests:
+  ``ab_t10`` breakage at ``L_ref = 20 mm``.
+* Platreef surveys: default sub-models, ``L_ref = 40 mm``; Platreef lab tests:
   ``vogel_swebrec`` breakage with ``A = 59 %``, ``k = 0.5358 t/kWh``,
   ``E_min = 0.03 kWh/t`` at the default ``L_ref = 29 mm``, ``beta = 2.2``.
 * Synthetic "measured" power of the UG2 surveys: predicted impact power plus a
@@ -76,7 +78,7 @@ def surveys(rng: np.random.Generator) -> list:
         if ore_name == "UG2":
             def power(e, res):
                 return power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
-        how = (f"msmill {__version__} expected-value model, ab_t10 breakage with L_ref = "
+        how = (f"msmill {__version__} expected-value model, default sub-models (jk_t10 breakage) with L_ref = "
                f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, packaged DEM stage table"
                + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
                   if power is not None else ""))

@@ -125,6 +125,15 @@ class StageParameters:
         True when the velocities are already those at the operating point the
         parameters were requested for (no further speed scaling; see the
         module docstring).
+    transition : ndarray, shape (S+1, N, S+2) or None
+        One-step transition of every compartment (0 = inlet zone, 1..S stages)
+        to compartments ``0..S`` and ``S+1`` (left through the outlet), when the
+        DEM measured it (``destinations``); rows sum to 1.
+    extrapolated : ndarray, shape (N,) of bool or None
+        Size classes whose parameters were extrapolated outside the sizes measured.
+    transition_lag_s : ndarray, shape (N,) or None
+        Lag (s) at which each class's ``transition`` was measured (the runs'
+        characteristic times, interpolated); the transport converts it to the step.
     """
 
     sizes_mm: np.ndarray
@@ -142,6 +151,9 @@ class StageParameters:
     source: str = ""
     velocities_at_requested_speeds: bool = False
     secondary_count: CountArrays | None = None
+    transition: np.ndarray | None = None
+    extrapolated: np.ndarray | None = None
+    transition_lag_s: np.ndarray | None = None
 
     @property
     def n_stages(self) -> int:

@@ -26,6 +26,14 @@ Conventions (schema version 1)
   stage): their count per primary impact is Poisson with mean
   ``secondary_lambda`` (paper Eq. 13) and their relative normal velocity is the
   Gaussian mixture ``secondary_velocity`` (paper Eq. 14).
+* ``destinations`` (optional, per stage) and ``inlet_destinations`` (the
+  inlet zone) refine the three streams: the mass fractions of the rock tagged
+  in a compartment that are found one characteristic time later in compartment
+  0 (inlet zone, the feed chute included), 1..n or n + 1 (left through the
+  outlet). They resolve jumps of more than one stage and the inlet zone's own
+  dynamics (fresh feed enters the inlet zone); the ``dem_matrix`` transport of
+  the mill model uses them (docs/model.md). ``kickback``, ``refeed`` and
+  ``pass_through`` are their sums above, at and below the stage.
 * All quantities are SI (m, s, kg, m/s), except ``size_mm``, ``feed_tph``,
   ``speed_rpm`` and ``gate_deg`` which carry their unit in their name.
 
@@ -329,6 +337,13 @@ class CountSelection(_Frozen):
         return self.candidates[self.chosen].kl
 
 
+def _check_destinations(values: list[float] | None, name: str) -> None:
+    if values is not None:
+        d = np.asarray(values, dtype=float)
+        if d.size < 3 or np.any(d < 0) or abs(d.sum() - 1.0) > _SUM_TOL:
+            raise ValueError(f"{name} must be n + 2 fractions >= 0 summing to 1")
+
+
 class StageStatistics(_Frozen):
     """Impact and transport statistics of one rotor stage at one design point."""
 
@@ -380,12 +395,17 @@ class StageStatistics(_Frozen):
         if any(n < 0 for n in self.secondary_count_histogram):
             raise ValueError("secondary_count_histogram must hold counts >= 0")
         return self
+    destinations: list[float] | None = Field(
+        default=None, description="mass fractions found one characteristic time later in compartment "
+        "0 (inlet zone), 1..n (stages) and n + 1 (left through the outlet)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> StageStatistics:
         total = self.kickback + self.refeed + self.pass_through
         if abs(total - 1.0) > _SUM_TOL:
             raise ValueError(f"kickback + refeed + pass_through must be 1 (got {total:.6g})")
+        _check_destinations(self.destinations, "destinations")
         if self.region_weights is not None:
             w = np.asarray(self.region_weights)
             if w.size != N_REGIONS or np.any(w < 0) or abs(w.sum() - 1) > _SUM_TOL:
@@ -432,6 +452,11 @@ class RunStatistics(_JsonDocument):
     mass_out_rate_kg_s: float | None = Field(default=None, ge=0)
     residence_time_s: float | None = Field(default=None, ge=0)
     mean_centre_velocity_m_s: float | None = None
+    inlet_destinations: list[float] | None = Field(
+        default=None, description="as StageStatistics.destinations, for rock tagged in the inlet zone "
+        "(everything above stage 1, the feed chute included)"
+    )
+    inlet_holdup_kg: float | None = Field(default=None, ge=0, description="mean mass in the inlet zone")
     provenance: dict[str, Any] = Field(default_factory=dict)
 
     @model_validator(mode="before")
@@ -446,6 +471,10 @@ class RunStatistics(_JsonDocument):
             raise ValueError(f"stages must be numbered 1..n in order (got {numbers})")
         if len(self.design.stage_speeds_rpm) != len(self.stages):
             raise ValueError("design.stage_speeds_rpm must have one speed per stage")
+        _check_destinations(self.inlet_destinations, "inlet_destinations")
+        lengths = {len(d) for d in [self.inlet_destinations] + [s.destinations for s in self.stages] if d is not None}
+        if lengths - {len(self.stages) + 2}:
+            raise ValueError(f"destinations must have n_stages + 2 = {len(self.stages) + 2} entries")
         return self
 
     @property
@@ -483,8 +512,8 @@ class StageParameterTable(_JsonDocument):
 
     This is the shipped default source of stage parameters for the mill model
     (``src/msmill/data/stage_parameters/*.json``) until the surrogate exists. The
-    model interpolates between runs in (log) rock size and clamps outside the
-    sizes covered, with a warning.
+    model interpolates between runs in (log) rock size and extrapolates outside the
+    sizes covered (docs/model.md section 9), reporting the mass share concerned.
     """
 
     schema_version: Literal[2] = SCHEMA_VERSION

@@ -94,10 +94,14 @@ def calibrate_cmd(
         "--l-ref-mm", help="L_ref held with --fit-ab (default: the ore's).")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Write the calibrated ore as TOML.")] = None,
     residuals: Annotated[bool, typer.Option("--residuals/--no-residuals", help="Print the residual table.")] = True,
+    breakage: Annotated[str | None, typer.Option(
+        "--breakage", help="Breakage sub-model whose parameters are fitted (default: the model's default, "
+        "jk_t10); the drop-weight test is simulated through it.")] = None,
 ) -> None:
     """Fit L_ref (optionally A, or A and b) of Eq. 11-12 to drop-weight data."""
     from msmill.calibration import calibrate
     from msmill.cli.output import atomic_write_bytes, check_writable
+    from msmill.model import submodels as sm
 
     if fit_ab and fit_a:
         raise MsmillInputError("--fit-a/--fit-ab", "both", "one of --fit-a or --fit-ab")
@@ -108,8 +112,13 @@ def calibrate_cmd(
     if l_ref_mm is not None:
         number(l_ref_mm, "--l-ref-mm", unit="mm", gt=0)
     ore = resolve_ore(ore_name)
+    name = breakage or sm.DEFAULTS["breakage"]
+    with_t10 = [k for k, f in sm.SUBMODELS["breakage"].items() if hasattr(f, "t10_convention")]
+    if name not in with_t10:
+        raise MsmillInputError("--breakage", name, sm.did_you_mean(name, with_t10))
     fit = ("A_pct", "b_t_per_kwh") if fit_ab else (("A_pct", "l_ref_mm") if fit_a else ("l_ref_mm",))
-    res = calibrate(data, ore, fit=fit, l_ref_mm=l_ref_mm)
+    lab = sm.lab_test(name, sm.BreakageParameters.from_ore(ore).tn)
+    res = calibrate(data, ore, fit=fit, l_ref_mm=l_ref_mm, lab_test=lab)
     con = _console()
     table = Table(title=f"calibration of {ore.name} on {data.name} (n = {res.n_points})")
     for col in ("parameter", "value", "std. error", "status"):
@@ -122,7 +131,7 @@ def calibrate_cmd(
             table.add_row(k, f"{v:.4g} {units[k]}", "-", "held")
     con.print(table)
     con.print(f"R^2 = {res.r_squared:.4f}   RMSE = {res.rmse_pct:.3g} % t10   "
-              f"converged: {res.success}")
+              f"converged: {res.success}   breakage sub-model: {name}")
     if fit_ab:
         con.print("note: b and L_ref enter Eq. 11 only as b/L_ref; b is fitted for the held L_ref.")
     if math.isfinite(res.r_squared) and res.r_squared < 0:

@@ -83,6 +83,8 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
         ("impact power (kW; no-load not included, docs/validation.md)", f"{_impact_kw(result):.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
+        ("feed / product mass with extrapolated stage statistics (%)",
+         f"{result.extrapolated_feed_pct:.3g} / {result.extrapolated_product_pct:.3g}"),
     ]
     for r in rows:
         t.add_row(*r)

@@ -36,7 +36,7 @@ def validate(
     folder: Annotated[Path, typer.Argument(help="Folder of experiment TOML files (docs/validation.md).")],
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default DIR/validation).")] = None,
     stage_parameters: Annotated[str, typer.Option(help="Stage-parameter table ('default' = packaged).")] = "default",
-    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model (default ab_t10).")] = None,
+    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model (default: the model default, jk_t10).")] = None,
     damage: Annotated[str | None, typer.Option(help="Damage sub-model (default tavares).")] = None,
     ore_file: Annotated[list[Path] | None, typer.Option("--ore-file", help="Calibrated ore TOML (repeatable).")] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = True,
@@ -126,7 +126,7 @@ def calibrate(
                                                help="Also fit the single-impact tests.")] = True,
     bound: Annotated[list[str] | None, typer.Option("--bound", help="NAME=LOW:HIGH bounds of a fitted "
                                                     "parameter (repeatable; defaults in docs/validation.md).")] = None,
-    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model of the survey fits (default ab_t10).")] = None,
+    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model of the survey fits (default: the model default, jk_t10).")] = None,
     damage: Annotated[str | None, typer.Option(help="Damage sub-model of the survey fits (default tavares).")] = None,
 ) -> None:
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""

@@ -30,7 +30,7 @@ import scipy.sparse.linalg as spla
 
 from msmill.errors import MsmillError
 from msmill.model.parameters import MixtureArrays
-from msmill.model.submodels import ImpactStatistics, specific_energy_kwh_t
+from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
 
 
 def quadrature(mix: MixtureArrays, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -326,6 +326,7 @@ class LinearMill:
     n_stages: int
     n_sizes: int
     n_damage: int
+    feed_compartment: int = 1
 
     @property
     def n_state(self) -> int:
@@ -333,9 +334,9 @@ class LinearMill:
         return self.M.shape[0]
 
     def feed_vector(self, feed_fractions: np.ndarray, tonnes_per_step: float) -> np.ndarray:
-        """Fresh feed of one step (undamaged, into stage 1) as a state vector (t)."""
+        """Fresh feed of one step (undamaged, into the feed compartment) as a state vector (t)."""
         f = np.zeros(self.n_state)
-        ns = self.n_sizes * self.n_damage
+        ns = self.n_sizes * self.n_damage * self.feed_compartment
         f[ns + np.arange(self.n_sizes) * self.n_damage] = np.asarray(feed_fractions) * tonnes_per_step
         return f
 
@@ -349,7 +350,7 @@ class LinearMill:
         return np.maximum(x, 0.0)
 
 
-def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics, breakage, damage,
+def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, damage,
              n_damage: int, n_nodes: int, impacted: str = "refeed") -> LinearMill:
     """Assemble the step operator of the whole mill.
 
@@ -357,8 +358,9 @@ def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics,
     ----------
     edges_mm : ndarray (N+1,)
         Size-class edges (mm).
-    streams : ndarray (S, N, 3)
-        ``[kickback, refeed, pass_through]`` per stage and size class.
+    streams : Transition or ndarray (S, N, 3)
+        One-step transport of every compartment (:class:`msmill.model.submodels.Transition`),
+        or ``[kickback, refeed, pass_through]`` per stage and size class.
     stats : ImpactStatistics
         Impact statistics (S, N).
     breakage, damage
@@ -368,42 +370,42 @@ def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics,
     n_nodes : int
         Gauss-Hermite nodes per mixture component.
     impacted : {"refeed", "all"}
-        Which mass is impacted in a step (see docs/model.md).
+        Which mass is impacted in a step (see docs/model.md): the mass that stays
+        in its stage, or all of a stage's mass before it moves.
     """
-    n_st = streams.shape[0]
+    tr = as_transition(streams)
+    T = tr.matrix  # (C, N, C+1), C = S + 1 compartments
+    n_st = tr.n_stages
     n = edges_mm.size - 1
     nd = n_damage
     ns = n * nd
     stage_ops = [stage_operator(edges_mm, stats, s, breakage, damage, nd, n_nodes) for s in range(n_st)]
-    K = [sp.diags(np.repeat(streams[s, :, 0], nd)) for s in range(n_st)]
-    R = [sp.diags(np.repeat(streams[s, :, 1], nd)) for s in range(n_st)]
-    P = [sp.diags(np.repeat(streams[s, :, 2], nd)) for s in range(n_st)]
-    G = [sp.csr_matrix(op.G) for op in stage_ops]
+    if impacted not in ("refeed", "all"):  # pragma: no cover - validated by Mill
+        raise ValueError(impacted)
+
+    def move(c: int, c2: int) -> sp.dia_matrix:
+        return sp.diags(np.repeat(T[c, :, c2], nd))
+
     blocks: list[list] = [[None] * (n_st + 1) for _ in range(n_st + 1)]
-    blocks[1][0] = sp.identity(ns)
     imp_blocks: list = [sp.csr_matrix((ns, ns))]
-    for s in range(n_st):
-        c = s + 1
-        if impacted == "refeed":
-            blocks[c][c] = G[s] @ R[s]
-            up, down = K[s], P[s]
-            imp_blocks.append(R[s])
-        elif impacted == "all":
-            blocks[c][c] = R[s] @ G[s]
-            up, down = K[s] @ G[s], P[s] @ G[s]
-            imp_blocks.append(sp.identity(ns))
-        else:  # pragma: no cover - validated by Mill
-            raise ValueError(impacted)
-        blocks[c - 1][c] = up
-        if c < n_st:
-            blocks[c + 1][c] = down
-        else:
-            last_down = down
+    out_blocks: list = []
     for c in range(n_st + 1):
-        if blocks[c][c] is None:
-            blocks[c][c] = sp.csr_matrix((ns, ns))
+        G = sp.csr_matrix(stage_ops[c - 1].G) if c >= 1 else None
+        for c2 in range(n_st + 2):
+            if G is None or (impacted == "refeed" and c2 != c):
+                b = move(c, c2)  # the inlet zone is not impacted; with "refeed" only what stays is
+            elif impacted == "refeed":
+                b = G @ move(c, c2)
+            else:
+                b = move(c, c2) @ G  # "all": impacts first, then the products move
+            if c2 == n_st + 1:
+                out_blocks.append(b)
+            elif np.any(T[c, :, c2]) or c2 == c:
+                blocks[c2][c] = b
+        if c >= 1:
+            imp_blocks.append(move(c, c) if impacted == "refeed" else sp.identity(ns))
     M = sp.bmat(blocks, format="csr")
     collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
-    out_op = sp.hstack([sp.csr_matrix((n, n_st * ns)), collapse @ last_down], format="csr")
+    out_op = sp.hstack([collapse @ b for b in out_blocks], format="csr")
     return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
-                      n_stages=n_st, n_sizes=n, n_damage=nd)
+                      n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)

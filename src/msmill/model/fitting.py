@@ -65,6 +65,7 @@ __all__ = [
 #: Fittable parameters of each breakage sub-model with their bounds (units in the names).
 FITTABLE: dict[str, dict[str, tuple[float, float]]] = {
     "ab_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
+    "jk_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
     "vogel_swebrec": {"A_pct": (1.0, 100.0), "k_t_kwh": (0.01, 100.0), "e_min_kwh_t": (0.0, 5.0),
                       "swebrec_b": (0.3, 10.0)},
 }
@@ -75,6 +76,8 @@ def build_breakage(name: str, ore: sm.BreakageParameters, values: dict[str, floa
     """The breakage sub-model ``name`` for ``ore`` with some parameters replaced by ``values``."""
     if name == "ab_t10":
         return sm.AbT10Breakage(dataclasses.replace(ore, **values))
+    if name == "jk_t10":
+        return sm.JkT10Breakage(dataclasses.replace(ore, **values))
     if name == "vogel_swebrec":
         base = VogelSwebrecBreakage.from_ore(ore)
         return VogelSwebrecBreakage(dataclasses.replace(base.params, **values))

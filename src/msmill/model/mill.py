@@ -16,6 +16,7 @@ Example
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import warnings
 from pathlib import Path
 from typing import Any
@@ -108,8 +109,8 @@ class Mill:
         Mill geometry; only its ``n_stages`` is used (checked against the provider).
     transport, impacts, breakage, damage : str or object, optional
         Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
-        implementing the step's protocol. Defaults: ``regions``,
-        ``speed_scaled``, ``ab_t10``, ``tavares``.
+        implementing the step's protocol. Defaults: ``dem_matrix``,
+        ``speed_scaled``, ``jk_t10``, ``tavares``.
     solver : {"expected_value", "monte_carlo"}
         How to solve (default expected value).
     impacted : {"refeed", "all"}
@@ -254,8 +255,9 @@ class Mill:
             with warnings.catch_warnings(record=True) as caught, _single_threaded_blas():
                 warnings.simplefilter("always")
                 params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
-                streams = np.asarray(self.transport.streams(params), dtype=float)
-                stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+                streams = sm.transition_of(self.transport, params)
+                stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
+                                                  np.asarray(speeds, dtype=float))
                 lm = None
                 if self.solver == "expected_value" or self.mc_steps is None:
                     lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage,
@@ -307,11 +309,13 @@ class Mill:
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        notes += [streams.note] if streams.note else []
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
             res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
         else:
             res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+        res = _with_extrapolated_share(res, params)
         if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
             key = (grid.edges_mm.tobytes(), feed_m.fractions.tobytes(), tuple(op.stage_speeds(self.provider.n_stages)),
                    float(op.feed_tph), float(op.gate_deg))
@@ -339,8 +343,9 @@ class Mill:
                                                         op.feed_tph, op.gate_deg, seed=self.seed or 0)
         passing, p80 = [], []
         for params in samples:
-            streams = np.asarray(self.transport.streams(params), dtype=float)
-            stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+            streams = sm.transition_of(self.transport, params)
+            stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
+                                              np.asarray(speeds, dtype=float))
             lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage, self.band_damage_classes,
                           self.band_quadrature_nodes, self.impacted)
             tps = op.feed_tph * params.characteristic_time_s / 3600.0
@@ -475,6 +480,16 @@ class Mill:
             mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
             solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
         )
+
+
+def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
+    """The result with the feed and product mass % whose stage parameters were extrapolated."""
+    mask = getattr(params, "extrapolated", None)
+    if mask is None:
+        return res
+    mask = np.asarray(mask, dtype=bool)
+    return dataclasses.replace(res, extrapolated_feed_pct=100.0 * float(res.feed_psd.fractions[mask].sum()),
+                               extrapolated_product_pct=100.0 * float(res.product_psd.fractions[mask].sum()))
 
 
 def simulate(ore: Any, feed: PSD, operating_point: Any, stage_parameters: Any, machine: Any = None,

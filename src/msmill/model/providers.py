@@ -20,9 +20,13 @@ Providers shipped here
     The statistics of one DEM run (:class:`msmill.stageparams.RunStatistics`),
     applied to every size.
 
-Sizes outside the sizes covered are clamped to the nearest run, with one
-:class:`msmill.errors.OutOfDomainWarning`. An operating point that differs
-from the one the statistics were measured at also warns.
+Sizes outside the sizes covered are extrapolated (a table: the end run's
+values continued along the table's least-squares trend in ``ln(size)``, up to
+:data:`EXTRAPOLATION_SPANS` times the covered span, then held; one run:
+clamped) and flagged in ``StageParameters.extrapolated``; the mill result
+reports the share of feed and product mass concerned (no warning). An
+operating point that differs from the one the statistics were measured at
+warns.
 """
 
 from __future__ import annotations
@@ -136,6 +140,8 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     if has_regions:
         out["rw"] = np.array([[s.region_weights for s in r.stages] for r in runs])
         out["rs"] = np.array([[s.region_streams for s in r.stages] for r in runs])
+    if all(r.inlet_destinations is not None and all(s.destinations is not None for s in r.stages) for r in runs):
+        out["tr"] = np.array([[r.inlet_destinations] + [s.destinations for s in r.stages] for r in runs])
     return out
 
 
@@ -151,21 +157,33 @@ def _count_rows(runs: list[RunStatistics]) -> np.ndarray:
     return arr
 
 
+#: Extrapolation reach beyond the sizes covered, as a multiple of the covered ln-size span
+#: (docs/model.md, "Sizes outside the stage statistics"): a table covering 6-30 mm extrapolates
+#: its trends down to 1.2 mm and up to 150 mm, and holds the values reached there beyond.
+EXTRAPOLATION_SPANS = 1.0
+
+
+def _trend_slope(xr: np.ndarray, arr: np.ndarray) -> np.ndarray:
+    """Least-squares slope of ``arr`` (R, ...) against ``xr`` (R,) over all runs (per element)."""
+    dx = xr - xr.mean()
+    shape = (-1,) + (1,) * (arr.ndim - 1)
+    return np.sum(dx.reshape(shape) * (arr - arr.mean(axis=0)), axis=0) / np.sum(dx * dx)
+
+
 def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
     run_sizes = np.array([r.design.size_mm for r in runs])
     sizes = np.asarray(sizes_mm, dtype=float)
     lo, hi = run_sizes[0], run_sizes[-1]
     outside = (sizes < lo * (1 - 1e-9)) | (sizes > hi * (1 + 1e-9))
-    if np.any(outside):
-        warnings.warn(
-            f"{int(outside.sum())} of {sizes.size} size classes "
-            f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
-            f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
-            "to the nearest size", SummaryNote, stacklevel=3)
     a = _run_arrays(runs)
     _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
     xr = np.log(run_sizes)
+    # outside the sizes covered: the end run's value plus the table's ln-size trend (least squares over
+    # all runs) times the distance, the distance capped at EXTRAPOLATION_SPANS x the covered span
+    reach = EXTRAPOLATION_SPANS * (xr[-1] - xr[0])
+    x_out = np.clip(np.log(sizes), xr[0] - reach, xr[-1] + reach)
+    dx_out = np.where(outside, x_out - x, 0.0)  # 0 inside; one run: reach 0, i.e. clamped
     if len(runs) == 1:
         j = np.zeros(sizes.size, dtype=int)
         w = np.zeros(sizes.size)
@@ -180,7 +198,11 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         a0 = np.moveaxis(arr[j], 0, 1)
         a1 = np.moveaxis(arr[j1], 0, 1)
         ww = w.reshape((1, -1) + (1,) * (a0.ndim - 2))
-        return (1 - ww) * a0 + ww * a1
+        out = (1 - ww) * a0 + ww * a1
+        if len(runs) > 1 and np.any(outside):
+            slope = _trend_slope(xr, arr)[:, None]  # (S, 1, ...)
+            out = out + slope * dx_out.reshape((1, -1) + (1,) * (a0.ndim - 2))
+        return out
 
     def mix(arr: np.ndarray) -> MixtureArrays:
         # arr (3, R, S, K): concatenate neighbours' components with weights (1-w), w
@@ -190,36 +212,51 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         weights = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
         means = np.concatenate([p0[1], p1[1]], axis=-1)
         sig = np.concatenate([p0[2], p1[2]], axis=-1)
+        if len(runs) > 1 and np.any(outside):
+            # velocities scale with the trend of ln(mean velocity) in ln(size)
+            ln_mean = np.log(np.maximum(np.sum(arr[0] * arr[1], axis=-1), 1e-6))  # (R, S)
+            f = np.exp(_trend_slope(xr, ln_mean)[:, None, None] * dx_out[None, :, None])
+            means, sig = means * f, sig * f
         return MixtureArrays(weights, means, sig)
 
-    def count_mix(arr: np.ndarray) -> CountArrays:
+    def count_mix(arr: np.ndarray, lam: np.ndarray) -> CountArrays:
         # arr (2, R, S, C): as for velocities, the interpolated pmf is the (1-w, w) mixture of the
-        # neighbours' pmfs, so its mean is the interpolated secondary_lambda
+        # neighbours' pmfs, so its mean is the interpolated secondary_lambda; outside the sizes
+        # covered the end run's shape is kept and its means scaled to the extrapolated lambda
         p0 = np.moveaxis(arr[:, j], 1, 2)  # (2, S, N, C)
         p1 = np.moveaxis(arr[:, j1], 1, 2)
         ww = w[None, :, None]
-        return CountArrays(np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1),
-                           np.concatenate([p0[1], p1[1]], axis=-1))
+        cw = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
+        cm = np.concatenate([p0[1], p1[1]], axis=-1)
+        own = np.sum(cw * cm, axis=-1)
+        scale = np.where(outside[None, :] & (own > 0), lam / np.where(own > 0, own, 1.0), 1.0)
+        return CountArrays(cw, cm * scale[..., None])
 
-    streams = lin(a["streams"])
+    streams = np.maximum(lin(a["streams"]), 0.0)
     streams /= streams.sum(axis=-1, keepdims=True)
-    rw = rs = None
+    rw = rs = tr = None
     if "rw" in a:
-        rw = lin(a["rw"])
-        rs = lin(a["rs"])
+        rw = np.maximum(lin(a["rw"]), 0.0)
+        rw /= rw.sum(axis=-1, keepdims=True)
+        rs = np.maximum(lin(a["rs"]), 0.0)
+        rs /= rs.sum(axis=-1, keepdims=True)
+    if "tr" in a:
+        tr = np.maximum(lin(a["tr"]), 0.0)
+        tr /= tr.sum(axis=-1, keepdims=True)
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
                       f"using their mean {times.mean():g} s as the time step", SummaryNote,
                       stacklevel=3)
     d = runs[0].design
+    lam = np.maximum(lin(a["lam"]), 0.0)
     return StageParameters(
         sizes_mm=sizes.copy(),
         characteristic_time_s=float(times.mean()),
         streams=streams,
         hit_probability=np.clip(lin(a["hit"]), 0.0, 1.0),
         primary_velocity=mix(a["pv"]),
-        secondary_lambda=np.maximum(lin(a["lam"]), 0.0),
+        secondary_lambda=lam,
         secondary_velocity=mix(a["sv"]),
         design_stage_speeds_rpm=np.asarray(d.stage_speeds_rpm, dtype=float),
         design_feed_tph=d.feed_tph,
@@ -227,7 +264,10 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         region_weights=rw,
         region_streams=rs,
         source=source,
-        secondary_count=count_mix(a["sc"]),
+        secondary_count=count_mix(a["sc"], lam),
+        transition=tr,
+        extrapolated=outside,
+        transition_lag_s=None if tr is None else (1 - w) * times[j] + w * times[j1],
     )
 
 
@@ -297,7 +337,7 @@ class RunProvider:
         return cls(RunStatistics.from_json(p), source=p.name)
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
-        """The run's parameters at every size (other sizes are clamped, with a warning)."""
+        """The run's parameters at every size (other sizes are clamped and flagged as extrapolated)."""
         _check_operating_point(self.run.design, stage_speeds_rpm, feed_tph, gate_deg, self.source)
         return _interpolate([self.run], sizes_mm, self.source)
 

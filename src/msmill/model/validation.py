@@ -133,8 +133,9 @@ class SurveyModel:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 params = m.provider.stage_parameters(self.grid.mids_mm, list(key[0]), op.feed_tph, op.gate_deg)
-            streams = np.asarray(m.transport.streams(params), dtype=float)
-            stats = m.impacts.impacts(params, np.asarray(key[0], dtype=float))
+            streams = sm.transition_of(m.transport, params)
+            stats = sm.without_stopped_rotors(m.impacts.impacts(params, np.asarray(key[0], dtype=float)),
+                                              np.asarray(key[0], dtype=float))
             hit = (params, streams, stats)
             self._stage[key] = hit
             self.warnings[key] = [str(w.message) for w in caught]

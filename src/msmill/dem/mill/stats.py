@@ -30,6 +30,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 * **Streams**: rocks in stage ``s`` at a snapshot time ``t`` (tags) are
   located at ``t + tau``: higher stage or inlet zone = kickback, same stage =
   refeed, lower stage or left through the outlet = pass-through. Mass weighted.
+* **Destinations**: the same tagging, also of rocks in the inlet zone
+  (compartment 0, everything above stage 1 including the feed chute), gives
+  the mass fractions found at ``t + tau`` in each compartment ``0..n`` or
+  left through the outlet (``n + 1``): the full one-lag transition matrix
+  (jumps of more than one stage, the inlet zone's dwell).
 * **Hit probability**: mass fraction of the tagged rocks of stage ``s`` that
   receive at least one primary impact from a stage-``s`` rotor within
   ``(t, t + tau]``.
@@ -88,6 +93,7 @@ __all__ = [
     "identify_impacts",
     "snapshots_frame",
     "stage_of_z",
+    "transition_matrix",
 ]
 
 _PLACEHOLDER = GaussianMixture.single(0.0, 1e-3)  # used (with n = 0 and kl None) when a stage has no sample
@@ -294,9 +300,11 @@ def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame
 # --------------------------------------------------------------------------- streams
 def _tag_pairs(
     machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, times: np.ndarray, lag: int,
-    rock_density_kg_m3: float,
+    rock_density_kg_m3: float, first_stage: int = 1,
 ) -> pd.DataFrame:
-    """Tagged rocks (stage 1..n at snapshot ``i``) with the stage they are in at snapshot ``i + lag``.
+    """Tagged rocks (stage ``first_stage``..n at snapshot ``i``) with the stage they are in at ``i + lag``.
+
+    ``first_stage = 0`` tags the inlet zone too (``destinations``).
 
     ``times`` are the sorted snapshot times of the window; columns of the
     result: ``time_s`` (tag time), ``t_to`` (time of snapshot ``i + lag``),
@@ -312,7 +320,7 @@ def _tag_pairs(
     snaps = snaps[snaps["i"].notna()].astype({"i": np.int64})
     a = snaps[snaps["i"] + lag < times.size][["i", "time_s", "particle_id", "y_m", "z_m", "radius_m"]].copy()
     a["stage_from"] = stage_of_z(machine, a["z_m"].to_numpy())
-    a = a[(a["stage_from"] >= 1) & (a["stage_from"] <= n)]
+    a = a[(a["stage_from"] >= first_stage) & (a["stage_from"] <= n)]
     a["i_to"] = a["i"] + lag
     a["t_to"] = times[a["i_to"].to_numpy()]
     b = snaps[snaps["i"] >= lag][["i", "particle_id", "z_m"]].rename(columns={"i": "i_to", "z_m": "z_to"})
@@ -344,6 +352,41 @@ def _streams(pairs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     f.columns = ["kickback", "refeed", "pass_through"]
     f["mass_kg"] = tot
     return f
+
+
+def _destinations(pairs: pd.DataFrame, n: int) -> dict[int, list[float]]:
+    """Mass fractions of the rock tagged in compartment ``c`` (0..n) found in ``0..n+1`` one lag later."""
+    if not len(pairs):
+        return {}
+    w = pairs.pivot_table(index="stage_from", columns="stage_to", values="mass_kg", aggfunc="sum", fill_value=0.0)
+    w = w.reindex(columns=range(n + 2), fill_value=0.0)
+    f = w.div(w.sum(axis=1), axis=0)
+    return {int(c): [float(v) for v in f.loc[c].to_numpy()] for c in f.index}
+
+
+def transition_matrix(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
+) -> np.ndarray:
+    """Mass-weighted transition matrix at ``lag`` snapshot intervals, tags in ``window_s``.
+
+    Row ``c`` (0 = inlet zone, 1..n stages): fractions of the rock in ``c`` at a
+    snapshot time in the window found ``lag`` snapshots later in ``0..n`` or
+    gone through the outlet (``n + 1``); shape ``(n + 1, n + 2)``, rows of
+    compartments without tags are NaN. The later snapshots may lie beyond the
+    window. With the lag of ``tau`` these are the ``destinations``; at
+    ``k tau`` they test whether the one-lag transport is Markov
+    (``P(k tau) = P(tau)^k``).
+    """
+    n = machine.n_stages
+    snaps = snapshots_frame(snapshots)
+    times = np.sort(snaps["time_s"].unique())
+    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+    pairs = pairs[(pairs["time_s"] >= window_s[0] - 1e-9) & (pairs["time_s"] <= window_s[1] + 1e-9)]
+    out = np.full((n + 1, n + 2), np.nan)
+    for c, row in _destinations(pairs, n).items():
+        out[c] = row
+    return out
 
 
 def _batch_se(values: np.ndarray) -> float:
@@ -439,7 +482,9 @@ def compute_statistics(
     tag_times = times[: max(times.size - lag, 0)]
 
     # ---- transport
-    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3)
+    pairs_all = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+    pairs = pairs_all[pairs_all["stage_from"] >= 1].copy()
+    dest = _destinations(pairs_all, n)
     streams = _streams(pairs, ["stage_from"]) if len(pairs) else None
     tag_batch = {t: b for b, chunk in enumerate(np.array_split(tag_times, s_.n_batches)) for t in chunk}
     pairs["batch"] = pairs["time_s"].map(tag_batch)
@@ -556,7 +601,7 @@ def compute_statistics(
             secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
             n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
             n_transport_samples=n_tr, mean_holdup_kg=float(holdup_kg.get(s, 0.0)),
-            sampling_error=se,
+            sampling_error=se, destinations=dest.get(s),
         ))
         samples[s] = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
         fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf,
@@ -589,7 +634,7 @@ def compute_statistics(
         design=design, mode="full" if mode == "full" else "slice", characteristic_time_s=tau, stages=stages,
         steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
         mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
-        provenance=prov,
+        inlet_destinations=dest.get(0), inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
     )
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
 
