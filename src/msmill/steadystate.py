@@ -8,12 +8,12 @@ default: the flow through the mill pulsates on a time scale of a few tenths of
 a second, and the LIGGGHTS reference averages over 0.6-0.7 s). At time ``t``
 the flow is **steady** when
 
-1. *mass balance*: the product rate of each window, ``P_A`` and ``P_B``
-   (product mass out of the window / ``W``), is within ``balance_tol`` of the
-   feed rate: ``|P / F - 1| <= balance_tol``;
+1. *mass balance*: the product rate over both windows, ``(P_A + P_B) / 2``
+   (``P`` = product mass out of a window / ``W``), is within ``balance_tol``
+   of the feed rate: ``|P / F - 1| <= balance_tol`` (0.10);
 2. *no hold-up trend*: the least-squares slope of the hold-up over
    ``[t - 2W, t]`` is at most ``trend_tol`` of the feed rate in magnitude
-   (``|dH/dt| <= trend_tol F``);
+   (``|dH/dt| <= trend_tol F``, 0.10);
 3. *stable hold-up*: the mean hold-up of the two windows differs by less than
    ``holdup_tol`` (relative to ``B``'s mean).
 
@@ -71,7 +71,7 @@ class SteadyStateCriterion:
     window_s : float
         Window length ``W`` (s), long against the pulsation of the flow.
     balance_tol : float
-        Largest relative difference between product and feed rate in each window.
+        Largest relative difference between product and feed rate over the two windows.
     trend_tol : float
         Largest hold-up slope as a fraction of the feed rate.
     holdup_tol : float
@@ -80,7 +80,7 @@ class SteadyStateCriterion:
 
     window_s: float = 0.65
     balance_tol: float = 0.10
-    trend_tol: float = 0.05
+    trend_tol: float = 0.10
     holdup_tol: float = 0.05
 
     def __post_init__(self) -> None:
@@ -108,8 +108,7 @@ class FlowWindows:
     def steady(self, crit: SteadyStateCriterion) -> np.ndarray:
         """Boolean mask: the criterion holds at each end time."""
         with np.errstate(invalid="ignore"):
-            return ((np.abs(self.product_a - 1.0) <= crit.balance_tol)
-                    & (np.abs(self.product_b - 1.0) <= crit.balance_tol)
+            return ((np.abs(0.5 * (self.product_a + self.product_b) - 1.0) <= crit.balance_tol)
                     & (np.abs(self.trend) <= crit.trend_tol)
                     & (self.holdup_change <= crit.holdup_tol))
 

@@ -9,6 +9,9 @@ import typer
 
 from msmill.errors import MsmillInputError
 
+EXIT_NOT_STEADY = 3  # the run ended at its time limit without steady state
+EXIT_CHOKED = 4  # the mill did not pass the feed rate (product persistently below feed)
+
 app = typer.Typer(help="DEM of the multi-shaft mill: run to steady state, per-stage statistics.",
                   no_args_is_help=True)
 
@@ -23,7 +26,8 @@ def run_cmd(
     bottom_factor: Annotated[float, typer.Option("--bottom-factor", help="Bottom / upper stage speed.")] = 2.0,
     gate_deg: Annotated[float, typer.Option("--gate-deg", help="Gate angle below horizontal (deg).")] = 40.0,
     slice_: Annotated[bool, typer.Option("--slice", help="Periodic slice one flinger row long (cheap).")] = False,
-    max_time_s: Annotated[float, typer.Option("--max-time-s", help="Give up waiting for steady state (s).")] = 4.0,
+    max_time_s: Annotated[float | None, typer.Option(
+        "--max-time-s", help="Give up waiting for steady state (s); default scales with the residence time.")] = None,
     measure_s: Annotated[float, typer.Option("--measure-s", help="Measurement window after steady state (s).")] = 0.5,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the feed source.")] = 0,
     vtk: Annotated[bool, typer.Option("--vtk", help="Also write the final particles as VTU.")] = False,
@@ -46,7 +50,7 @@ def run_cmd(
 
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
                       TimeElapsedColumn()) as bar:
-            task = bar.add_task("DEM", total=max_time_s + measure_s, info="")
+            task = bar.add_task("DEM", total=settings.time_limit_s(size_mm) + measure_s, info="")
 
             def cb(t: float, n: int, phase: str) -> None:
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
@@ -61,7 +65,14 @@ def run_cmd(
     typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "
                f"{result.window_s[0]:.2f}-{result.window_s[1]:.2f} s; wall {result.wall_s:.1f} s; dt {result.extra['dt_s']:.3g} s")
     if st is not None:
-        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s; written to {out}")
+        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s "
+                   f"({100 * st.mass_out_rate_kg_s / result.scene.feed_kg_s:.0f} % of feed); written to {out}")
+    if result.outcome != "steady":
+        # statistics are written but marked; ingest refuses them unless explicitly allowed
+        msg = result.verdict.message if result.verdict else result.outcome
+        typer.echo(f"error: {result.outcome} after {result.window_s[1]:.2f} s (limit "
+                   f"{result.extra['time_limit_s']:.2f} s): {msg}; statistics marked '{result.outcome}'", err=True)
+        raise typer.Exit(code=EXIT_CHOKED if result.outcome == "choked" else EXIT_NOT_STEADY)
 
 
 @app.command("stats")

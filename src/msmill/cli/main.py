@@ -68,7 +68,7 @@ def run(argv: list[str] | None = None) -> int:
     """Run the CLI and return its exit status (0 ok, 1 failure, 2 bad input)."""
     warnings.formatwarning = _format_warning
     try:
-        app(args=argv, prog_name="msmill", standalone_mode=False)
+        rc = app(args=argv, prog_name="msmill", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code
     except typer.TyperException as exc:  # usage errors, bad parameters (click underneath)
@@ -91,7 +91,7 @@ def run(argv: list[str] | None = None) -> int:
             typer.echo(f"error: {from_validation_error(exc)}", err=True)
             return 2
         raise
-    return 0
+    return rc if isinstance(rc, int) else 0  # click returns a typer.Exit's code without standalone mode
 
 
 def main() -> None:

@@ -27,12 +27,14 @@ provenance).
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import time
 import tomllib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -46,31 +48,80 @@ from msmill.dem.mill.stats import (
     MillStatistics,
     StatsSettings,
     compute_statistics,
-    detect_steady_state,
     snapshots_frame,
 )
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
-from msmill.stageparams import DesignPoint
+from msmill.stageparams import DesignPoint, RunStatistics, StageParameterTable
+from msmill.steadystate import (
+    SteadyStateCriterion,
+    SteadyStateVerdict,
+    assess,
+    expected_residence_time_s,
+    first_steady,
+)
 
 __all__ = ["MillRun", "RunSettings", "design_point", "load_raw", "run_mill", "save_run", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
 class RunSettings:
-    """Settings of a run to steady state plus measurement window (times in s)."""
+    """Settings of a run to steady state plus measurement window (times in s).
 
-    max_time_s: float = 4.0
+    Steady state is :mod:`msmill.steadystate`'s criterion on the hold-up and
+    the product mass out: two windows of ``steady_window_s``, product rate
+    over them within ``balance_tol`` of the feed, hold-up slope below ``trend_tol`` of
+    the feed rate, window means of the hold-up within ``rel_tol``.
+    ``max_time_s`` None (default) scales the limit with the expected
+    residence time ``t_res`` of the rock (the default stage table's transport
+    chain at the nearest rock size): ``max(min_time_s, 2 steady_window_s +
+    residence_factor t_res)``, at most ``max_time_cap_s``.
+    """
+
+    max_time_s: float | None = None
     chunk_s: float = 0.1
-    steady_window_s: float = 0.4
+    steady_window_s: float = 0.65
     rel_tol: float = 0.05
-    trend_tol: float = 0.05
+    trend_tol: float = 0.10
+    balance_tol: float = 0.10
     measure_s: float = 0.5
     snapshot_every_s: float = 0.005
     max_overlap_fraction: float = 0.05
     safety: float = 0.2
     dt_s: float | None = None
     seed: int = 0
+    min_time_s: float = 4.0
+    residence_factor: float = 6.0
+    max_time_cap_s: float = 20.0
+
+    def criterion(self) -> SteadyStateCriterion:
+        """The steady-state criterion these settings describe."""
+        return SteadyStateCriterion(window_s=self.steady_window_s, balance_tol=self.balance_tol,
+                                    trend_tol=self.trend_tol, holdup_tol=self.rel_tol)
+
+    def time_limit_s(self, size_mm: float) -> float:
+        """Mill time after which a run that is not steady gives up (s)."""
+        if self.max_time_s is not None:
+            return float(self.max_time_s)
+        t_res = expected_residence_s(size_mm)
+        limit = max(self.min_time_s, 2 * self.steady_window_s + self.residence_factor * t_res)
+        return float(min(limit, self.max_time_cap_s))
+
+
+def expected_residence_s(size_mm: float) -> float:
+    """Expected residence time (s) of rock of ``size_mm``: transport chain of the nearest default-table run."""
+    table = _default_table()
+    sizes = table.sizes_mm
+    r = table.runs[int(np.argmin(np.abs(np.log(sizes / size_mm))))]
+    st = r.stages
+    return expected_residence_time_s(np.array([x.kickback for x in st]), np.array([x.refeed for x in st]),
+                                     np.array([x.pass_through for x in st]), r.characteristic_time_s)
+
+
+@functools.cache
+def _default_table() -> StageParameterTable:
+    path = resources.files("msmill") / "data" / "stage_parameters" / "default.json"
+    return StageParameterTable.from_json(str(path))
 
 
 @dataclass
@@ -89,6 +140,8 @@ class MillRun:
     wall_s: float
     stats: MillStatistics | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    outcome: str = "steady"
+    verdict: SteadyStateVerdict | None = None
 
 
 def design_point(machine: Machine, op: OperatingPoint, size_mm: float) -> DesignPoint:
@@ -132,7 +185,7 @@ def run_mill(
         ``"transient"`` or ``"measure"``.
     """
     rs = settings or RunSettings()
-    if rs.measure_s <= 0 or rs.max_time_s <= 0 or rs.chunk_s <= 0:
+    if rs.measure_s <= 0 or (rs.max_time_s is not None and rs.max_time_s <= 0) or rs.chunk_s <= 0:
         raise MsmillInputError("settings", rs, "positive times")
     wall0 = time.perf_counter()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
@@ -141,6 +194,8 @@ def run_mill(
     sim = scene.sim
     kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
+    crit = rs.criterion()
+    limit = rs.time_limit_s(scene.size_mm)
     found = None
 
     def remaining(t_end: float) -> float:
@@ -148,15 +203,14 @@ def run_mill(
         left = t_end - sim.time_s
         return left if left > 0.5 * (sim.dt_s or 0.0) + 1e-12 else 0.0
 
-    while remaining(rs.max_time_s) > 0:
-        sim.run(min(rs.chunk_s, remaining(rs.max_time_s)), **kw)
-        ts = sim.timeseries()
+    while remaining(limit) > 0:
+        sim.run(min(rs.chunk_s, remaining(limit)), **kw)
         if progress:
             progress(sim.time_s, int(sim.n_particles), "transient")
-        found = detect_steady_state(ts["time_s"].to_numpy(), ts["n_particles"].to_numpy(), rs.steady_window_s,
-                                    rs.rel_tol, rs.trend_tol)
+        found = _first_steady(sim.timeseries(), scene.feed_kg_s, crit)
         if found is not None:
             break
+    verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
     t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
     if found is not None:
         t_stop = sim.time_s + rs.measure_s
@@ -172,13 +226,31 @@ def run_mill(
         scene=scene, settings=rs, events=sim.events(), removed=sim.removed(), timeseries=sim.timeseries(),
         snapshots=snaps, steady_state_time_s=found[0] if found else None,
         steady_state_detected_s=found[1] if found else None, window_s=(float(t_start), float(sim.time_s)),
-        wall_s=wall,
+        wall_s=wall, outcome=verdict.outcome, verdict=verdict,
     )
     run.extra["git_commit"] = commit0
     run.extra["dt_s"] = float(sim.dt_s)
     run.extra["n_particles_end"] = int(sim.n_particles)
+    run.extra["time_limit_s"] = limit
     run.stats = _compute(run, stats_settings)
     return run
+
+
+def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
+    return first_steady(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(),
+                        feed_kg_s, crit)
+
+
+def _verdict(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> SteadyStateVerdict:
+    return assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(), feed_kg_s,
+                  crit)
+
+
+def _mark(stats: RunStatistics, outcome: str, feed_scale: float | None) -> RunStatistics:
+    """Statistics with the run's outcome and its measured throughput (full-mill t/h) set."""
+    rate = stats.mass_out_rate_kg_s
+    tph = None if rate is None or not feed_scale else rate / feed_scale * 3.6
+    return stats.model_copy(update={"outcome": outcome, "throughput_tph": tph})
 
 
 def _provenance(run: MillRun) -> dict[str, Any]:
@@ -195,6 +267,10 @@ def _provenance(run: MillRun) -> dict[str, Any]:
         "steady_state_detected_s": run.steady_state_detected_s,
         "steady_state_reached": run.steady_state_time_s is not None,
         "end_time_s": run.window_s[1],
+        "outcome": run.outcome,
+        "time_limit_s": run.extra.get("time_limit_s"),
+        "steady_state_criterion": asdict(run.settings.criterion()),
+        "verdict": asdict(run.verdict) if run.verdict is not None else None,
     }
 
 
@@ -204,12 +280,14 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
     if sc.sizes_mm.size > 1:
         mids = np.sqrt(sc.sizes_mm[1:] * sc.sizes_mm[:-1]) / 2000
         edges = np.concatenate([[0.0], mids, [np.inf]])
-    return compute_statistics(
+    ms = compute_statistics(
         sc.machine, design_point(sc.machine, sc.op, sc.size_mm), run.events, run.removed, run.timeseries,
         run.snapshots, run.window_s, mode=sc.mode, rock_density_kg_m3=sc.rock.density_kg_m3,
         steady_state_time_s=run.steady_state_time_s, settings=stats_settings, size_edges_m=edges,
         provenance=_provenance(run),
     )
+    ms.run = _mark(ms.run, run.outcome, float(sc.info.get("feed_scale", 1.0)))
+    return ms
 
 
 # --------------------------------------------------------------------------- saving
@@ -240,7 +318,8 @@ def save_run(run: MillRun, out_dir: str | Path, vtk: bool = False) -> Path:
                    "steady_state_detected_s": run.steady_state_detected_s
                    if run.steady_state_detected_s is not None else -1.0,
                    "window_start_s": run.window_s[0], "window_end_s": run.window_s[1], "wall_s": run.wall_s,
-                   "dt_s": run.extra.get("dt_s", 0.0)},
+                   "dt_s": run.extra.get("dt_s", 0.0), "outcome": run.outcome,
+                   "feed_scale": float(sc.info.get("feed_scale", 1.0))},
     }
     (out / "run.toml").write_text(tomli_w.dumps(_toml_safe(settings)), encoding="utf-8")
     if run.stats is not None:
@@ -294,9 +373,13 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
             "source_dir": str(run_dir), "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}
     design = DesignPoint(size_mm=d["size_mm"], feed_tph=op.feed_tph, speed_rpm=d["speed_rpm"], gate_deg=op.gate_deg,
                          stage_speeds_rpm=op.stage_speeds(m.n_stages))
-    return compute_statistics(
+    ms = compute_statistics(
         m, design, raw["events"], raw["removed"], raw["timeseries"], raw["snapshots"],
         (res["window_start_s"], res["window_end_s"]), mode=d["mode"],
         rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady, settings=stats_settings,
         size_edges_m=edges, provenance=prov,
     )
+    # runs saved before outcomes existed: steady if the old criterion found steady state
+    outcome = res.get("outcome", "steady" if steady is not None else "not_steady")
+    ms.run = _mark(ms.run, outcome, res.get("feed_scale"))
+    return ms
