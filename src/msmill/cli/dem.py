@@ -94,3 +94,29 @@ def stats_cmd(
         typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
                    f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
     typer.echo(f"written {target}")
+
+
+@app.command("envelope")
+def envelope_cmd(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Directories written by 'msmill dem run'.")],
+    out: Annotated[Path, typer.Option("--out", help="Envelope JSON (for 'msmill predict --envelope').")],
+) -> None:
+    """Collect the outcome (steady / choked / not steady) and throughput of runs into an envelope file."""
+    from datetime import UTC, datetime
+
+    from msmill._version import __version__
+    from msmill.capacity import EnvelopeData, EnvelopePoint
+    from msmill.stageparams import RunStatistics
+
+    points = []
+    for d in run_dirs:
+        if not (d / "statistics.json").is_file():
+            raise MsmillInputError("run_dir", str(d), "a directory written by 'msmill dem run' (statistics.json)")
+        points.append(EnvelopePoint.from_statistics(RunStatistics.from_json(d / "statistics.json")))
+    prov = {"generator": "msmill dem envelope", "msmill_version": __version__, "runs": [str(d) for d in run_dirs],
+            "date_utc": datetime.now(UTC).isoformat(timespec="seconds")}
+    EnvelopeData(points, prov).to_json(out)
+    for d, p in zip(run_dirs, points, strict=True):
+        tp = "-" if p.throughput_tph is None else f"{p.throughput_tph:.1f} t/h"
+        typer.echo(f"{d}: {p.outcome}; feed {p.feed_tph:g} t/h; throughput {tp}")
+    typer.echo(f"written {out}")
