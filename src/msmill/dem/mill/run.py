@@ -50,6 +50,7 @@ from msmill.dem.mill.stats import (
     compute_statistics,
     snapshots_frame,
 )
+from msmill.dem.mill.warmstart import WarmStart, place_warm_start
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
 from msmill.stageparams import DesignPoint, RunStatistics, StageParameterTable
@@ -61,7 +62,8 @@ from msmill.steadystate import (
     first_steady,
 )
 
-__all__ = ["MillRun", "RunSettings", "design_point", "load_raw", "run_mill", "save_run", "stats_from_dir"]
+__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "run_mill", "sampling_errors_reached",
+           "save_run", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,22 @@ class RunSettings:
     min_time_s: float = 4.0
     residence_factor: float = 6.0
     max_time_cap_s: float = 20.0
+    # adaptive measurement window (issue 12): measure from min_measure_s until every target is met,
+    # checking every check_every_s, at most max_measure_s; off: a fixed window of measure_s
+    adaptive: bool = False
+    min_measure_s: float = 0.3
+    max_measure_s: float = 2.0
+    check_every_s: float = 0.2
+    target_streams_se: float = 0.02
+    target_hit_probability_se: float = 0.02
+    target_velocity_rel_se: float = 0.03
+    target_count_mean_rel_se: float = 0.08
+
+    def targets(self) -> dict[str, float]:
+        """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
+        return {"streams": self.target_streams_se, "hit_probability": self.target_hit_probability_se,
+                "velocity_mean_rel": self.target_velocity_rel_se, "velocity_spread_rel": self.target_velocity_rel_se,
+                "count_mean_rel": self.target_count_mean_rel_se}
 
     def criterion(self) -> SteadyStateCriterion:
         """The steady-state criterion these settings describe."""
@@ -171,6 +189,7 @@ def run_mill(
     settings: RunSettings | None = None,
     stats_settings: StatsSettings | None = None,
     progress: Callable[[float, int, str], None] | None = None,
+    start: WarmStart | None = None,
 ) -> MillRun:
     """Build the scene, run to steady state plus a measurement window, compute statistics.
 
@@ -183,6 +202,9 @@ def run_mill(
     progress : callable, optional
         Called after every chunk with ``(time_s, n_particles, phase)``, phase
         ``"transient"`` or ``"measure"``.
+    start : WarmStart, optional
+        Start from this finished run's hold-up (:mod:`msmill.dem.mill.warmstart`)
+        instead of an empty mill.
     """
     rs = settings or RunSettings()
     if rs.measure_s <= 0 or (rs.max_time_s is not None and rs.max_time_s <= 0) or rs.chunk_s <= 0:
@@ -196,6 +218,7 @@ def run_mill(
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
     crit = rs.criterion()
     limit = rs.time_limit_s(scene.size_mm)
+    warm = place_warm_start(scene, start, seed=rs.seed) if start is not None else None
     found = None
 
     def remaining(t_end: float) -> float:
@@ -212,28 +235,86 @@ def run_mill(
             break
     verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
     t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
+    extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm}
+
+    def finish() -> MillRun:
+        return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra,
+                       stats_settings)
+
+    run = None
     if found is not None:
-        t_stop = sim.time_s + rs.measure_s
+        t_stop = sim.time_s + (rs.max_measure_s if rs.adaptive else rs.measure_s)
+        t_check = sim.time_s + rs.min_measure_s
         while remaining(t_stop) > 0:
             sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
                 progress(sim.time_s, int(sim.n_particles), "measure")
-    wall = time.perf_counter() - wall0
+            if rs.adaptive and remaining(t_check) == 0 and remaining(t_stop) > 0:
+                t_check = sim.time_s + rs.check_every_s
+                run = finish()
+                if _converged(run, rs):
+                    break
+                run = None
+    run = run or finish()
+    run.wall_s = time.perf_counter() - wall0
+    return run
+
+
+def _finish(scene: MillScene, rs: RunSettings, found: tuple[float, float] | None, verdict: SteadyStateVerdict,
+            window_s: tuple[float, float], wall_s: float, extra: dict[str, Any],
+            stats_settings: StatsSettings | None) -> MillRun:
+    """The run as it stands: raw tables, outcome and statistics of the window so far."""
+    sim = scene.sim
     snaps = snapshots_frame(sim.snapshots())
     snaps = snaps.drop_duplicates(subset=["time_s", "particle_id"]).reset_index(drop=True)
     snaps["snap"] = pd.factorize(snaps["time_s"], sort=True)[0]
     run = MillRun(
         scene=scene, settings=rs, events=sim.events(), removed=sim.removed(), timeseries=sim.timeseries(),
         snapshots=snaps, steady_state_time_s=found[0] if found else None,
-        steady_state_detected_s=found[1] if found else None, window_s=(float(t_start), float(sim.time_s)),
-        wall_s=wall, outcome=verdict.outcome, verdict=verdict,
+        steady_state_detected_s=found[1] if found else None, window_s=(float(window_s[0]), float(window_s[1])),
+        wall_s=wall_s, outcome=verdict.outcome, verdict=verdict,
     )
-    run.extra["git_commit"] = commit0
+    run.extra.update(extra)
     run.extra["dt_s"] = float(sim.dt_s)
     run.extra["n_particles_end"] = int(sim.n_particles)
-    run.extra["time_limit_s"] = limit
     run.stats = _compute(run, stats_settings)
     return run
+
+
+def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
+    """Largest sampling error over the stages, per family of statistics the surrogate regresses.
+
+    ``streams``, ``hit_probability``: absolute standard errors (batch means);
+    ``velocity_mean_rel``, ``velocity_spread_rel``: standard error of the
+    mean and of the standard deviation (``s / sqrt(2 (n - 1))``) of the primary
+    and secondary impact velocities over their mean; ``count_mean_rel``: of
+    the secondary count mean ``lambda`` over ``lambda``. A family without
+    samples in some stage is ``inf`` there.
+    """
+    out = {"streams": 0.0, "hit_probability": 0.0, "velocity_mean_rel": 0.0, "velocity_spread_rel": 0.0,
+           "count_mean_rel": 0.0}
+    inf = float("inf")
+    for st in ms.run.stages:
+        se = st.sampling_error
+        out["streams"] = max(out["streams"], *(se.get(k, inf) for k in ("kickback", "refeed", "pass_through")))
+        out["hit_probability"] = max(out["hit_probability"], se.get("primary_hit_probability", inf))
+        lam = st.secondary_lambda
+        out["count_mean_rel"] = max(out["count_mean_rel"], se.get("secondary_lambda", inf) / lam if lam > 0 else inf)
+        for key in ("primary_velocity_m_s", "secondary_velocity_m_s"):
+            v = np.asarray(ms.samples.get(st.stage, {}).get(key, np.zeros(0)), dtype=float)
+            if v.size < 3 or v.mean() <= 0:
+                out["velocity_mean_rel"] = out["velocity_spread_rel"] = inf
+                continue
+            sd = float(v.std(ddof=1))
+            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], sd / np.sqrt(v.size) / float(v.mean()))
+            out["velocity_spread_rel"] = max(out["velocity_spread_rel"],
+                                             sd / np.sqrt(2 * (v.size - 1)) / float(v.mean()))
+    return out
+
+
+def _converged(run: MillRun, rs: RunSettings) -> bool:
+    reached = run.stats.run.sampling_error_reached if run.stats else {}
+    return bool(reached) and all(reached[k] <= t for k, t in rs.targets().items())
 
 
 def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
@@ -271,6 +352,8 @@ def _provenance(run: MillRun) -> dict[str, Any]:
         "time_limit_s": run.extra.get("time_limit_s"),
         "steady_state_criterion": asdict(run.settings.criterion()),
         "verdict": asdict(run.verdict) if run.verdict is not None else None,
+        "warm_start": run.extra.get("warm_start"),
+        "adaptive_targets": run.settings.targets() if run.settings.adaptive else None,
     }
 
 
@@ -287,6 +370,7 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
         provenance=_provenance(run),
     )
     ms.run = _mark(ms.run, run.outcome, float(sc.info.get("feed_scale", 1.0)))
+    ms.run = ms.run.model_copy(update={"sampling_error_reached": sampling_errors_reached(ms)})
     return ms
 
 
