@@ -32,6 +32,10 @@ def run_cmd(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the feed source.")] = 0,
     vtk: Annotated[bool, typer.Option("--vtk", help="Also write the final particles as VTU.")] = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    adaptive: Annotated[bool, typer.Option(
+        "--adaptive", help="Measure until the sampling errors reach the run settings' targets.")] = False,
+    warm_start: Annotated[Path | None, typer.Option(
+        "--warm-start", help="Start from the hold-up of this finished run (same gate and slice).")] = None,
 ) -> None:
     """Run the mill DEM to steady state, record a window, write events, statistics and plots."""
     from msmill.dem.mill.run import RunSettings, run_mill, save_run
@@ -41,10 +45,15 @@ def run_cmd(
     op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor, gate_deg=gate_deg)
     if measure_s <= 0:
         raise MsmillInputError("--measure-s", measure_s, "a time > 0 s")
-    settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed)
+    settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed, adaptive=adaptive)
     mode = "slice" if slice_ else "full"
+    start = None
+    if warm_start is not None:
+        from msmill.dem.mill.warmstart import WarmStart
+
+        start = WarmStart.from_dir(warm_start)
     if no_progress:
-        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings)
+        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, start=start)
     else:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -55,7 +64,7 @@ def run_cmd(
             def cb(t: float, n: int, phase: str) -> None:
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
 
-            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb)
+            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb, start=start)
     save_run(result, out, vtk=vtk)
     from msmill.plots.dem import plot_run
 

@@ -99,7 +99,7 @@ class RunSettings:
     # checking every check_every_s, at most max_measure_s; off: a fixed window of measure_s
     adaptive: bool = False
     min_measure_s: float = 0.3
-    max_measure_s: float = 2.0
+    max_measure_s: float = 1.5
     check_every_s: float = 0.2
     target_streams_se: float = 0.02
     target_hit_probability_se: float = 0.02
