@@ -249,7 +249,7 @@ def run_mill(
             sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
                 progress(sim.time_s, int(sim.n_particles), "measure")
-            if rs.adaptive and remaining(t_check) == 0 and remaining(t_stop) > 0:
+            if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check and remaining(t_stop) > 0:
                 t_check = sim.time_s + rs.check_every_s
                 run = finish()
                 if _converged(run, rs):
