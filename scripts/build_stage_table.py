@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--speed-rpm", type=float, default=1500.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
     ap.add_argument("--measure-s", type=float, default=0.5)
-    ap.add_argument("--max-time-s", type=float, default=4.0)
+    ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
     ap.add_argument("--restat", action="store_true",

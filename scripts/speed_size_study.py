@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--feed-tph", type=float, default=30.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
     ap.add_argument("--measure-s", type=float, default=0.5)
-    ap.add_argument("--max-time-s", type=float, default=4.0)
+    ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=Path("runs/speed_size_study"))
     args = ap.parse_args()
     machine = Machine.default()
