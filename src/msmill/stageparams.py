@@ -200,8 +200,9 @@ class RunStatistics(_JsonDocument):
         default=None, description="steady-state outcome of the run (msmill.steadystate); None: not recorded")
     throughput_tph: float | None = Field(
         default=None, ge=0, description="measured product rate in the window, full-mill equivalent, t/h")
-    # adaptive measurement window (issue 12): largest relative sampling error reached per statistic family
-    sampling_error_reached: dict[str, float] = Field(default_factory=dict)
+    # adaptive measurement window (issue 12): largest sampling error reached per statistic family
+    # (msmill.dem.mill.run.sampling_errors_reached); None: some stage had no sample of that family
+    sampling_error_reached: dict[str, float | None] = Field(default_factory=dict)
 
     def require_steady(self, allow_not_steady: bool = False, source: str = "statistics") -> RunStatistics:
         """Return self if the run reached steady state; else raise (unless ``allow_not_steady``).

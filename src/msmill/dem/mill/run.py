@@ -314,7 +314,8 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
 
 def _converged(run: MillRun, rs: RunSettings) -> bool:
     reached = run.stats.run.sampling_error_reached if run.stats else {}
-    return bool(reached) and all(reached[k] <= t for k, t in rs.targets().items())
+    inf = float("inf")  # a family without samples has not converged (unless its target is inf)
+    return bool(reached) and all((inf if reached.get(k) is None else reached[k]) <= t for k, t in rs.targets().items())
 
 
 def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
@@ -370,7 +371,8 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
         provenance=_provenance(run),
     )
     ms.run = _mark(ms.run, run.outcome, float(sc.info.get("feed_scale", 1.0)))
-    ms.run = ms.run.model_copy(update={"sampling_error_reached": sampling_errors_reached(ms)})
+    reached = {k: (v if np.isfinite(v) else None) for k, v in sampling_errors_reached(ms).items()}
+    ms.run = ms.run.model_copy(update={"sampling_error_reached": reached})
     return ms
 
 
