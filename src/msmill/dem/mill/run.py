@@ -2,27 +2,28 @@
 
 Procedure (documented in ``docs/mill-dem.md``):
 
-1. The empty mill is fed from t = 0. The engine runs in chunks of
-   ``chunk_s``; after every chunk :func:`msmill.dem.mill.stats.detect_steady_state`
-   tests the number of particles in the mill (two consecutive windows of
-   ``steady_window_s`` whose means differ by less than ``rel_tol`` and whose
-   joint linear trend is below ``trend_tol``). The onset of steady state
-   (start of the first passing pair of windows) is reported as
-   ``steady_state_time_s``; the time it was detected is
+1. The empty mill (or a warm start, :mod:`msmill.dem.mill.warmstart`) is fed
+   from t = 0. The engine runs in chunks of ``chunk_s``; after every chunk
+   :func:`msmill.steadystate.first_steady` tests the hold-up and the product
+   mass out (mass balance and no hold-up trend over two windows of
+   ``steady_window_s``). The onset (start of the first passing pair of
+   windows) is ``steady_state_time_s``; the time it was detected is
    ``steady_state_detected_s``.
 2. From the detection time the run continues for ``measure_s`` (the
-   measurement window); snapshots every ``snapshot_every_s`` throughout.
+   measurement window), or with ``adaptive`` until the sampling errors meet
+   their targets (between ``min_measure_s`` and ``max_measure_s``);
+   snapshots every ``snapshot_every_s`` throughout.
 3. The statistics (:func:`msmill.dem.mill.stats.compute_statistics`) use the
-   measurement window only.
+   measurement window only; they carry the run's ``outcome``.
 
 The time step is the engine's default rule with ``safety = 0.2`` of the Hertz
 contact time at the highest expected impact speed. A larger safety (0.3) was
 tried and rejected: rock hit by fast rotating flinger plates then left faster
 than ``(1 + e)`` times the plate speed (energy gain, then run-away speeds).
 
-If no steady state is found by ``max_time_s`` the last ``measure_s`` is used
-as the window and ``steady_state_time_s`` is None (the run is flagged in its
-provenance).
+If no steady state is found by the time limit (:meth:`RunSettings.time_limit_s`)
+the last ``measure_s`` is used as the window, ``steady_state_time_s`` is None
+and the outcome is ``choked`` or ``not_steady`` (:func:`msmill.steadystate.assess`).
 """
 
 from __future__ import annotations
