@@ -29,6 +29,7 @@ import argparse
 import time
 import warnings
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
@@ -42,8 +43,8 @@ KEYS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "second
 def _values(stage) -> dict[str, tuple[float, float | None]]:
     se = stage.sampling_error
     out = {k: (float(getattr(stage, k)), se.get(k)) for k in KEYS}
-    out["primary_velocity_mean_m_s"] = (stage.primary_velocity.mean, se.get("primary_velocity_mean_m_s"))
-    out["secondary_velocity_mean_m_s"] = (stage.secondary_velocity.mean, se.get("secondary_velocity_mean_m_s"))
+    out["primary_velocity_mean_m_s"] = (stage.primary_velocity.mean(), se.get("primary_velocity_mean_m_s"))
+    out["secondary_velocity_mean_m_s"] = (stage.secondary_velocity.mean(), se.get("secondary_velocity_mean_m_s"))
     return out
 
 
@@ -69,7 +70,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[20.0, 10.0, 6.0])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None, help="write each run's statistics JSON here")
     args = ap.parse_args()
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
     warnings.simplefilter("ignore")  # transient overlap warnings are not the point here
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
@@ -94,6 +98,8 @@ def main() -> None:
             run, wall = timed(fn)
             st = run.stats.run
             res[name] = (st, wall)
+            if args.out:
+                st.to_json(args.out / f"{size:g}mm_{name}.json")
             ws = run.extra.get("warm_start") or {}
             print(f"{size:g} mm {name}: {run.outcome}, t_ss {run.steady_state_time_s}, window "
                   f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall:.1f} s, "
