@@ -76,7 +76,7 @@ def main() -> None:
 def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
     """The machine, operating point and run settings the table is built at."""
     op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
-    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s)
 
 
 def _restat(args) -> None:

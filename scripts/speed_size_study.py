@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/speed_size_study"))
     args = ap.parse_args()
     machine = Machine.default()
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    settings = RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s)
     rows, lines = [], []
     lines.append("| speed (rpm) | size (mm) | t_ss (s) | tau (s) | stage | kick | refeed | pass | p_hit | "
                  "v_prim (m/s) | KL v_prim | lambda | KL lambda | KL v_sec | n_prim | n_sec |")

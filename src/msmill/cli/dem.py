@@ -45,7 +45,7 @@ def run_cmd(
     op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor, gate_deg=gate_deg)
     if measure_s <= 0:
         raise MsmillInputError("--measure-s", measure_s, "a time > 0 s")
-    settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed, adaptive=adaptive)
+    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive)
     mode = "slice" if slice_ else "full"
     start = None
     if warm_start is not None:
@@ -129,3 +129,27 @@ def envelope_cmd(
         tp = "-" if p.throughput_tph is None else f"{p.throughput_tph:.1f} t/h"
         typer.echo(f"{d}: {p.outcome}; feed {p.feed_tph:g} t/h; throughput {tp}")
     typer.echo(f"written {out}")
+
+
+
+@app.command("import")
+def import_cmd(
+    folder: Annotated[Path, typer.Argument(help="Folder with import.toml, machine.toml, events and positions tables.")],
+    out: Annotated[Path | None, typer.Option("--out", help="Where to write statistics.json (default FOLDER).")] = None,
+) -> None:
+    """Compute per-stage statistics from external DEM tables (Rocky, EDEM, LIGGGHTS; docs/campaign.md)."""
+    import shutil
+
+    from msmill.dem.mill.external import import_folder
+
+    ms, _machine = import_folder(folder)
+    target = out or folder
+    target.mkdir(parents=True, exist_ok=True)
+    ms.run.to_json(target / "statistics.json")
+    if target.resolve() != folder.resolve():
+        for name in ("machine.toml", "import.toml"):
+            shutil.copyfile(folder / name, target / name)
+    for s in ms.run.stages:
+        typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
+                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
+    typer.echo(f"written {target / 'statistics.json'} (ingest with 'msmill db ingest {target}')")

@@ -75,13 +75,13 @@ class RunSettings:
     the product mass out: two windows of ``steady_window_s``, product rate
     over them within ``balance_tol`` of the feed, hold-up slope below ``trend_tol`` of
     the feed rate, window means of the hold-up within ``rel_tol``.
-    ``max_time_s`` None (default) scales the limit with the expected
+    ``max_time_s`` 0 (default) scales the limit with the expected
     residence time ``t_res`` of the rock (the default stage table's transport
     chain at the nearest rock size): ``max(min_time_s, 2 steady_window_s +
     residence_factor t_res)``, at most ``max_time_cap_s``.
     """
 
-    max_time_s: float | None = None
+    max_time_s: float = 0.0
     chunk_s: float = 0.1
     steady_window_s: float = 0.65
     rel_tol: float = 0.05
@@ -120,7 +120,7 @@ class RunSettings:
 
     def time_limit_s(self, size_mm: float) -> float:
         """Mill time after which a run that is not steady gives up (s)."""
-        if self.max_time_s is not None:
+        if self.max_time_s > 0:
             return float(self.max_time_s)
         t_res = expected_residence_s(size_mm)
         limit = max(self.min_time_s, 2 * self.steady_window_s + self.residence_factor * t_res)
@@ -208,7 +208,7 @@ def run_mill(
         instead of an empty mill.
     """
     rs = settings or RunSettings()
-    if rs.measure_s <= 0 or (rs.max_time_s is not None and rs.max_time_s <= 0) or rs.chunk_s <= 0:
+    if rs.measure_s <= 0 or rs.max_time_s < 0 or rs.chunk_s <= 0:
         raise MsmillInputError("settings", rs, "positive times")
     wall0 = time.perf_counter()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
@@ -236,7 +236,7 @@ def run_mill(
             break
     verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
     t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
-    extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm}
+    extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm, "outcome": verdict.outcome}
 
     def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
         return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra, ss)
