@@ -71,6 +71,8 @@ def main() -> None:
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[20.0, 10.0, 6.0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="write each run's statistics JSON here")
+    ap.add_argument("--cold-adaptive", action="store_true",
+                    help="also run a cold start with the adaptive window and compare it with the warm one")
     args = ap.parse_args()
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
@@ -93,6 +95,9 @@ def main() -> None:
                       start=start)
 
         order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
+        if args.cold_adaptive:  # same window rule as "new", cold start: isolates the start's effect
+            order += (("cold_adaptive", partial(run_mill, m, point, size_mm=size,
+                                                settings=RunSettings(adaptive=True, seed=args.seed))),)
         res = {}
         for name, fn in order:
             run, wall = timed(fn)
@@ -111,6 +116,10 @@ def main() -> None:
         n_dev += len(devs)
         n_over += sum(d > 2 for d, _ in devs)
         worst = max(worst, d_max)
+        if "cold_adaptive" in res:
+            dc = deviations(res["cold_adaptive"][0], res["new"][0])
+            print(f"{size:g} mm cold adaptive vs warm adaptive: max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
+                  f"{sum(d > 2 for d, _ in dc)} of {len(dc)} beyond 2 sigma")
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
         print(f"{size:g} mm: cost ratio {ratio:.3f}; max deviation {d_max[0]:.2f} sigma ({d_max[1]}); "
