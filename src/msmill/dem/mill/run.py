@@ -54,7 +54,7 @@ from msmill.dem.mill.stats import (
 from msmill.dem.mill.warmstart import WarmStart, place_warm_start
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
-from msmill.stageparams import DesignPoint, RunStatistics, StageParameterTable
+from msmill.stageparams import DesignPoint, StageParameterTable
 from msmill.steadystate import (
     SteadyStateCriterion,
     SteadyStateVerdict,
@@ -63,7 +63,8 @@ from msmill.steadystate import (
     first_steady,
 )
 
-__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "run_mill", "sampling_errors_reached",
+__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics", "run_mill",
+           "sampling_errors_reached",
            "save_run", "stats_from_dir"]
 
 
@@ -327,11 +328,19 @@ def _verdict(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> 
                   crit)
 
 
-def _mark(stats: RunStatistics, outcome: str, feed_scale: float | None) -> RunStatistics:
-    """Statistics with the run's outcome and its measured throughput (full-mill t/h) set."""
-    rate = stats.mass_out_rate_kg_s
+def mark_statistics(ms: MillStatistics, outcome: str | None, feed_scale: float | None) -> MillStatistics:
+    """Set the run-protocol fields of the statistics (in place; returns ``ms``).
+
+    ``outcome`` (None: not recorded), ``throughput_tph`` (measured product rate
+    in the window, full-mill t/h; None without ``feed_scale``) and
+    ``sampling_error_reached`` (:func:`sampling_errors_reached`, non-finite as None).
+    """
+    st = ms.run
+    rate = st.mass_out_rate_kg_s
     tph = None if rate is None or not feed_scale else rate / feed_scale * 3.6
-    return stats.model_copy(update={"outcome": outcome, "throughput_tph": tph})
+    reached = {k: (v if np.isfinite(v) else None) for k, v in sampling_errors_reached(ms).items()}
+    ms.run = st.model_copy(update={"outcome": outcome, "throughput_tph": tph, "sampling_error_reached": reached})
+    return ms
 
 
 def _provenance(run: MillRun) -> dict[str, Any]:
@@ -369,10 +378,7 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
         steady_state_time_s=run.steady_state_time_s, settings=stats_settings, size_edges_m=edges,
         provenance=_provenance(run),
     )
-    ms.run = _mark(ms.run, run.outcome, float(sc.info.get("feed_scale", 1.0)))
-    reached = {k: (v if np.isfinite(v) else None) for k, v in sampling_errors_reached(ms).items()}
-    ms.run = ms.run.model_copy(update={"sampling_error_reached": reached})
-    return ms
+    return mark_statistics(ms, run.outcome, float(sc.info.get("feed_scale", 1.0)))
 
 
 # --------------------------------------------------------------------------- saving
@@ -466,5 +472,4 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
     )
     # runs saved before outcomes existed: steady if the old criterion found steady state
     outcome = res.get("outcome", "steady" if steady is not None else "not_steady")
-    ms.run = _mark(ms.run, outcome, res.get("feed_scale"))
-    return ms
+    return mark_statistics(ms, outcome, res.get("feed_scale"))
