@@ -19,7 +19,7 @@ with warnings.catch_warnings():
 
 
 #: short runs: the steady-state test is relaxed, these tests check book-keeping, not convergence
-SHORT = RunSettings(max_time_s=0.6, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0,
+SHORT = RunSettings(max_time_s=0.6, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
                     measure_s=0.3, snapshot_every_s=0.005)
 
 

@@ -20,7 +20,7 @@ from msmill.surrogate.store.hashing import canonical_statistics
 
 # two stages, slow shafts, 30 mm rock, short windows (as tests/dem/test_mill_scene.py): seconds per run
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})
-SETTINGS = {"max_time_s": 0.6, "chunk_s": 0.1, "steady_window_s": 0.1, "rel_tol": 0.5, "trend_tol": 5.0,
+SETTINGS = {"max_time_s": 0.6, "chunk_s": 0.1, "steady_window_s": 0.1, "rel_tol": 0.5, "trend_tol": 5.0, "balance_tol": 5.0,
             "measure_s": 0.3, "snapshot_every_s": 0.005, "seed": 0}
 
 
