@@ -13,7 +13,7 @@ from msmill.errors import MsmillInputError, OutOfDomainWarning
 from msmill.machine import Machine, OperatingPoint
 
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})
-SHORT = RunSettings(max_time_s=0.5, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
+SHORT = RunSettings(max_time_s=0.6, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
                     measure_s=0.2, snapshot_every_s=0.005)
 
 
