@@ -11,7 +11,7 @@ from msmill.machine import Machine, OperatingPoint
 from msmill.stageparams import RunStatistics
 
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})
-BASE = dict(max_time_s=0.4, chunk_s=0.05, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
+BASE = dict(max_time_s=0.55, chunk_s=0.05, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
             snapshot_every_s=0.005, adaptive=True, min_measure_s=0.1, max_measure_s=0.25, check_every_s=0.05)
 
 
