@@ -204,7 +204,7 @@ def test_shipped_example_prints_no_warning(tmp_path, capsys):
         assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     assert "warning" not in cap.err
-    assert "note: 16 of 20 size classes" in cap.out  # the clamped sizes: a summary line
+    assert "extrapolated stage statistics (%)" in cap.out  # sizes outside the table: a summary line
     assert "characteristic times" in cap.out
 
 
@@ -218,7 +218,8 @@ def test_summary_notes_are_not_reissued_by_the_mill():
         warnings.simplefilter("always")
         res = Mill("UG2", "default").run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
     assert not [w for w in caught if issubclass(w.category, SummaryNote)]
-    assert any("clamped" in n for n in res.notes)
+    assert any("characteristic times" in n for n in res.notes)  # a provider's summary note reaches the result
+    assert res.extrapolated_feed_pct > 0  # the 4 mm class lies below the table's 6 mm
 
 
 def test_note_lists_are_not_eaten_as_markup(tmp_path, capsys):
