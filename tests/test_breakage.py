@@ -91,6 +91,11 @@ def test_t10_limits():
     assert t10[0] == 0.0
     assert np.all(np.diff(t10) > 0)
     assert t10[-1] == pytest.approx(UG2_A)
+    # Eq. 12 by hand: E = 0.1 kWh/t, L = L_ref = 30 mm -> P_b = 1 - exp(-0.167) = 0.1538,
+    # t10 = 71.8 * 0.1538 = 11.04 %
+    assert t10[2] == pytest.approx(71.8 * (1 - math.exp(-1.67 * 0.1)), rel=1e-12)
+    assert t10[2] == pytest.approx(11.04, abs=0.01)
+    assert br.t10_pct(0.25, 60.0) == pytest.approx(15.0)
     with pytest.raises(MsmillInputError, match=r"^pb"):
         br.t10_pct(1.5, UG2_A)
     with pytest.raises(MsmillInputError, match=r"^A"):
