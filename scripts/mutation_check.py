@@ -42,7 +42,8 @@ NUMBA_FILES = ("src/msmill/dem/kernels.py", "src/msmill/dem/contact.py")
 # test subsets (paths relative to the checkout)
 BREAKAGE = ["tests/test_breakage.py", "tests/test_damage.py", "tests/model/test_damage_submodels.py"]
 MODEL = ["tests/model/test_physics.py", "tests/model/test_mass_balance.py",
-         "tests/model/test_poisson_series.py", "tests/model/test_damage_submodels.py"]
+         "tests/model/test_poisson_series.py", "tests/model/test_damage_submodels.py",
+         "tests/model/test_velocity_quadrature.py"]
 PSD = ["tests/test_psd.py", "tests/test_distributions.py"]
 STATS = ["tests/dem/test_mill_stats.py"]
 CONTACT = ["tests/dem/test_chung_ooi.py"]
