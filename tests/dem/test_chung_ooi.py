@@ -222,15 +222,19 @@ def test_6_oblique_impact_with_spin():
 
 def test_7_symmetric_spins_give_symmetric_outcome():
     r, v = 0.1, 0.2
-    spins = [10.0, 1.0, 0.3]  # rad/s: gross sliding, then partial slip (chi = 0.42, 4.2, 14)
+    ex, ez = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    n3, p3 = np.array([1.0, 2.0, 2.0]) / 3, np.array([2.0, -2.0, 1.0]) / 3  # n . p = 0
+    # (normal, spin axis, spin rad/s): gross sliding, partial slip (chi = 0.42, 4.2, 14);
+    # the last pair is the partial-slip case along an oblique normal (all torque components)
+    cases = [(ex, ez, 10.0), (ex, ez, 1.0), (ex, ez, 0.3), (n3, p3, 1.0)]
     copper = {"youngs_modulus_pa": 1.2e11, "poisson_ratio": 0.35, "density_kg_m3": 8900}
-    sim = Simulation((-1, -1, -1), (1, 3, 1), gravity_m_s2=(0, 0, 0))
+    sim = Simulation((-1, -1, -1), (1, 4, 1), gravity_m_s2=(0, 0, 0))
     sim.add_material("cu", **copper)
     sim.set_interaction("cu", "cu", restitution=0.5, friction=0.4)
-    for k, w in enumerate(spins):
-        y = 0.8 * k
-        sim.add_particles([[-r - 1e-7, y, 0], [r + 1e-7, y, 0]], r, [[v, 0, 0], [-v, 0, 0]],
-                          material="cu", angular_velocities_rad_s=[[0, 0, w], [0, 0, w]])
+    for k, (n, p, w) in enumerate(cases):
+        c = np.array([0.0, 0.8 * k, 0.0])
+        sim.add_particles([c - (r + 1e-7) * n, c + (r + 1e-7) * n], r, [v * n, -v * n],
+                          material="cu", angular_velocities_rad_s=[w * p, w * p])
     m = sphere_mass(copper["density_kg_m3"], r)
     tc = hertz(m / 2, r / 2, copper["youngs_modulus_pa"] / (2 * (1 - 0.35**2)), 2 * v)[2]
     sim.run(1.5 * tc, dt_s=tc / 1000, progress=False)
@@ -238,18 +242,21 @@ def test_7_symmetric_spins_give_symmetric_outcome():
     order = np.argsort(a["pid"])
     vel, omg = a["vel"][order], a["omg"][order]
     contact = cref.equal_spheres(m, r, copper["youngs_modulus_pa"] / (1 - 0.35**2), 0.35, 0.4, 0.5)
-    for k, w in enumerate(spins):
+    for k, (n, p, w) in enumerate(cases):
+        t = np.cross(p, n)  # direction of the contact-point slip of sphere 0
         v0, v1 = vel[2 * k], vel[2 * k + 1]
         w0, w1 = omg[2 * k], omg[2 * k + 1]
         np.testing.assert_allclose(v0, -v1, atol=1e-12)
         np.testing.assert_allclose(w0, w1, atol=1e-12)
-        assert v0[0] == pytest.approx(-0.5 * v, rel=0.01)  # e = 0.5
-        assert abs(v0[1]) > 1e-4  # friction acted
+        assert v0 @ n == pytest.approx(-0.5 * v, rel=0.01)  # e = 0.5
+        assert abs(v0 @ t) > 1e-4  # friction acted
         vt_in = 2 * w * r
-        vt_out = (v0[1] + w0[2] * r) - (v1[1] - w1[2] * r)
+        vt_out = 2 * (v0 @ t) + 2 * r * (w0 @ p)
         chi = 3.5 * 0.4 * 1.5 * 2 * v / vt_in
         if chi < 1:  # rigid gross-sliding limit on the contact-point tangential velocity
             assert -vt_out / vt_in == pytest.approx(chi - 1, rel=0.02, abs=0.01)
         ref = cref.impact(contact, 2 * v, 0.0, w, w)
-        assert v0[1] == pytest.approx(0.5 * ref["u"], abs=ET_TOL * vt_in)
-        assert w0[2] * r == pytest.approx(ref["q_a"] * r, abs=ET_TOL * vt_in)
+        assert v0 @ t == pytest.approx(0.5 * ref["u"], abs=ET_TOL * vt_in)
+        assert w0 @ p * r == pytest.approx(ref["q_a"] * r, abs=ET_TOL * vt_in)
+        # no motion or spin out of the plane of (n, t)
+        assert abs(v0 @ p) < 1e-9 and np.linalg.norm(np.cross(w0, p)) < 1e-9
