@@ -9,7 +9,10 @@ the Mill, appearance and damage tables, first call), then the steady-state
 prediction at fresh operating points (stage parameters read at the grid,
 every operator re-assembled, one sparse direct solve, all outputs; no time
 marching), and the re-solve with cached operators. The last line is
-``steady_state_seconds=<median of the fresh-operating-point predictions>``.
+``steady_state_seconds=<median of the fresh-operating-point predictions>``
+followed by the surrogate figures: a GP surrogate fitted to the same runs,
+the steady state with it (the surrogate predicts the stage parameters at
+every fresh operating point) and the 5-95 % band from 64 posterior samples.
 
 Stage parameters: the packaged DEM-derived table
 (``msmill/data/stage_parameters/default.json``) when installed; otherwise a
@@ -103,7 +106,57 @@ def main() -> None:
     print(f"with time series from empty mill ({len(res_ts.timeseries)} steps, cached operators): "
           f"{t_march:.4f} s")
     print(f"P80 at {op.speed_rpm:g} rpm: {res.p80_mm:.3f} mm; mass-balance error {res.mass_balance_error:.1e}")
-    print(f"steady_state_seconds={statistics.median(fresh):.4f}")
+    sur = surrogate_timings(feed, grid)
+    print(f"surrogate ({sur['source']}): fit {sur['fit_s']:.2f} s wall; steady state with the surrogate "
+          f"median {sur['steady_s']:.4f} s wall, {sur['steady_cpu_s']:.4f} s cpu; "
+          f"band of {sur['n_samples']} posterior samples median {sur['band_s']:.3f} s wall, "
+          f"{sur['band_cpu_s']:.3f} s cpu (P80 {sur['p80_mm']:.3f} mm, band {sur['band'][0]:.3f}-"
+          f"{sur['band'][1]:.3f} mm)")
+    print(f"steady_state_seconds={statistics.median(fresh):.4f} "
+          f"surrogate_steady_state_seconds={sur['steady_s']:.4f} "
+          f"surrogate_band_{sur['n_samples']}_seconds={sur['band_s']:.3f} "
+          f"surrogate_steady_state_cpu_seconds={sur['steady_cpu_s']:.4f} "
+          f"surrogate_band_cpu_seconds={sur['band_cpu_s']:.3f}")
+
+
+def surrogate_timings(feed, grid, n_samples: int = 64) -> dict:
+    """Fit a GP surrogate to the packaged table's runs, then time predictions with it.
+
+    Steady state: fresh operating points (the surrogate predicts at every one),
+    no band. Band: the same plus ``n_samples`` posterior samples through the
+    expected-value solver. Medians over 3 speeds.
+    """
+    from importlib import resources
+
+    from msmill.surrogate.provider import SurrogateProvider
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    default = resources.files("msmill").joinpath("data/stage_parameters/default.json")
+    if default.is_file():
+        runs, source = StageParameterTable.from_json(str(default)).runs, "fitted to the packaged table's runs"
+    else:
+        runs, source = synthetic_table().runs, "fitted to the SYNTHETIC benchmark table"
+    w0 = time.perf_counter()
+    provider = SurrogateProvider(StageSurrogate(n_restarts=0).fit(runs))
+    fit_s = time.perf_counter() - w0
+    plain = Mill("UG2", provider, grid=grid, band_samples=0)
+    banded = Mill("UG2", provider, grid=grid, band_samples=n_samples)
+    plain.run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1490.0, gate_deg=40.0), timeseries=False)
+    steady, steady_cpu, band, band_cpu = [], [], [], []
+    for speed in (1450.0, 1500.0, 1550.0):
+        op = OperatingPoint(feed_tph=30.0, speed_rpm=speed, gate_deg=40.0)
+        c0, w0 = time.process_time(), time.perf_counter()
+        plain.run(feed, op, timeseries=False)
+        steady.append(time.perf_counter() - w0)
+        steady_cpu.append(time.process_time() - c0)
+        c0, w0 = time.process_time(), time.perf_counter()
+        res = banded.run(feed, op, timeseries=False)
+        band.append(time.perf_counter() - w0)
+        band_cpu.append(time.process_time() - c0)
+    return {"source": source, "fit_s": fit_s, "steady_s": statistics.median(steady),
+            "steady_cpu_s": statistics.median(steady_cpu), "band_s": statistics.median(band),
+            "band_cpu_s": statistics.median(band_cpu), "n_samples": n_samples, "p80_mm": res.p80_mm,
+            "band": res.p80_band_mm}
 
 
 if __name__ == "__main__":

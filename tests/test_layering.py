@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).parents[1] / "src" / "msmill"
-LAYER = {"dem": 1, "surrogate": 2, "model": 3, "cli": 4, "plots": 4, "report": 4}
+LAYER = {"dem": 1, "surrogate": 2, "model": 3, "cli": 4, "plots": 4, "report": 4, "web": 4}
 
 
 def layer_of(module: str) -> int:

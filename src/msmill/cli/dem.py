@@ -83,3 +83,26 @@ def stats_cmd(
         typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
                    f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
     typer.echo(f"written {target}")
+
+
+@app.command("import")
+def import_cmd(
+    folder: Annotated[Path, typer.Argument(help="Folder with import.toml, machine.toml, events and positions tables.")],
+    out: Annotated[Path | None, typer.Option("--out", help="Where to write statistics.json (default FOLDER).")] = None,
+) -> None:
+    """Compute per-stage statistics from external DEM tables (Rocky, EDEM, LIGGGHTS; docs/campaign.md)."""
+    import shutil
+
+    from msmill.dem.mill.external import import_folder
+
+    ms, _machine = import_folder(folder)
+    target = out or folder
+    target.mkdir(parents=True, exist_ok=True)
+    ms.run.to_json(target / "statistics.json")
+    if target.resolve() != folder.resolve():
+        for name in ("machine.toml", "import.toml"):
+            shutil.copyfile(folder / name, target / name)
+    for s in ms.run.stages:
+        typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
+                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
+    typer.echo(f"written {target / 'statistics.json'} (ingest with 'msmill db ingest {target}')")

@@ -32,6 +32,15 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
     ("predict", "predict", "predict"),
+    ("db", "app", "db"),
+    ("campaign", "app", "campaign"),
+    ("serve", "serve", "serve"),
+    ("surrogate", "app", "surrogate"),
+    ("validate", "validate", "validate"),
+    ("validate", "calibrate", "calibrate"),
+    ("sweep", "sweep", "sweep"),
+    ("sweep", "optimize", "optimize"),
+    ("report", "report", "report"),
 ]
 
 

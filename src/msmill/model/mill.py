@@ -28,7 +28,7 @@ from msmill.model import submodels as sm
 from msmill.model.expected_value import LinearMill, assemble
 from msmill.model.montecarlo import MonteCarloSolver
 from msmill.model.providers import StageParameterProvider, load_provider
-from msmill.model.result import MillResult, time_to_steady_state
+from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
 
 SOLVERS = ("expected_value", "monte_carlo")
@@ -39,6 +39,12 @@ J_PER_KWH = 3.6e6
 #: Centred moving-average window (steps) of the Monte-Carlo product rate for the
 #: time to steady state.
 MC_SMOOTHING_STEPS = 25
+#: Posterior samples behind the uncertainty band, its limits (%) and the quadrature nodes of its solves.
+DEFAULT_BAND_SAMPLES = 64
+MAX_BAND_SAMPLES = 1024
+BAND_LIMITS_PCT = (5.0, 95.0)
+DEFAULT_BAND_QUADRATURE_NODES = 4
+DEFAULT_BAND_DAMAGE_CLASSES = 4
 
 
 @contextlib.contextmanager
@@ -113,6 +119,15 @@ class Mill:
         Monte-Carlo seed.
     passing_sizes_mm : sequence of float
         Sizes at which the result reports % passing.
+    band_samples : int
+        Posterior samples of the stage parameters behind the uncertainty band
+        (5-95 %) on the product PSD and P80, when the provider can sample
+        (``sample_stage_parameters``, e.g. the GP surrogate); 0 disables it.
+    band_quadrature_nodes, band_damage_classes : int
+        Resolution of the band's solves (coarser than the main solve keeps 64
+        samples under 2 s). The band is the samples' spread about their median,
+        added to the full-resolution prediction, so the coarser resolution's
+        bias cancels (:func:`msmill.model.result.with_band`).
     """
 
     def __init__(self, ore: Any, stage_parameters: Any, machine: Any = None, *,
@@ -120,7 +135,9 @@ class Mill:
                  damage: Any = None, solver: str = "expected_value", impacted: str = "refeed",
                  grid: SizeGrid | None = None, damage_classes: int = 8, quadrature_nodes: int = 12,
                  parcels_per_step: int = 2000, mc_steps: int | None = None, seed: int | None = None,
-                 passing_sizes_mm=DEFAULT_PASSING_SIZES_MM) -> None:
+                 passing_sizes_mm=DEFAULT_PASSING_SIZES_MM, band_samples: int = DEFAULT_BAND_SAMPLES,
+                 band_quadrature_nodes: int = DEFAULT_BAND_QUADRATURE_NODES,
+                 band_damage_classes: int = DEFAULT_BAND_DAMAGE_CLASSES) -> None:
         self.ore = breakage_parameters(ore)
         if isinstance(stage_parameters, str | Path):
             stage_parameters = load_provider(stage_parameters)
@@ -157,7 +174,13 @@ class Mill:
         self.mc_steps = mc_steps
         self.seed = seed
         self.passing_sizes_mm = tuple(float(s) for s in passing_sizes_mm)
+        if not isinstance(band_samples, int | np.integer) or not 0 <= band_samples <= MAX_BAND_SAMPLES:
+            raise MsmillInputError("band_samples", band_samples, f"an integer 0-{MAX_BAND_SAMPLES}")
+        self.band_samples = int(band_samples)
+        self.band_quadrature_nodes = int(band_quadrature_nodes)
+        self.band_damage_classes = int(band_damage_classes)
         self._cache: dict[tuple, tuple] = {}
+        self._band_cache: dict[tuple, tuple] = {}
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:
@@ -250,8 +273,46 @@ class Mill:
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
-            return self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
-        return self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+            res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
+        else:
+            res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+        if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
+            key = (grid.edges_mm.tobytes(), feed_m.fractions.tobytes(), tuple(op.stage_speeds(self.provider.n_stages)),
+                   float(op.feed_tph), float(op.gate_deg))
+            if key not in self._band_cache:
+                if len(self._band_cache) > 8:
+                    self._band_cache.pop(next(iter(self._band_cache)))
+                self._band_cache[key] = self.product_band(feed_m, op, grid)
+            res = with_band(res, *self._band_cache[key])
+        return res
+
+    def product_band(self, feed: PSD, op: Any, grid: SizeGrid) -> tuple[np.ndarray, np.ndarray]:
+        """Product % passing and P80 of posterior samples of the stage parameters.
+
+        Each sample goes through the expected-value solver's steady state
+        (at ``band_damage_classes`` and ``band_quadrature_nodes``).
+
+        Returns
+        -------
+        passing_pct : ndarray (n_samples, N)
+            Product cumulative % passing at ``grid.upper_mm`` per sample.
+        p80_mm : ndarray (n_samples,)
+        """
+        speeds = op.stage_speeds(self.provider.n_stages)
+        samples = self.provider.sample_stage_parameters(grid.mids_mm, self.band_samples, speeds,
+                                                        op.feed_tph, op.gate_deg, seed=self.seed or 0)
+        passing, p80 = [], []
+        for params in samples:
+            streams = np.asarray(self.transport.streams(params), dtype=float)
+            stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+            lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage, self.band_damage_classes,
+                          self.band_quadrature_nodes, self.impacted)
+            tps = op.feed_tph * params.characteristic_time_s / 3600.0
+            product = np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(feed.fractions, tps)))
+            psd = PSD(grid, np.clip(product, 0.0, None) / np.clip(product, 0.0, None).sum(), validate=False)
+            passing.append(psd.passing_pct)
+            p80.append(psd.p80_mm)
+        return np.array(passing), np.array(p80)
 
     def _march(self, lm: LinearMill, f: np.ndarray, max_steps: int) -> tuple[np.ndarray, ...]:
         x = np.zeros(lm.n_state)

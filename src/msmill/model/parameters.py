@@ -1,99 +1,12 @@
 """Per-stage, per-size-class parameter arrays consumed by the sub-models.
 
-A stage-parameter provider (:mod:`msmill.model.providers`) turns DEM statistics
-into a :class:`StageParameters`: every field is an array over
-``(stage, size class)`` read at the model's size grid. Velocity distributions
-are Gaussian mixtures padded to a common number of components with zero
-weights.
+The types moved to the core module :mod:`msmill.providers_base` (the surrogate
+layer implements providers and cannot import the model layer); they are
+re-exported here so existing imports keep working.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from msmill.providers_base import MixtureArrays, StageParameterProvider, StageParameters
 
-import numpy as np
-
-
-@dataclass(frozen=True)
-class MixtureArrays:
-    """Gaussian mixtures of impact velocity per (stage, size class), in m/s.
-
-    Attributes
-    ----------
-    weights : ndarray, shape (S, N, K)
-        Component weights (sum 1 over the last axis; padding has weight 0).
-    means_m_s : ndarray, shape (S, N, K)
-        Component means (m/s).
-    sigmas_m_s : ndarray, shape (S, N, K)
-        Component standard deviations (m/s, > 0).
-    """
-
-    weights: np.ndarray
-    means_m_s: np.ndarray
-    sigmas_m_s: np.ndarray
-
-    def scaled(self, factor: np.ndarray) -> MixtureArrays:
-        """Velocities multiplied by ``factor`` (broadcast over (S, N, K))."""
-        f = np.asarray(factor, dtype=float)
-        return MixtureArrays(self.weights, self.means_m_s * f, self.sigmas_m_s * f)
-
-    def mean_m_s(self) -> np.ndarray:
-        """Mean of each mixture (m/s), shape (S, N)."""
-        return np.sum(self.weights * self.means_m_s, axis=-1)
-
-
-@dataclass(frozen=True)
-class StageParameters:
-    """DEM-derived parameters of every stage, read at the model's size classes.
-
-    Attributes
-    ----------
-    sizes_mm : ndarray, shape (N,)
-        Representative rock size of each class (mm).
-    characteristic_time_s : float
-        Model time step (s).
-    streams : ndarray, shape (S, N, 3)
-        Bulk ``[kickback, refeed, pass_through]`` per stage and class.
-    region_weights : ndarray, shape (S, N, 6) or None
-        Solid-fraction weights of the horizontal regions, when the DEM gave them.
-    region_streams : ndarray, shape (S, N, 6, 3) or None
-        Streams per horizontal region.
-    hit_probability : ndarray, shape (S, N)
-        Primary (flinger) hit probability per step.
-    primary_velocity : MixtureArrays
-        Relative normal velocity of primary impacts (m/s).
-    secondary_lambda : ndarray, shape (S, N)
-        Mean number of secondary impacts per non-breaking primary impact.
-    secondary_velocity : MixtureArrays
-        Relative normal velocity of secondary impacts (m/s).
-    design_stage_speeds_rpm : ndarray, shape (S,)
-        Stage speeds (rpm) at which the statistics were measured.
-    design_feed_tph, design_gate_deg : float
-        Feed rate (t/h) and gate angle (deg) of the measurements.
-    source : str
-        Human-readable description of where the parameters came from.
-    """
-
-    sizes_mm: np.ndarray
-    characteristic_time_s: float
-    streams: np.ndarray
-    hit_probability: np.ndarray
-    primary_velocity: MixtureArrays
-    secondary_lambda: np.ndarray
-    secondary_velocity: MixtureArrays
-    design_stage_speeds_rpm: np.ndarray
-    design_feed_tph: float = float("nan")
-    design_gate_deg: float = float("nan")
-    region_weights: np.ndarray | None = None
-    region_streams: np.ndarray | None = None
-    source: str = ""
-
-    @property
-    def n_stages(self) -> int:
-        """Number of stages ``S``."""
-        return int(self.streams.shape[0])
-
-    @property
-    def n_sizes(self) -> int:
-        """Number of size classes ``N``."""
-        return int(self.streams.shape[1])
+__all__ = ["MixtureArrays", "StageParameterProvider", "StageParameters"]

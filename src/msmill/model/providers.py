@@ -30,13 +30,13 @@ import csv
 import tomllib
 import warnings
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
-from msmill.model.parameters import MixtureArrays, StageParameters
+from msmill.providers_base import MixtureArrays, StageParameterProvider, StageParameters
 from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
 
 __all__ = [
@@ -52,23 +52,6 @@ _REL_TOL = 0.01  # relative difference of an operating value that triggers a war
 #: implausible for an impact mill (bottom-stage tip speed at 3800 rpm is ~75 m/s)
 #: and are reported with a warning.
 PLAUSIBLE_VELOCITY_M_S = 300.0
-
-
-@runtime_checkable
-class StageParameterProvider(Protocol):
-    """Anything that gives per-stage parameters at the model's size classes."""
-
-    @property
-    def n_stages(self) -> int:
-        """Number of stages the parameters describe."""
-        ...
-
-    def stage_parameters(
-        self, sizes_mm: np.ndarray, stage_speeds_rpm: list[float] | None = None,
-        feed_tph: float | None = None, gate_deg: float | None = None,
-    ) -> StageParameters:
-        """Parameters at ``sizes_mm`` (mm) for the given operating point (warns off-point)."""
-        ...
 
 
 def _check_operating_point(design, stage_speeds_rpm, feed_tph, gate_deg, source: str) -> None:
@@ -306,14 +289,20 @@ def default_table_path(field: str = "stage_parameters") -> Path:
     return p
 
 
-def load_provider(path: str | Path) -> TableProvider | RunProvider:
-    """Open a parameter file: a table (JSON / TOML / CSV) or one run's statistics (JSON).
+def load_provider(path: str | Path) -> Any:
+    """Open a parameter file: a table (JSON / TOML / CSV), one run's statistics (JSON) or a surrogate (JSON).
 
     ``"default"`` names the packaged DEM-derived table.
     """
     import json
 
     p = default_table_path() if str(path) == DEFAULT_TABLE else Path(path)
+    from msmill.surrogate.persist import is_surrogate_file
+
+    if is_surrogate_file(p):  # a trained GP surrogate (msmill surrogate fit)
+        from msmill.surrogate.provider import SurrogateProvider
+
+        return SurrogateProvider.from_file(p)
     if p.suffix.lower() == ".json" and p.exists():
         try:
             kind = json.loads(p.read_text(encoding="utf-8")).get("kind")

@@ -57,6 +57,17 @@ class MillResult:
         The sub-models used, by step.
     notes : tuple of str
         Defaults in use, providers' sources, other remarks.
+    p80_band_mm : tuple of float or None
+        5-95 % band of P80 (mm) over posterior samples of the stage
+        parameters, when the provider gives them (the GP surrogate); else None
+        (see :func:`with_band`).
+    psd_band : pandas.DataFrame or None
+        Per size class (index ``upper_mm``): ``product_passing_pct_p05,
+        product_passing_pct_p50, product_passing_pct_p95`` (p50 is the
+        prediction itself).
+        The same p05/p95 columns are appended to ``psd_table``.
+    band_samples : int
+        Number of posterior samples behind the band (0: no band).
     """
 
     feed_psd: PSD
@@ -80,6 +91,9 @@ class MillResult:
     solver: str
     submodels: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    p80_band_mm: tuple[float, float] | None = None
+    psd_band: pd.DataFrame | None = None
+    band_samples: int = 0
 
     def summary(self) -> pd.Series:
         """Headline figures as a Series (index names carry the units)."""
@@ -108,3 +122,29 @@ def time_to_steady_state(time_s: np.ndarray, product_tph: np.ndarray, feed_tph: 
     if last + 1 >= len(time_s):
         return float("nan")
     return float(time_s[last + 1])
+
+
+def with_band(result: MillResult, passing_pct: np.ndarray, p80_mm: np.ndarray) -> MillResult:
+    """``result`` with a 5-95 % band from sampled product passing (n_samples, N) and P80 (mm).
+
+    The band is the samples' 5 % and 95 % quantiles relative to their median,
+    added to the result's own (full-resolution) passing and P80: the samples
+    may be solved at a coarser resolution, whose bias cancels in the spread.
+    Passing is clipped to 0-100 %.
+    """
+    import dataclasses
+
+    q = np.percentile(passing_pct, [5.0, 50.0, 95.0], axis=0)
+    own = result.psd_table["product_passing_pct"].to_numpy()
+    lo_p = np.clip(own + q[0] - q[1], 0.0, 100.0)
+    hi_p = np.clip(own + q[2] - q[1], 0.0, 100.0)
+    band = pd.DataFrame({"product_passing_pct_p05": lo_p, "product_passing_pct_p50": own,
+                         "product_passing_pct_p95": hi_p},
+                        index=pd.Index(result.psd_table["upper_mm"].to_numpy(), name="upper_mm"))
+    table = result.psd_table.copy()
+    table["product_passing_pct_p05"] = lo_p
+    table["product_passing_pct_p95"] = hi_p
+    p05, p50, p95 = np.percentile(p80_mm, [5.0, 50.0, 95.0])
+    p80_band = (float(result.p80_mm + p05 - p50), float(result.p80_mm + p95 - p50))
+    return dataclasses.replace(result, p80_band_mm=p80_band, psd_band=band, psd_table=table,
+                               band_samples=len(p80_mm))

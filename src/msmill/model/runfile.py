@@ -6,6 +6,7 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
 
     [ore]
     name = "UG2"                 # ore registry name (msmill ore list)
+    # file = "my_ore.toml"       # ... or an ore file (msmill ore show --help)
     # l_ref_mm = 25.0            # override the ore's reference size (mm)
 
     [feed]
@@ -25,11 +26,12 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
     file = "my_mill.toml"        # optional; default Machine.default()
 
     [stage_parameters]
-    file = "default"             # the packaged DEM-derived table, or a path
+    file = "default"             # the packaged DEM-derived table, or a path (a surrogate JSON too)
 
     [model]                      # sub-models and solver (msmill.model.Mill)
     solver = "expected_value"
     damage = "tavares"
+    band_samples = 64            # GP posterior samples of the 5-95 % band (surrogate only; 0: off)
 
     [grid]
     min_mm = 0.038
@@ -63,8 +65,15 @@ class _Section(BaseModel):
 
 
 class OreSection(_Section):
-    name: str = Field(min_length=1)
+    name: str = Field(default="", description="ore registry name; or give file")
+    file: str | None = Field(default=None, description="an ore TOML file (msmill.ore.Ore.from_toml)")
     l_ref_mm: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _name_or_file(self) -> OreSection:
+        if not self.name and self.file is None:
+            raise ValueError("give the ore's registry name (name) or an ore TOML file (file)")
+        return self
 
 
 class RosinRammler(_Section):
@@ -116,6 +125,7 @@ class ModelSection(_Section):
     parcels_per_step: int = Field(default=2000, ge=1)
     mc_steps: int | None = Field(default=None, ge=2)
     seed: int | None = None
+    band_samples: int = Field(default=64, ge=0, le=1024)  # GP posterior samples behind the 5-95 % band
 
 
 class GridSection(_Section):
@@ -156,13 +166,30 @@ class RunFile(_Section):
             data = tomllib.loads(p.read_text(encoding="utf-8"))
         except tomllib.TOMLDecodeError as exc:
             raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+        return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any], name: str = "run", base_dir: str | Path = ".") -> RunFile:
+        """Validate run-file contents given as a mapping (e.g. a JSON request).
+
+        Parameters
+        ----------
+        data : dict
+            The run file's tables, as :func:`tomllib.loads` would return them.
+        name : str
+            Prefix of every error's field name (the file name, or ``"request"``).
+        base_dir : path
+            Folder that relative paths in ``data`` are relative to.
+        """
+        if not isinstance(data, dict):
+            raise MsmillInputError(name, type(data).__name__, "a table of run-file sections")
         for key in ("base_dir", "name"):
             if key in data:
-                raise MsmillInputError(f"{p.name}.{key}", data[key], "not a run-file key")
+                raise MsmillInputError(f"{name}.{key}", data[key], "not a run-file key")
         try:
-            return cls.model_validate({**data, "base_dir": p.resolve().parent, "name": p.name})
+            return cls.model_validate({**data, "base_dir": Path(base_dir), "name": name})
         except ValidationError as exc:
-            raise from_validation_error(exc, prefix=p.name) from None
+            raise from_validation_error(exc, prefix=name) from None
 
     def path(self, value: str) -> Path:
         """A path from the run file, relative to its folder."""
@@ -228,13 +255,19 @@ class RunFile(_Section):
         return p
 
     def ore_obj(self):
-        """The ore (registry lookup, optional ``l_ref_mm`` override)."""
-        from msmill.ore import get_ore
+        """The ore (registry lookup or ``file``, optional ``l_ref_mm`` override)."""
+        from msmill.ore import Ore, get_ore
 
-        try:
-            ore = get_ore(self.ore.name)
-        except MsmillInputError as exc:
-            raise MsmillInputError(f"{self.name}.ore.name", self.ore.name, exc.allowed) from None
+        if self.ore.file is not None:
+            p = self.path(self.ore.file)
+            if not p.is_file():
+                raise MsmillInputError(f"{self.name}.ore.file", self.ore.file, "an existing ore TOML file")
+            ore = Ore.from_toml(p)
+        else:
+            try:
+                ore = get_ore(self.ore.name)
+            except MsmillInputError as exc:
+                raise MsmillInputError(f"{self.name}.ore.name", self.ore.name, exc.allowed) from None
         if self.ore.l_ref_mm is not None:
             ore = ore.with_l_ref(self.ore.l_ref_mm, source=f"run file {self.name}")
         return ore
@@ -255,7 +288,8 @@ class RunFile(_Section):
                         breakage=m.breakage, damage=m.damage, solver=m.solver, impacted=m.impacted,
                         grid=self.model_grid(feed), damage_classes=m.damage_classes,
                         quadrature_nodes=m.quadrature_nodes, parcels_per_step=m.parcels_per_step,
-                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm)
+                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm,
+                        band_samples=m.band_samples)
         except MsmillInputError as exc:
             field = exc.field
             model_fields = ("solver", "impacted", "damage_classes", "quadrature_nodes", "parcels_per_step")

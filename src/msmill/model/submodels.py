@@ -239,6 +239,10 @@ class SpeedScaledImpacts:
     to shaft speed); hit probabilities, Poisson means and the transport are
     used as measured. A first-order correction for running off the design
     point; the provider still warns that the statistics were measured elsewhere.
+
+    Parameters whose ``velocities_at_requested_speeds`` is True (a provider
+    that predicts at the operating point, e.g. the surrogate) are used as
+    given: they are not rescaled a second time.
     """
 
     name = "speed_scaled"
@@ -246,6 +250,9 @@ class SpeedScaledImpacts:
                 "design_stage_speeds_rpm")
 
     def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+        if getattr(params, "velocities_at_requested_speeds", False):
+            return ImpactStatistics(params.hit_probability, params.primary_velocity,
+                                    params.secondary_lambda, params.secondary_velocity)
         design = params.design_stage_speeds_rpm
         speeds = np.asarray(stage_speeds_rpm, dtype=float) if stage_speeds_rpm is not None else design
         ratio = np.where(design > 0, speeds / np.where(design > 0, design, 1.0), 1.0)

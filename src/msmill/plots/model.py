@@ -45,6 +45,12 @@ def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
         x = np.concatenate([[psd.grid.edges_mm[0]], psd.sizes_mm])
         y = np.concatenate([[0.0], psd.passing_pct])
         ax.plot(x, y, style, marker=".", label=label)
+    band = getattr(result, "psd_band", None)
+    if band is not None:
+        lo, hi = result.p80_band_mm
+        ax.fill_between(band.index.to_numpy(), band["product_passing_pct_p05"], band["product_passing_pct_p95"],
+                        alpha=0.3, label=f"product 5-95 % band (P80 {lo:.3g}-{hi:.3g} mm, "
+                                         f"{result.band_samples} samples)")
     ax.set_xscale("log")
     ax.set_xlabel("size (mm)")
     ax.set_ylabel("cumulative passing (%)")

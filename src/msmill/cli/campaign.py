@@ -1,0 +1,197 @@
+"""``msmill campaign``: plan and run batches of DEM runs on Dask, resumable after crashes."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from msmill.cli.db import DbOpt, open_store
+from msmill.errors import MsmillInputError
+
+app = typer.Typer(help="Campaigns of DEM runs in the store, executed on Dask (local or a cluster).",
+                  no_args_is_help=True)
+
+NameArg = Annotated[str, typer.Argument(help="Campaign name.")]
+SchedOpt = Annotated[str | None, typer.Option("--scheduler", help="Address of a running Dask scheduler.")]
+WorkersOpt = Annotated[int | None, typer.Option("--workers", help="Local worker processes (default: cores).")]
+StaleOpt = Annotated[float, typer.Option("--stale-s", help="Heartbeat age after which a running run is re-planned (s).")]
+MaxRunsOpt = Annotated[int | None, typer.Option("--max-runs", help="Stop after recording this many runs.")]
+HeartOpt = Annotated[float, typer.Option("--heartbeat-s", help="Heartbeat interval of held runs (s).")]
+QuietOpt = Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
+
+
+def _floats(name: str, text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise MsmillInputError(name, text, "comma-separated numbers") from None
+
+
+def _settings(items: list[str]) -> dict[str, object]:
+    import tomllib
+
+    out: dict[str, object] = {}
+    for it in items:
+        key, sep, val = it.partition("=")
+        if not sep:
+            raise MsmillInputError("--set", it, "KEY=VALUE with a RunSettings field")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {val.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = val.strip()
+    return out
+
+
+@app.command("create")
+def create_cmd(
+    name: NameArg,
+    machine_toml: Annotated[str, typer.Option("--machine", help="Machine TOML or 'default'.")] = "default",
+    full: Annotated[bool, typer.Option("--full", help="Full mill instead of a periodic slice.")] = False,
+    set_: Annotated[list[str] | None, typer.Option("--set", help="RunSettings field, KEY=VALUE (repeatable).")] = None,
+    max_attempts: Annotated[int, typer.Option("--max-attempts", help="Attempts per run before it fails.")] = 3,
+    ore: Annotated[str | None, typer.Option("--ore", help="Ore (rock material) name.")] = None,
+    raw_dir: Annotated[Path | None, typer.Option("--raw-dir", help="Workers save raw run folders here.")] = None,
+    size_range_mm: Annotated[tuple[float, float] | None, typer.Option(
+        "--size-range-mm", help="Rock sizes the active-learning planner may choose (mm), LOW HIGH; "
+                                "default the paper's 2-30 mm.")] = None,
+    db: DbOpt = None,
+) -> None:
+    """Create a campaign: machine, slice/full and the DEM run settings."""
+    from msmill.machine import Machine
+    from msmill.surrogate.campaign import run_settings_dict
+
+    machine = Machine.default() if machine_toml == "default" else Machine.from_toml(Path(machine_toml))
+    opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None}
+    if size_range_mm is not None:
+        lo, hi = size_range_mm
+        if not 0 < lo < hi:
+            raise MsmillInputError("--size-range-mm", f"{lo} {hi}", "two sizes 0 < LOW < HIGH (mm)")
+        opts["size_range_mm"] = [lo, hi]
+    info = open_store(db).create_campaign(name, machine, mode="full" if full else "slice",
+                                          run_settings=run_settings_dict(_settings(set_ or [])),
+                                          max_attempts=max_attempts, options={k: v for k, v in opts.items() if v})
+    typer.echo(f"campaign {info.name}: machine {info.machine_hash[:12]}, {info.mode}, settings {info.run_settings}")
+
+
+@app.command("add")
+def add_cmd(
+    name: NameArg,
+    size_mm: Annotated[str | None, typer.Option(help="Rock sizes (mm), comma-separated.")] = None,
+    feed_tph: Annotated[str, typer.Option(help="Feed rates (t/h), comma-separated.")] = "30",
+    speed_rpm: Annotated[str, typer.Option(help="Upper-stage speeds (rpm), comma-separated.")] = "1500",
+    gate_deg: Annotated[str, typer.Option(help="Gate angles (deg), comma-separated.")] = "40",
+    bottom_factor: Annotated[float, typer.Option(help="Bottom / upper stage speed.")] = 2.0,
+    points: Annotated[Path | None, typer.Option("--points", help="CSV: size_mm,feed_tph,speed_rpm,gate_deg.")] = None,
+    db: DbOpt = None,
+) -> None:
+    """Plan runs: the grid of the given values and/or the rows of a CSV file (duplicates skipped)."""
+    from msmill.surrogate.campaign import design_grid
+
+    st = open_store(db)
+    machine = st.campaign(name).machine
+    designs = []
+    if size_mm is not None:
+        designs += design_grid(machine, _floats("--size-mm", size_mm), _floats("--feed-tph", feed_tph),
+                               _floats("--speed-rpm", speed_rpm), _floats("--gate-deg", gate_deg), bottom_factor)
+    if points is not None:
+        with points.open(newline="", encoding="utf-8") as f:
+            for row in csv.DictReader(f):
+                try:
+                    designs += design_grid(machine, [float(row["size_mm"])], [float(row["feed_tph"])],
+                                           [float(row["speed_rpm"])], [float(row["gate_deg"])], bottom_factor)
+                except (KeyError, ValueError):
+                    raise MsmillInputError(str(points), row, "columns size_mm,feed_tph,speed_rpm,gate_deg") from None
+    if not designs:
+        raise MsmillInputError("points", "none", "--size-mm values or a --points CSV")
+    added, existing = st.add_points(name, designs)
+    typer.echo(f"planned {added} runs ({existing} already in the campaign)")
+
+
+@app.command("plan")
+def plan_cmd(
+    name: NameArg,
+    n: Annotated[int, typer.Option("--n", help="Number of new design points.")] = 4,
+    planner: Annotated[str, typer.Option(help="Planner name (registered in msmill.surrogate.campaign.PLANNERS).")]
+    = "active",
+    db: DbOpt = None,
+) -> None:
+    """Let a planner (the surrogate's active learning) choose the next design points."""
+    from msmill.surrogate import campaign as cm
+
+    if planner not in cm.PLANNERS:
+        raise MsmillInputError("--planner", planner, ", ".join(sorted(cm.PLANNERS)) or "no planner installed yet")
+    st = open_store(db)
+    added, existing = st.add_points(name, cm.PLANNERS[planner](st, name, n))
+    typer.echo(f"planned {added} runs ({existing} already in the campaign)")
+
+
+def _execute(name: str, db: str | None, scheduler: str | None, workers: int | None, stale_s: float,
+             heartbeat_s: float, max_runs: int | None, retry_failed: bool, no_progress: bool) -> None:
+    from msmill.surrogate.campaign import run_campaign
+
+    st = open_store(db)
+    st.campaign(name)  # fails early on an unknown name
+    kw = {"scheduler": scheduler, "n_workers": workers, "stale_s": stale_s, "heartbeat_s": heartbeat_s,
+          "max_runs": max_runs, "retry_failed": retry_failed}
+    if no_progress:
+        rep = run_campaign(st, name, **kw)
+    else:
+        from rich.progress import (
+            BarColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                      TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()) as bar:
+            c0 = st.counts(name)
+            task = bar.add_task(name, total=sum(c0.values()), completed=c0["done"] + c0["failed"], info="")
+
+            def cb(c: dict[str, int], _rep: object) -> None:
+                bar.update(task, total=sum(c.values()), completed=c["done"] + c["failed"],
+                           info=f"done {c['done']} running {c['running']} failed {c['failed']} "
+                                f"planned {c['planned']}")
+
+            rep = run_campaign(st, name, progress=cb, **kw)
+    c = rep.counts
+    typer.echo(f"{name}: recorded {rep.recorded}, failed attempts {rep.failed_attempts}, re-planned stale "
+               f"{rep.replanned_stale}, {rep.elapsed_s:.0f} s; now done {c['done']} failed {c['failed']} "
+               f"running {c['running']} planned {c['planned']}")
+
+
+@app.command("run")
+def run_cmd(name: NameArg, db: DbOpt = None, scheduler: SchedOpt = None, workers: WorkersOpt = None,
+            stale_s: StaleOpt = 120.0, heartbeat_s: HeartOpt = 10.0, max_runs: MaxRunsOpt = None,
+            no_progress: QuietOpt = False) -> None:
+    """Execute the campaign's planned runs on Dask until none is left."""
+    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, False, no_progress)
+
+
+@app.command("resume")
+def resume_cmd(
+    name: NameArg, db: DbOpt = None, scheduler: SchedOpt = None, workers: WorkersOpt = None,
+    stale_s: StaleOpt = 120.0, heartbeat_s: HeartOpt = 10.0, max_runs: MaxRunsOpt = None,
+    retry_failed: Annotated[bool, typer.Option("--retry-failed", help="Also retry runs that failed.")] = False,
+    no_progress: QuietOpt = False,
+) -> None:
+    """Continue after a crash: re-plan runs with a stale heartbeat, then run what is planned."""
+    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, retry_failed, no_progress)
+
+
+@app.command("status")
+def status_cmd(name: NameArg, db: DbOpt = None) -> None:
+    """Runs of a campaign per status, and the last error of each failed run."""
+    st = open_store(db)
+    info = st.campaign(name)
+    c = st.counts(name)
+    typer.echo(f"{name}: machine {info.machine_hash[:12]}, {info.mode}, max attempts {info.max_attempts}")
+    typer.echo(" ".join(f"{k}={v}" for k, v in c.items()) + f" total={sum(c.values())}")
+    for r in st.runs(campaign=name):
+        if r.status in ("failed", "running") or (r.error and r.status == "planned"):
+            last = (r.error or "").strip().splitlines()[-1:] or [""]
+            typer.echo(f"run {r.id} {r.status} attempts {r.attempts} worker {r.worker or '-'}: {last[0][:160]}")

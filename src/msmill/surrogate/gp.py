@@ -1,0 +1,254 @@
+"""Gaussian-process regression of many targets over the design space (scikit-learn).
+
+One :class:`sklearn.gaussian_process.GaussianProcessRegressor` per target
+(several outputs in one GPR would share one set of hyperparameters), all with
+the paper's kernel::
+
+    C1 * Matern(ARD, nu=3/2) + C2 * Matern(ARD, nu=5/2) + White
+
+on inputs scaled to the unit cube by the design-space bounds (rock size in
+``ln``) and outputs standardised (zero mean, unit variance over the training
+runs). Each training point's sampling variance enters as per-point noise
+(``alpha``, in standardised units); the white kernel adds what the sampling
+errors do not explain. Fits run single-threaded (BLAS threads cost far more
+than they gain on matrices this small) and can be warm-started from a
+previous fit's hyperparameters.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+from scipy.linalg import cho_solve
+
+from msmill.errors import MsmillInputError
+from msmill.surrogate.space import DesignSpace
+
+#: Bounds of the (unit-cube) ARD length scales, the signal variances and the white level.
+LENGTH_SCALE_BOUNDS = (5e-2, 1e2)
+CONSTANT_BOUNDS = (1e-3, 1e2)
+WHITE_BOUNDS = (1e-6, 1.0)
+#: Jitter added to every point's noise (standardised units) for a stable Cholesky.
+JITTER = 1e-8
+
+
+def make_kernel(params: dict[str, Any] | None = None) -> Any:
+    """The paper's kernel; ``params`` (from :meth:`SurrogateGP.hyperparameters`) fixes its values."""
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    p = params or {"c32": 1.0, "ls32": [0.5] * 4, "c52": 1.0, "ls52": [0.5] * 4, "white": 1e-2}
+    return (ConstantKernel(p["c32"], CONSTANT_BOUNDS) * Matern(np.array(p["ls32"], float), LENGTH_SCALE_BOUNDS, nu=1.5)
+            + ConstantKernel(p["c52"], CONSTANT_BOUNDS) * Matern(np.array(p["ls52"], float), LENGTH_SCALE_BOUNDS, nu=2.5)
+            + WhiteKernel(p["white"], WHITE_BOUNDS))
+
+
+def kernel_params(kernel: Any) -> dict[str, Any]:
+    """The fitted values of a :func:`make_kernel` kernel, as plain floats."""
+    (a, b), w = (kernel.k1.k1, kernel.k1.k2), kernel.k2
+    return {"c32": float(a.k1.constant_value), "ls32": [float(v) for v in np.atleast_1d(a.k2.length_scale)],
+            "c52": float(b.k1.constant_value), "ls52": [float(v) for v in np.atleast_1d(b.k2.length_scale)],
+            "white": float(w.noise_level)}
+
+
+def _refactor(gpr: Any, params: dict[str, Any]) -> None:
+    """Set a fitted GPR's kernel to exactly ``params`` and redo its final factorisation.
+
+    scikit-learn's ``fit`` without an optimiser passes the kernel through
+    ``theta = log(params)`` and back, which can move a value by one ulp; the
+    original fit's final step used the optimiser's values directly. Redoing
+    that step (the same operations as ``GaussianProcessRegressor.fit``) with
+    the stored values gives bit-for-bit the original factorisation.
+    """
+    from scipy.linalg import cholesky
+
+    gpr.kernel_ = make_kernel(params)
+    K = gpr.kernel_(gpr.X_train_)
+    K[np.diag_indices_from(K)] += gpr.alpha
+    gpr.L_ = cholesky(K, lower=True, check_finite=False)
+    gpr.alpha_ = cho_solve((gpr.L_, True), gpr.y_train_, check_finite=False)
+
+
+def _threads_one():
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        import contextlib
+        return contextlib.nullcontext()
+    return threadpool_limits(1)
+
+
+class SurrogateGP:
+    """Independent GPs, one per target column, scikit-learn style.
+
+    Parameters
+    ----------
+    design_space : DesignSpace, optional
+        Input bounds used for scaling (default paper Table 2).
+    n_restarts : int
+        Optimiser restarts from random hyperparameters (on top of the start).
+    optimize : bool
+        False keeps the start hyperparameters (``warm_start`` or the defaults).
+    warm_start : list of dict, optional
+        Start hyperparameters per target (e.g. the previous fit's
+        :meth:`hyperparameters`).
+    random_state : int
+        Seed of the restarts.
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    estimators_ : list of GaussianProcessRegressor
+    X_train_, Y_train_, noise_var_ : ndarray
+        Training data in physical units (noise: sampling variances, target units).
+    y_mean_, y_std_ : ndarray
+        Standardisation of every target.
+    white_ : ndarray
+        Fitted white-noise level per target (standardised units).
+    """
+
+    def __init__(self, design_space: DesignSpace | None = None, n_restarts: int = 2, optimize: bool = True,
+                 warm_start: list[dict[str, Any]] | None = None, random_state: int = 0) -> None:
+        self.design_space = design_space or DesignSpace()
+        self.n_restarts = n_restarts
+        self.optimize = optimize
+        self.warm_start = warm_start
+        self.random_state = random_state
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, X: np.ndarray, Y: np.ndarray, noise_var: np.ndarray | None = None) -> SurrogateGP:
+        """Fit one GP per column of ``Y`` (R, T) at design points ``X`` (R, 4); returns ``self``."""
+        from sklearn.gaussian_process import GaussianProcessRegressor
+
+        X, Y = np.asarray(X, dtype=float), np.atleast_2d(np.asarray(Y, dtype=float))
+        if Y.shape[0] != X.shape[0]:
+            Y = Y.T if Y.shape[1] == X.shape[0] else Y
+        if Y.shape[0] != X.shape[0] or X.shape[0] < 2:
+            raise MsmillInputError("Y", f"shape {Y.shape}", f"({X.shape[0]}, n_targets) with >= 2 runs")
+        nv = np.zeros_like(Y) if noise_var is None else np.broadcast_to(np.asarray(noise_var, float), Y.shape)
+        if not (np.all(np.isfinite(Y)) and np.all(np.isfinite(nv)) and np.all(nv >= 0)):
+            raise MsmillInputError("targets", "non-finite or negative noise", "finite targets, noise >= 0")
+        self.X_train_, self.Y_train_, self.noise_var_ = X.copy(), Y.copy(), np.array(nv, dtype=float)
+        self.y_mean_ = Y.mean(axis=0)
+        std = Y.std(axis=0)
+        self.y_std_ = np.where(std > 1e-12, std, 1.0)
+        U = self.design_space.to_unit(X)
+        starts = self.warm_start or [None] * Y.shape[1]
+        self.estimators_ = []
+        with _threads_one(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # convergence chatter at bounds on tiny data sets
+            for j in range(Y.shape[1]):
+                gpr = GaussianProcessRegressor(
+                    kernel=make_kernel(starts[j]), alpha=self._alpha(j),
+                    optimizer="fmin_l_bfgs_b" if self.optimize else None,
+                    n_restarts_optimizer=self.n_restarts if self.optimize else 0,
+                    normalize_y=False, copy_X_train=True, random_state=self.random_state)
+                gpr.fit(U, (Y[:, j] - self.y_mean_[j]) / self.y_std_[j])
+                self.estimators_.append(gpr)
+        self.white_ = np.array([e.kernel_.k2.noise_level for e in self.estimators_])
+        return self
+
+    def _alpha(self, j: int) -> np.ndarray:
+        return self.noise_var_[:, j] / self.y_std_[j] ** 2 + JITTER
+
+    @property
+    def n_targets(self) -> int:
+        """Number of target columns."""
+        return len(self.estimators_)
+
+    def hyperparameters(self) -> list[dict[str, Any]]:
+        """Fitted kernel values per target (plain floats; see :func:`make_kernel`)."""
+        return [kernel_params(e.kernel_) for e in self.estimators_]
+
+    @classmethod
+    def rebuild(cls, X, Y, noise_var, hyperparameters, design_space: DesignSpace | None = None) -> SurrogateGP:
+        """A fitted instance from stored data and hyperparameters, without optimising."""
+        gp = cls(design_space, optimize=False, warm_start=list(hyperparameters))
+        gp.fit(X, Y, noise_var)
+        for e, h in zip(gp.estimators_, hyperparameters, strict=True):
+            _refactor(e, h)
+        gp.white_ = np.array([e.kernel_.k2.noise_level for e in gp.estimators_])
+        return gp
+
+    # ------------------------------------------------------------------ predicting
+    def _outputs(self, outputs) -> np.ndarray:
+        return np.arange(self.n_targets) if outputs is None else np.asarray(outputs, dtype=int)
+
+    def predict(self, X: np.ndarray, return_std: bool = False, outputs=None, include_noise: bool = False):
+        """Posterior mean (and std) of the targets at ``X`` (P, 4), in target units.
+
+        Parameters
+        ----------
+        X : ndarray (P, 4)
+            Physical design points.
+        return_std : bool
+            Also return the standard deviation.
+        outputs : sequence of int, optional
+            Target columns to predict (default all).
+        include_noise : bool
+            Include the fitted white noise in the std (the scatter of a new DEM
+            run); default False: the uncertainty of the mean.
+
+        Returns
+        -------
+        mean : ndarray (P, T)
+        std : ndarray (P, T), if ``return_std``
+        """
+        U = self.design_space.to_unit(np.atleast_2d(X))
+        idx = self._outputs(outputs)
+        mean = np.empty((U.shape[0], idx.size))
+        std = np.empty_like(mean)
+        with _threads_one():
+            for c, j in enumerate(idx):
+                e = self.estimators_[j]
+                if return_std:
+                    m, s = e.predict(U, return_std=True)
+                    var = s * s - (0.0 if include_noise else self.white_[j])
+                    std[:, c] = np.sqrt(np.maximum(var, 0.0)) * self.y_std_[j]
+                else:
+                    m = e.predict(U)
+                mean[:, c] = m * self.y_std_[j] + self.y_mean_[j]
+        return (mean, std) if return_std else mean
+
+    def sample(self, X: np.ndarray, n_samples: int, outputs=None, rng=None) -> np.ndarray:
+        """Joint posterior samples of the latent targets over the points ``X``.
+
+        Returns
+        -------
+        ndarray (n_samples, P, T)
+            Independent across targets, jointly Gaussian across points.
+        """
+        rng = np.random.default_rng(rng)
+        U = self.design_space.to_unit(np.atleast_2d(X))
+        idx = self._outputs(outputs)
+        out = np.empty((n_samples, U.shape[0], idx.size))
+        with _threads_one():
+            for c, j in enumerate(idx):
+                m, cov = self.estimators_[j].predict(U, return_cov=True)
+                cov = cov - self.white_[j] * np.eye(U.shape[0])
+                w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+                a = v * np.sqrt(np.maximum(w, 0.0))
+                z = rng.standard_normal((n_samples, U.shape[0]))
+                out[:, :, c] = (m + z @ a.T) * self.y_std_[j] + self.y_mean_[j]
+        return out
+
+    def loo(self) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-form leave-one-out mean and variance at the training points (target units).
+
+        Rasmussen & Williams (2006) eq. 5.12 with the fitted hyperparameters
+        (slightly optimistic: they saw the held-out point). The variance
+        includes the point's noise.
+
+        Returns
+        -------
+        mean, var : ndarray (R, T)
+        """
+        R = self.X_train_.shape[0]
+        mean, var = np.empty((R, self.n_targets)), np.empty((R, self.n_targets))
+        for j, e in enumerate(self.estimators_):
+            kinv = cho_solve((e.L_, True), np.eye(R))
+            d = np.diag(kinv)
+            y = e.y_train_
+            mean[:, j] = (y - (kinv @ y) / d) * self.y_std_[j] + self.y_mean_[j]
+            var[:, j] = self.y_std_[j] ** 2 / d
+        return mean, var

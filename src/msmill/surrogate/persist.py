@@ -1,0 +1,128 @@
+"""A trained surrogate as one versioned JSON document (no pickles).
+
+The file holds everything needed to rebuild the surrogate without
+re-optimising: the design space, the target layout, the training data
+(design points, targets, sampling variances, run ids and the runs' statistics
+for scoring), the speed recipe, and every target's kernel hyperparameters as
+plain floats; plus provenance (store query, runs used, accuracy metrics,
+package versions, date). Loading refits each GP with its stored
+hyperparameters and no optimiser, which repeats the same floating-point
+operations as the original fit's final step, so predictions are bit-for-bit
+identical (floats are written with ``repr`` precision).
+
+Layout (``schema_version`` 1)::
+
+    {"schema_version": 1, "kind": "msmill_surrogate",
+     "design_space": {...}, "layout": {...}, "speed_factors": [...],
+     "training": {"X": [[...]], "Y": [[...]], "noise_var": [[...]], "run_ids": [...],
+                  "runs": [RunStatistics, ...]},
+     "gp": {"hyperparameters": [{"c32", "ls32", "c52", "ls52", "white"}, ...]},
+     "provenance": {...}}
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from msmill.errors import MsmillInputError
+from msmill.stageparams import RunStatistics
+from msmill.surrogate.gp import SurrogateGP
+from msmill.surrogate.space import DesignSpace
+from msmill.surrogate.stage_model import StageSurrogate
+from msmill.surrogate.targets import TargetLayout, TrainingSet
+
+SCHEMA_VERSION = 1
+KIND = "msmill_surrogate"
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of msmill and the numerical libraries the surrogate depends on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": platform.python_version()}
+    for pkg in ("msmill", "numpy", "scipy", "scikit-learn"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:  # pragma: no cover
+            out[pkg] = "unknown"
+    return out
+
+
+def to_dict(model: StageSurrogate, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The JSON-ready document of a fitted surrogate."""
+    ts, gp = model.training_, model.gp_
+    prov = {"date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "package_versions": package_versions(), "n_runs": ts.n_runs, "runs_used": list(ts.run_ids),
+            **(provenance or {})}
+    return {
+        "schema_version": SCHEMA_VERSION, "kind": KIND,
+        "design_space": model.design_space.to_dict(),
+        "layout": ts.layout.to_dict(),
+        "speed_factors": [float(v) for v in ts.speed_factors],
+        "training": {"X": ts.X.tolist(), "Y": ts.Y.tolist(), "noise_var": ts.noise_var.tolist(),
+                     "run_ids": list(ts.run_ids),
+                     "runs": [json.loads(r.model_dump_json()) for r in ts.runs]},
+        "gp": {"kernel": "C*Matern(ARD,nu=1.5) + C*Matern(ARD,nu=2.5) + White",
+               "hyperparameters": gp.hyperparameters()},
+        "provenance": prov,
+    }
+
+
+def save(model: StageSurrogate, path: str | Path, provenance: dict[str, Any] | None = None) -> Path:
+    """Write the surrogate to ``path`` (JSON); returns the path."""
+    p = Path(path)
+    p.write_text(json.dumps(to_dict(model, provenance), indent=1) + "\n", encoding="utf-8")
+    return p
+
+
+def from_dict(doc: dict[str, Any], source: str = "surrogate") -> StageSurrogate:
+    """Rebuild a fitted surrogate from its document (no re-optimisation)."""
+    if not isinstance(doc, dict) or doc.get("kind") != KIND:
+        raise MsmillInputError(f"{source}.kind", doc.get("kind") if isinstance(doc, dict) else None, KIND)
+    if doc.get("schema_version") != SCHEMA_VERSION:
+        raise MsmillInputError(f"{source}.schema_version", doc.get("schema_version"), str(SCHEMA_VERSION))
+    try:
+        space = DesignSpace.from_dict(doc["design_space"])
+        layout = TargetLayout.from_dict(doc["layout"])
+        tr = doc["training"]
+        X, Y, nv = (np.array(tr[k], dtype=float) for k in ("X", "Y", "noise_var"))
+        runs = tuple(RunStatistics.from_dict(r, source=f"{source}.training.runs") for r in tr.get("runs", []))
+        hyper = doc["gp"]["hyperparameters"]
+    except (KeyError, TypeError) as exc:
+        raise MsmillInputError(f"{source}", f"missing {exc}", "a complete msmill surrogate document") from None
+    if Y.shape[1] != layout.n_targets or len(hyper) != layout.n_targets:
+        raise MsmillInputError(f"{source}.training.Y", f"{Y.shape[1]} targets", f"{layout.n_targets}")
+    ts = TrainingSet(X, Y, nv, layout, np.array(doc["speed_factors"], dtype=float), tuple(tr["run_ids"]), runs)
+    gp = SurrogateGP.rebuild(X, Y, nv, hyper, space)
+    model = StageSurrogate(space)
+    model._set(ts, gp)
+    model.provenance_ = dict(doc.get("provenance", {}))
+    return model
+
+
+def load(path: str | Path) -> StageSurrogate:
+    """Read a surrogate file written by :func:`save`; errors are one line."""
+    p = Path(path)
+    if not p.is_file():
+        raise MsmillInputError("surrogate", str(p), "an existing surrogate JSON file")
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise MsmillInputError(str(p), f"line {exc.lineno}", "valid JSON") from None
+    return from_dict(doc, source=p.name)
+
+
+def is_surrogate_file(path: str | Path) -> bool:
+    """True when ``path`` is a JSON file whose ``kind`` is the surrogate's."""
+    p = Path(path)
+    if p.suffix.lower() != ".json" or not p.is_file():
+        return False
+    with p.open(encoding="utf-8") as fh:
+        head = fh.read(4096)
+    return f'"kind": "{KIND}"' in head

@@ -1,0 +1,150 @@
+"""The surrogate as a stage-parameter provider for the mill model.
+
+:class:`SurrogateProvider` implements :class:`msmill.providers_base.StageParameterProvider`:
+it predicts every stage's statistics at the requested operating point (each
+stage at its own speed; see :mod:`msmill.surrogate.stage_model`), so its
+velocities are already those at the requested speeds
+(``velocities_at_requested_speeds = True``: the ``speed_scaled`` impact model
+does not rescale them). :meth:`SurrogateProvider.sample_stage_parameters`
+draws stage parameters from the GP posterior, which the mill model turns into
+uncertainty bands on the product.
+
+Warnings (:class:`msmill.errors.OutOfDomainWarning`, saying by how much):
+sizes, feed rate, gate angle or a stage's (equivalent) speed outside what the
+surrogate was trained on, and operating points outside the design space.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from msmill.errors import OutOfDomainWarning
+from msmill.providers_base import MixtureArrays, StageParameters
+from msmill.surrogate.space import INPUTS
+from msmill.surrogate.stage_model import StageSurrogate
+
+_UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
+
+
+class SurrogateProvider:
+    """Stage parameters predicted by a trained :class:`StageSurrogate`.
+
+    Parameters
+    ----------
+    surrogate : StageSurrogate
+        A fitted surrogate.
+    source : str
+        Description used in warnings and result notes.
+    """
+
+    velocities_at_requested_speeds = True
+
+    def __init__(self, surrogate: StageSurrogate, source: str = "GP surrogate") -> None:
+        self.surrogate = surrogate
+        self.source = source
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> SurrogateProvider:
+        """Load a surrogate JSON written by :func:`msmill.surrogate.persist.save`."""
+        from msmill.surrogate.persist import load
+
+        return cls(load(path), source=Path(path).name)
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages of the surrogate."""
+        return self.surrogate.n_stages
+
+    def _inputs(self, sizes_mm, stage_speeds_rpm, feed_tph, gate_deg) -> np.ndarray:
+        m = self.surrogate
+        d = m.domain_
+        if stage_speeds_rpm is None:
+            stage_speeds_rpm = list(np.median(d[2]) * m.speed_factors)
+        feed = float(np.mean(d[1]) if feed_tph is None else feed_tph)
+        gate = float(np.mean(d[3]) if gate_deg is None else gate_deg)
+        X = m.stage_inputs(sizes_mm, stage_speeds_rpm, feed, gate)
+        self._warn_domain(X)
+        return X
+
+    def _warn_domain(self, X: np.ndarray) -> None:
+        m = self.surrogate
+        ex = m.domain_excess(X)  # (S, N, 4)
+        msgs = []
+        sizes = X[0, :, 0]
+        out = ex[0, :, 0] > 1e-9
+        if out.any():
+            lo, hi = m.domain_[0]
+            parts = []
+            if sizes.min() < lo:
+                parts.append(f"down to {sizes.min():.3g} mm, {lo / sizes.min():.3g}x below the smallest")
+            if sizes.max() > hi:
+                parts.append(f"up to {sizes.max():.3g} mm, {sizes.max() / hi:.3g}x above the largest")
+            msgs.append(f"{int(out.sum())} of {sizes.size} size classes outside the trained {lo:g}-{hi:g} mm "
+                        f"({'; '.join(parts)})")
+        for k in (1, 3):
+            if ex[0, 0, k] > 1e-9:
+                lo, hi = m.domain_[k]
+                msgs.append(f"{INPUTS[k]} {X[0, 0, k]:g} {_UNITS[INPUTS[k]]} is {ex[0, 0, k]:.3g} "
+                            f"{_UNITS[INPUTS[k]]} outside the trained {lo:g}-{hi:g}")
+        lo, hi = m.domain_[2]
+        for s in np.flatnonzero(ex[:, 0, 2] > 1e-9):
+            speed = X[s, 0, 2] * m.speed_factors[s]
+            msgs.append(f"stage {s + 1} speed {speed:g} rpm (equivalent upper-stage speed {X[s, 0, 2]:g} rpm) "
+                        f"is {ex[s, 0, 2] * m.speed_factors[s]:.3g} rpm outside the "
+                        f"{lo * m.speed_factors[s]:g}-{hi * m.speed_factors[s]:g} rpm it was trained on")
+        space = m.design_space.bounds
+        for k in (1, 2, 3):
+            v = X[..., k]
+            beyond = float(max(space[k, 0] - v.min(), v.max() - space[k, 1], 0.0))
+            if beyond > 0:
+                msgs.append(f"{INPUTS[k]} lies {beyond:.3g} {_UNITS[INPUTS[k]]} outside the design space "
+                            f"{space[k, 0]:g}-{space[k, 1]:g}")
+        if msgs:
+            warnings.warn(f"{self.source}: extrapolating: " + "; ".join(msgs), OutOfDomainWarning, stacklevel=3)
+
+    def _params(self, Y: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray) -> StageParameters:
+        m = self.surrogate
+        preds = m.decode(Y)
+        stack = np.stack
+
+        def mix(kind: str) -> MixtureArrays:
+            parts = [getattr(p, kind) for p in preds]
+            return MixtureArrays(*(stack([q[i] for q in parts]) for i in range(3)))
+
+        rw = rs = None
+        if preds[0].region_weights is not None:
+            rw = stack([p.region_weights for p in preds])
+            rs = stack([p.region_streams for p in preds])
+        return StageParameters(
+            sizes_mm=np.asarray(sizes_mm, dtype=float).copy(),
+            characteristic_time_s=m.characteristic_time_s(Y),
+            streams=stack([p.streams for p in preds]),
+            hit_probability=stack([p.hit_probability for p in preds]),
+            primary_velocity=mix("primary_velocity"),
+            secondary_lambda=stack([p.secondary_lambda for p in preds]),
+            secondary_velocity=mix("secondary_velocity"),
+            design_stage_speeds_rpm=X[:, 0, 2] * m.speed_factors,
+            design_feed_tph=float(X[0, 0, 1]), design_gate_deg=float(X[0, 0, 3]),
+            region_weights=rw, region_streams=rs, source=self.source,
+            velocities_at_requested_speeds=True,
+        )
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point."""
+        X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
+        return self._params(self.surrogate.predict_targets(X), sizes_mm, X)
+
+    def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
+                                gate_deg=None, seed: int | None = 0) -> list[StageParameters]:
+        """``n_samples`` draws of the stage parameters from the GP posterior (jointly over sizes)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OutOfDomainWarning)  # already said by stage_parameters
+            X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
+        Z = self.surrogate.sample_targets(X, n_samples, rng=seed)
+        return [self._params(z, sizes_mm, X) for z in Z]
+
+    def __repr__(self) -> str:
+        return f"SurrogateProvider({self.source}, {self.surrogate!r})"

@@ -1,0 +1,132 @@
+"""Active learning beats the same number of random points on an analytic stand-in for the DEM."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msmill.surrogate.active import CostModel, initial_design, plan_batch
+from msmill.surrogate.gp import SurrogateGP
+from msmill.surrogate.space import DesignSpace
+
+SPACE = DesignSpace()
+
+
+def stand_in(X: np.ndarray) -> np.ndarray:
+    """SYNTHETIC stand-in for a DEM statistic: smooth, strongest in size and speed (unit coordinates)."""
+    u = SPACE.to_unit(X)
+    return np.exp(-2.0 * u[:, 0]) * np.sin(4.0 * u[:, 2]) + 0.3 * u[:, 1] * u[:, 3] + 0.5 * u[:, 0] ** 2
+
+
+TEST_X = SPACE.from_unit(np.random.default_rng(11).random((500, 4)))
+
+
+def rmse(X: np.ndarray) -> float:
+    gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+    return float(np.sqrt(np.mean((gp.predict(TEST_X)[:, 0] - stand_in(TEST_X)) ** 2)))
+
+
+def active_curve(n_start: int, batch: int, n_max: int) -> dict[int, float]:
+    X = initial_design(n_start, SPACE, seed=0)
+    out = {len(X): rmse(X)}
+    while len(X) < n_max:
+        gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+        plan = plan_batch(gp, batch, n_initial=n_start, cost_power=0.0, seed=len(X))
+        X = np.vstack([X, plan.points])
+        out[len(X)] = rmse(X)
+    return out
+
+
+def random_curve(ns, seeds=(0, 1, 2)) -> dict[int, float]:
+    out = {}
+    for n in ns:
+        errs = [rmse(SPACE.from_unit(np.random.default_rng(100 + s).random((n, 4)))) for s in seeds]
+        out[n] = float(np.median(errs))
+    return out
+
+
+def first_below(curve: dict[int, float], target: float) -> float:
+    hits = [n for n, e in sorted(curve.items()) if e <= target]
+    return hits[0] if hits else np.inf
+
+
+@pytest.mark.slow
+def test_active_learning_reaches_target_with_fewer_points_than_random():
+    active = active_curve(8, 4, 40)
+    rand = random_curve(sorted(active))
+    target = 0.5 * active[8]
+    n_active, n_random = first_below(active, target), first_below(rand, target)
+    print("active", active, "random", rand, "target", target, n_active, n_random)
+    assert n_active < n_random, (active, rand)
+
+
+def test_batch_is_spread_and_avoids_pending():
+    X = initial_design(12, SPACE, seed=0)
+    gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+    plan = plan_batch(gp, 5, n_initial=4, cost_power=0.0)
+    assert plan.method == "believer" and plan.points.shape == (5, 4)
+    U = SPACE.to_unit(plan.points)
+    d = np.linalg.norm(U[:, None] - U[None], axis=-1)[np.triu_indices(5, 1)]
+    assert d.min() > 0.15  # believer spreads the batch (without it all 5 sit at one maximum)
+    again = plan_batch(gp, 2, n_initial=4, cost_power=0.0, pending=plan.points[:3])
+    assert not any(np.allclose(p, q) for p in again.points for q in plan.points[:3])
+
+
+def test_believer_variance_equals_conditioning_on_the_points():
+    """With fixed hyperparameters the believer's variance is the exact posterior given the batch."""
+    from msmill.surrogate.active import _OutputState
+
+    X = initial_design(10, SPACE, seed=2)
+    gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+    e = gp.estimators_[0]
+    Uc = SPACE.to_unit(initial_design(256, SPACE, seed=1))
+    state = _OutputState(gp, 0, Uc)
+    picks = [5, 77, 200]
+    for i in picks:
+        state.believe(i)
+    # direct: condition the latent GP on the training points and the picks (noise: alpha, white)
+    Z = np.vstack([e.X_train_, Uc[picks]])
+    K = e.kernel_(Z)
+    K[np.diag_indices_from(K)] += np.r_[np.broadcast_to(e.alpha, (len(X),)), np.full(3, 1e-10)]
+    k = e.kernel_.k1
+    kz = k(Z, Uc)
+    direct = k.diag(Uc) - np.sum(kz * np.linalg.solve(K, kz), axis=0)
+    np.testing.assert_allclose(state.var, np.maximum(direct, 0.0), rtol=1e-6, atol=1e-10)
+    assert np.all(state.var[picks] < 0.05 * k.diag(Uc)[picks])
+
+
+def test_cost_model_recovers_exponents_from_timings():
+    X = initial_design(32, SPACE, seed=4)
+    t = 50.0 * X[:, 1] / X[:, 0] ** 3.5
+    c = CostModel.from_timings(X, t)
+    assert c.n_timings == 32
+    assert c.coef[1] == pytest.approx(-3.5, abs=0.05) and c.coef[2] == pytest.approx(1.0, abs=0.05)
+    few = CostModel.from_timings(X[:3], t[:3])
+    assert few.coef[1:3] == (-4.0, 1.0)
+    # cost-aware planning prefers cheap (large, slow-fed) rocks
+    gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+    cheap = plan_batch(gp, 4, n_initial=4, cost=c, cost_power=1.0)
+    free = plan_batch(gp, 4, n_initial=4, cost=c, cost_power=0.0)
+    assert np.median(cheap.expected_cost_s) < np.median(free.expected_cost_s)
+
+
+def test_initial_design_is_space_filling_and_continues():
+    a = initial_design(8, SPACE, seed=0)
+    b = initial_design(4, SPACE, seed=0, skip=8)
+    full = initial_design(12, SPACE, seed=0)
+    np.testing.assert_allclose(np.vstack([a, b]), full)
+    assert np.all((a >= SPACE.bounds[:, 0]) & (a <= SPACE.bounds[:, 1]))
+    assert plan_batch(None, 3).method == "sobol"
+
+
+def test_group_weights_give_every_group_the_same_total():
+    from msmill.surrogate.active import group_weights
+    from msmill.surrogate.targets import TargetLayout
+
+    names = TargetLayout(2).names
+    w = group_weights(names)
+    totals = {}
+    for n, wi in zip(names, w, strict=True):
+        totals[n.rsplit(".", 1)[0]] = totals.get(n.rsplit(".", 1)[0], 0.0) + wi
+    assert set(totals) >= {"s1.streams", "s1.hit", "s2.primary_velocity", "run.log_time"}
+    np.testing.assert_allclose(list(totals.values()), 1.0)

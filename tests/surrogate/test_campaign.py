@@ -1,0 +1,173 @@
+"""Campaign driver on a Dask cluster with a stand-in executor: retries, resume, no double records, CLI."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from test_store import MACHINE, make_stats
+
+from msmill.cli.main import run as cli
+from msmill.surrogate.campaign import design_grid, run_campaign
+from msmill.surrogate.store import Store
+from msmill.surrogate.store.queue import new_token
+
+FLAKY_MM, BROKEN_MM, ODD_MM = 13.0, 14.0, 17.0
+
+
+def stand_in(task: dict) -> dict:
+    """Executor returning synthetic statistics (no DEM): fails once at 13 mm and always at 14 mm."""
+    size = task["design"]["size_mm"]
+    if size == BROKEN_MM or (size == FLAKY_MM and task["attempt"] == 1):
+        raise RuntimeError(f"planted failure at {size} mm, attempt {task['attempt']}")
+    time.sleep(0.05)
+    st = make_stats(size, seed=task["run_id"])
+    outcome = "half steady" if size == ODD_MM else "steady"  # an outcome the store does not know
+    return {"statistics": st.model_dump_json(), "outcome": outcome, "wall_s": 0.05, "engine": "stand-in",
+            "package_version": "test", "git_commit": None, "raw_files": [], "worker": "thread"}
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        yield c
+
+
+def _plan(st: Store, sizes: list[float], max_attempts: int = 2) -> None:
+    st.create_campaign("c", MACHINE, run_settings={"max_time_s": 0.5}, max_attempts=max_attempts)
+    st.add_points("c", design_grid(MACHINE, sizes, [30.0], [1500.0], [40.0]))
+
+
+def test_campaign_runs_retries_and_never_records_twice(store, client):
+    _plan(store, [10.0, 11.0, 12.0, FLAKY_MM, BROKEN_MM])
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2)
+    assert rep.counts == {"planned": 0, "running": 0, "done": 4, "failed": 1}
+    assert rep.recorded == 4 and rep.failed_attempts == 3  # flaky once, broken twice (the limit)
+    by_size = {r.design.size_mm: r for r in store.runs(campaign="c")}
+    assert by_size[FLAKY_MM].status == "done" and by_size[FLAKY_MM].attempts == 2
+    assert "planted failure at 13.0 mm, attempt 1" in by_size[FLAKY_MM].error
+    broken = by_size[BROKEN_MM]
+    assert broken.status == "failed" and broken.error.count("RuntimeError: planted failure") == 2
+    # the design stage speeds came from the grid (bottom stage twice as fast)
+    assert by_size[10.0].design.stage_speeds_rpm[-1] == 3000.0
+    again = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2)
+    assert again.recorded == 0 and again.counts == rep.counts
+    assert set(store.count_stage_rows().values()) == {MACHINE.n_stages}
+    assert len(store.count_stage_rows()) == 4
+
+
+def test_resume_after_a_dead_driver(store, client):
+    _plan(store, [10.0, 11.0, 12.0, 15.0])
+    dead = new_token()
+    held = store.claim("c", 2, "driver that died", dead)
+    # a live resume leaves fresh claims alone ...
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2, stale_s=3600)
+    assert rep.recorded == 2 and store.counts("c")["running"] == 2
+    # ... and takes them over once their heartbeat is stale
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2, stale_s=0.0)
+    assert rep.replanned_stale == 2 and rep.recorded == 2
+    assert store.counts("c") == {"planned": 0, "running": 0, "done": 4, "failed": 0}
+    for c in held:  # the dead driver's results, if they ever arrived, are refused
+        assert not store.complete(c.run_id, dead, make_stats(c.design.size_mm))
+        assert store.run(c.run_id).attempts == 2
+
+
+def test_max_runs_stops_early_and_gives_claims_back(store, client):
+    _plan(store, [10.0, 11.0, 12.0, 15.0, 16.0])
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2, max_runs=2)
+    assert rep.recorded == 2
+    c = store.counts("c")
+    assert c["done"] == 2 and c["running"] == 0 and c["planned"] == 3
+
+
+def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
+    db = f"sqlite:///{tmp_path / 's.sqlite'}"
+    assert cli(["campaign", "create", "k", "--db", db, "--set", "max_time_s=0.8", "--set", "seed=2"]) == 0
+    assert cli(["campaign", "add", "k", "--db", db, "--size-mm", "20,30", "--feed-tph", "20,40"]) == 0
+    assert "planned 4 runs" in capsys.readouterr().out
+    (tmp_path / "p.csv").write_text("size_mm,feed_tph,speed_rpm,gate_deg\n20,20,1500,40\n25,20,1500,40\n")
+    assert cli(["campaign", "add", "k", "--db", db, "--points", str(tmp_path / "p.csv")]) == 0
+    assert "planned 1 runs (1 already" in capsys.readouterr().out
+    assert cli(["campaign", "status", "k", "--db", db]) == 0
+    assert "planned=5" in capsys.readouterr().out
+    st = Store(db)
+    assert st.campaign("k").run_settings == {"max_time_s": 0.8, "seed": 2}
+    assert {r.seed for r in st.runs(campaign="k")} == {2}
+    assert cli(["campaign", "create", "bad", "--db", db, "--set", "warp=9"]) == 2
+    assert cli(["campaign", "status", "nope", "--db", db]) == 2
+    assert cli(["campaign", "plan", "k", "--db", db]) == 2  # no planner installed yet
+    assert cli(["db", "list", "--db", db, "--size-mm", "abc"]) == 2
+    assert "error:" in capsys.readouterr().err
+    assert cli(["db", "list", "--db", db, "--size-mm", "20", "--campaign", "k"]) == 0
+    assert capsys.readouterr().out.strip().endswith("2 runs")  # 20 mm at 20 and 40 t/h (the CSV row was a duplicate)
+
+
+def test_cli_run_with_progress_and_resume(tmp_path, client, monkeypatch, capsys):
+    import msmill.surrogate.campaign as cm
+
+    real = cm.run_campaign
+    seen = []
+
+    def on_test_cluster(store, name, **kw):
+        assert kw["n_workers"] == 2 and kw["stale_s"] == 30.0
+        for k in ("scheduler", "n_workers"):
+            kw.pop(k)
+        wrapped = kw.pop("progress", None)
+
+        def progress(c, rep):
+            seen.append(dict(c))
+            if wrapped is not None:
+                wrapped(c, rep)
+
+        return real(store, name, client=client, executor=stand_in, progress=progress, **kw)
+
+    monkeypatch.setattr(cm, "run_campaign", on_test_cluster)
+    db = f"sqlite:///{tmp_path / 's.sqlite'}"
+    assert cli(["campaign", "create", "k", "--db", db]) == 0
+    assert cli(["campaign", "add", "k", "--db", db, "--size-mm", "10,11,12"]) == 0
+    assert cli(["campaign", "run", "k", "--db", db, "--workers", "2", "--stale-s", "30", "--heartbeat-s", "0.2"]) == 0
+    assert "now done 3 failed 0 running 0 planned 0" in capsys.readouterr().out
+    assert seen and seen[-1]["done"] == 3
+    assert cli(["campaign", "resume", "k", "--db", db, "--workers", "2", "--stale-s", "30", "--no-progress"]) == 0
+    assert "recorded 0" in capsys.readouterr().out
+
+
+def test_run_on_an_existing_scheduler(store):
+    from distributed import LocalCluster
+
+    _plan(store, [10.0, 11.0])
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as cl:
+        rep = run_campaign(store, "c", scheduler=cl.scheduler_address, executor=stand_in, heartbeat_s=0.2)
+        assert rep.recorded == 2 and len(cl.scheduler.clients) <= 1  # the driver's client was closed
+
+
+def test_an_invalid_result_is_a_failed_attempt(store, client):
+    _plan(store, [10.0, ODD_MM], max_attempts=1)
+    rep = run_campaign(store, "c", client=client, executor=stand_in, heartbeat_s=0.2)
+    assert rep.counts["done"] == 1 and rep.counts["failed"] == 1 and rep.failed_attempts == 1
+    odd = next(r for r in store.runs(campaign="c") if r.design.size_mm == ODD_MM)
+    assert "invalid result" in odd.error and "half steady" in odd.error
+
+
+def test_active_planner_within_campaign_domain(tmp_path) -> None:
+    """The registered planner fits the store's runs and plans apart from pending points, in the size range."""
+    from msmill.machine import Machine
+    from msmill.model.providers import default_table_path
+    from msmill.stageparams import StageParameterTable
+    from msmill.surrogate.campaign import PLANNERS
+
+    st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
+    machine = Machine.default()
+    for run in StageParameterTable.from_json(default_table_path()).runs:
+        st.record_run(run, machine)
+    st.create_campaign("al", machine, options={"size_range_mm": [8.0, 20.0]})
+    first = PLANNERS["active"](st, "al", 3)
+    st.add_points("al", first)
+    second = PLANNERS["active"](st, "al", 3)
+    pts = [(d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg) for d in first + second]
+    assert all(8.0 <= p[0] <= 20.0 and 10 <= p[1] <= 60 and 1200 <= p[2] <= 1900 and 0 <= p[3] <= 80 for p in pts)
+    assert len(set(pts)) == 6  # the second batch believes the first (pending) and goes elsewhere
+    assert all(d.stage_speeds_rpm[-1] == 2 * d.speed_rpm for d in first)

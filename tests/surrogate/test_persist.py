@@ -1,0 +1,43 @@
+"""A saved surrogate is rebuilt without re-optimising and predicts bit for bit the same."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from msmill.errors import MsmillInputError
+from msmill.surrogate import persist
+
+
+def test_round_trip_is_bit_for_bit(fitted, saved):
+    loaded = persist.load(saved)
+    X = fitted.stage_inputs(np.geomspace(3, 40, 9), [1450.0] * 4 + [2900.0], 35.0, 30.0)
+    a, sa = fitted.predict_targets(X, return_std=True)
+    b, sb = loaded.predict_targets(X, return_std=True)
+    assert np.array_equal(a, b, equal_nan=True)
+    assert np.array_equal(sa, sb, equal_nan=True)
+    assert np.array_equal(fitted.sample_targets(X, 4, rng=3), loaded.sample_targets(X, 4, rng=3), equal_nan=True)
+    assert loaded.gp_.hyperparameters() == fitted.gp_.hyperparameters()
+
+
+def test_document_is_versioned_with_provenance(saved, table_runs):
+    doc = json.loads(saved.read_text())
+    assert doc["schema_version"] == persist.SCHEMA_VERSION and doc["kind"] == persist.KIND
+    prov = doc["provenance"]
+    assert prov["n_runs"] == len(table_runs) and len(prov["runs_used"]) == len(table_runs)
+    assert {"msmill", "numpy", "scipy", "scikit-learn"} <= set(prov["package_versions"])
+    assert prov["note"] == "test"
+    assert persist.is_surrogate_file(saved)
+
+
+def test_bad_documents_are_one_line(saved, tmp_path):
+    doc = json.loads(saved.read_text())
+    for key, value, field in (("kind", "other", "kind"), ("schema_version", 99, "schema_version")):
+        bad = tmp_path / f"{key}.json"
+        bad.write_text(json.dumps({**doc, key: value}))
+        with pytest.raises(MsmillInputError, match=field):
+            persist.load(bad)
+    with pytest.raises(MsmillInputError, match="existing surrogate"):
+        persist.load(tmp_path / "missing.json")

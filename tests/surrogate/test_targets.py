@@ -1,0 +1,144 @@
+"""Target transforms round-trip; the rebuilt distributions stay close to the fitted ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from msmill.surrogate import targets as tg
+from msmill.surrogate.accuracy import mixture_kl, poisson_kl
+
+fractions = st.lists(st.floats(0.01, 1.0), min_size=3, max_size=3).map(lambda v: np.array(v) / sum(v))
+
+
+@given(fractions)
+def test_alr_round_trip(parts):
+    np.testing.assert_allclose(tg.alr_inverse(tg.alr(parts)), parts, rtol=1e-9, atol=1e-12)
+
+
+@given(st.floats(1e-3, 1 - 1e-3))
+def test_logit_round_trip(p):
+    from scipy.special import expit
+
+    assert expit(tg.logit(p)) == pytest.approx(p, rel=1e-9)
+
+
+@given(st.lists(st.floats(-20, 80), min_size=tg.N_LEVELS, max_size=tg.N_LEVELS, unique=True))
+def test_quantile_vector_round_trip_and_monotone(values):
+    q = np.sort(values)
+    if np.min(np.diff(q)) < 1e-6:
+        return
+    z = tg.quantile_vector(q)
+    np.testing.assert_allclose(tg.quantiles_from_vector(z), q, rtol=1e-9, atol=1e-9)
+    # any vector decodes to ascending quantiles
+    assert np.all(np.diff(tg.quantiles_from_vector(z + 0.3 * np.sin(np.arange(z.size)))) > 0)
+
+
+def test_normal_survives_the_quantile_representation():
+    q = tg.mixture_quantiles([1.0], [20.0], [4.0])
+    np.testing.assert_allclose(q, stats.norm.ppf(tg.LEVELS, 20.0, 4.0), atol=1e-6)
+    rebuilt = tg.mixture_from_quantiles(q)
+    assert mixture_kl(([1.0], [20.0], [4.0]), rebuilt) < 0.01
+    q2 = tg.mixture_quantiles(*rebuilt)
+    np.testing.assert_allclose(q2[1:-1], q[1:-1], atol=0.04 * 4.0)  # interior: 4 % of a sigma
+    np.testing.assert_allclose(q2, q, atol=0.1 * 4.0)  # outermost levels: 10 % of a sigma
+
+
+def test_bimodal_mixture_survives_the_quantile_representation():
+    g = ([0.6, 0.4], [10.0, 30.0], [3.0, 5.0])
+    assert mixture_kl(g, tg.mixture_from_quantiles(tg.mixture_quantiles(*g))) < 0.03
+
+
+def _moments(w, m):
+    k = np.arange(600)
+    pmf = np.sum(w * stats.poisson.pmf(k[:, None], m), axis=1)
+    mu = float(pmf @ k)
+    return mu, float(pmf @ k**2 - mu**2), float(pmf[0])
+
+
+@settings(deadline=None, max_examples=40)
+@given(st.floats(0.3, 8.0), st.floats(1.05, 3.0), st.floats(0.0, 1.0))
+def test_count_from_summary_reproduces_mean_variance_zero_fraction(mean, ratio, frac):
+    # the reachable zero fractions: the two ends of the search (targets 0 and 1 are out of reach)
+    lo, hi = (_moments(*tg.count_from_summary(mean, ratio, t))[2] for t in (0.0, 1.0))
+    p0 = lo + (0.02 + 0.96 * frac) * (hi - lo)
+    mu, var, got_p0 = _moments(*tg.count_from_summary(mean, ratio, p0))
+    assert mu == pytest.approx(mean, rel=1e-6)
+    assert var / mu == pytest.approx(ratio, rel=1e-5)
+    assert got_p0 == pytest.approx(p0, abs=1e-6)
+
+
+def test_count_without_overdispersion_is_poisson():
+    w, m = tg.count_from_summary(2.5, 0.9, 0.1)
+    assert list(w) == [1.0] and m[0] == pytest.approx(2.5)
+
+
+def test_encode_decode_run_round_trip(table_runs):
+    layout = tg.TargetLayout(table_runs[0].n_stages)
+    for run in table_runs[::2]:
+        y, nv = tg.encode_run(run, layout)
+        assert y.shape == nv.shape == (layout.n_targets,) and np.all(nv >= 0)
+        for st_ in run.stages:
+            d = tg.decode_stage(y, layout, st_.stage)
+            np.testing.assert_allclose(d.streams[0], st_.streams, atol=1e-3)
+            assert d.hit_probability[0] == pytest.approx(st_.primary_hit_probability, rel=1e-9)
+            assert d.secondary_lambda[0] == pytest.approx(st_.secondary_lambda, rel=1e-9)
+            q = tg.mixture_quantiles(st_.primary_velocity.weights, st_.primary_velocity.means_m_s,
+                                     st_.primary_velocity.sigmas_m_s)
+            np.testing.assert_allclose(d.primary_quantiles_m_s[0], q, rtol=1e-9)
+        assert np.exp(y[-1]) == pytest.approx(run.characteristic_time_s)
+
+
+def test_noise_grows_as_samples_shrink():
+    a = tg.quantile_noise_var([1.0], [20.0], [4.0], 1000)
+    b = tg.quantile_noise_var([1.0], [20.0], [4.0], 100)
+    np.testing.assert_allclose(b, 10 * a, rtol=1e-9)
+    # the first quantile's variance is the textbook p(1-p)/(n f^2)
+    p = tg.LEVELS[0]
+    f = stats.norm.pdf(stats.norm.ppf(p, 20.0, 4.0), 20.0, 4.0)
+    assert a[0] == pytest.approx(p * (1 - p) / (1000 * f * f), rel=1e-6)
+
+
+def test_poisson_kl_closed_form():
+    k = np.arange(200)
+    p, q = stats.poisson.pmf(k, 3.0), stats.poisson.pmf(k, 4.5)
+    assert poisson_kl(3.0, 4.5) == pytest.approx(float(np.sum(p * np.log(p / q))), rel=1e-9)
+
+
+class _Count:
+    """Duck-typed stand-in for issue 10's CountDistribution: a 50/50 Poisson mixture."""
+
+    def __init__(self, lam: float) -> None:
+        self.weights, self.means = [0.5, 0.5], [0.5 * lam, 1.5 * lam]
+        self.mean = lam
+        self.variance = lam + 0.25 * lam**2
+        self.p_zero = 0.5 * (np.exp(-0.5 * lam) + np.exp(-1.5 * lam))
+
+
+class _WithCount:
+    """A stage (or run) with a ``secondary_count`` added; everything else delegated."""
+
+    def __init__(self, inner, **extra) -> None:
+        self._inner, self._extra = inner, extra
+
+    def __getattr__(self, name):
+        return self._extra[name] if name in self._extra else getattr(self._inner, name)
+
+
+def test_dispersion_targets_when_runs_carry_a_count_distribution(table_runs):
+    run = table_runs[0]
+    stages = [_WithCount(s, secondary_count=_Count(s.secondary_lambda)) for s in run.stages]
+    layout = tg.TargetLayout(run.n_stages, with_dispersion=True)
+    y, nv = tg.encode_run(_WithCount(run, stages=stages), layout)
+    assert np.all(np.isfinite(nv))
+    for s in stages:
+        d = tg.decode_stage(y, layout, s.stage)
+        c = s.secondary_count
+        assert d.count_var_ratio[0] == pytest.approx(c.variance / c.mean, rel=1e-9)
+        assert d.count_p_zero[0] == pytest.approx(c.p_zero, rel=1e-9)
+        dist = d.count_distribution(0)
+        m = np.asarray(dist["means"] if isinstance(dist, dict) else dist.means)
+        np.testing.assert_allclose(np.sort(m), np.sort(c.means), rtol=1e-5)

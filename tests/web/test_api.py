@@ -1,0 +1,120 @@
+"""HTTP API of ``msmill serve``: same numbers as ``msmill predict``, clean 422s, size limits."""
+
+from __future__ import annotations
+
+import tomllib
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("fastapi")
+from fastapi.testclient import TestClient
+
+from msmill.cli.main import run as cli_run
+from msmill.web.app import create_app
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "ug2.toml"
+
+
+@pytest.fixture(scope="module")
+def client() -> TestClient:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return TestClient(create_app(max_request_bytes=200_000))
+
+
+def _example() -> dict:
+    data = tomllib.loads(EXAMPLE.read_text(encoding="utf-8"))
+    data.pop("output")
+    data["output"] = {"plots": False}
+    return data
+
+
+def test_health_ores_openapi(client: TestClient) -> None:
+    assert client.get("/health").json()["status"] == "ok"
+    names = [o["name"] for o in client.get("/ores").json()]
+    assert {"UG2", "Platreef"} <= set(names)
+    spec = client.get("/openapi.json").json()
+    assert {"/predict", "/ores", "/health"} <= set(spec["paths"])
+
+
+def test_predict_reproduces_cli(client: TestClient, tmp_path: Path) -> None:
+    out = tmp_path / "cli"
+    assert cli_run(["predict", str(EXAMPLE), "--out", str(out), "--no-plots"]) == 0
+    cli = pd.read_csv(out / "ug2_product.csv")
+    r = client.post("/predict", json=_example())
+    assert r.status_code == 200, r.text
+    api = pd.DataFrame(r.json()["psd"])
+    np.testing.assert_allclose(api["product_passing_pct"], cli["product_passing_pct"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(api["upper_mm"], cli["upper_mm"], rtol=1e-12)
+    cli_stages = pd.read_csv(out / "ug2_product_stages.csv")
+    np.testing.assert_allclose(pd.DataFrame(r.json()["stages"])["holdup_t"], cli_stages["holdup_t"], atol=1e-12)
+
+
+def test_run_file_download_reproduces_request(client: TestClient, tmp_path: Path) -> None:
+    req = _example()
+    req["operating"]["speed_rpm"] = 1650.0
+    body = client.post("/predict", json=req).json()
+    p = tmp_path / "again.toml"
+    p.write_text(body["run_file_toml"], encoding="utf-8")
+    assert cli_run(["predict", str(p), "--out", str(tmp_path / "o"), "--no-plots"]) == 0
+    again = pd.read_csv(next((tmp_path / "o").glob("*.csv")))
+    np.testing.assert_allclose(again["product_passing_pct"], pd.DataFrame(body["psd"])["product_passing_pct"],
+                               atol=1e-9)
+
+
+def test_speed_changes_product(client: TestClient) -> None:
+    req = _example()
+    a = client.post("/predict", json=req).json()["summary"]["p80_mm"]
+    req["operating"]["speed_rpm"] = 1850.0
+    b = client.post("/predict", json=req).json()["summary"]["p80_mm"]
+    assert b < a  # faster rotors, harder impacts, finer product
+
+
+@pytest.mark.parametrize(("path", "value", "field"), [
+    (("feed", "rate_tph"), -3, "request.feed.rate_tph"),
+    (("operating", "gate_deg"), 120, "request.operating.gate_deg"),
+    (("ore", "name"), "UG3", "request.ore.name"),
+    (("model", "solver"), "magic", "request.model.solver"),
+    (("stage_parameters", "file"), "/etc/passwd", "request.stage_parameters.file"),
+    (("feed", "passing_pct"), "lots", "request.feed.passing_pct"),
+])
+def test_bad_request_names_field(client: TestClient, path: tuple[str, str], value: object, field: str) -> None:
+    req = _example()
+    req.setdefault(path[0], {})[path[1]] = value
+    r = client.post("/predict", json=req)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert detail["field"].startswith(field), detail
+    assert detail["message"].startswith(field)
+
+
+def test_malformed_and_oversized(client: TestClient) -> None:
+    r = client.post("/predict", content=b'{"ore": ', headers={"content-type": "application/json"})
+    assert r.status_code == 422 and r.json()["detail"]["field"] == "request"
+    big = b'{"title": "' + b"x" * 300_000 + b'"}'
+    r = client.post("/predict", content=big, headers={"content-type": "application/json"})
+    assert r.status_code == 413
+
+
+def test_attachments(client: TestClient) -> None:
+    req = _example()
+    req["attachments"] = {"feed_csv": "size_mm,passing_pct\n1,5\n4,20\n8,45\n16,80\n22.4,100\n"}
+    r = client.post("/predict", json=req)
+    assert r.status_code == 200, r.text
+    assert r.json()["summary"]["f80_mm"] == pytest.approx(16.0, rel=0.03)  # the uploaded feed's 80 % size
+    ore_text = (ROOT / "src" / "msmill" / "data" / "ores" / "ug2.toml").read_text(encoding="utf-8")
+    req = _example()
+    req["attachments"] = {"ore_toml": ore_text.replace("71.8", "50.0")}
+    softer = client.post("/predict", json=req).json()["summary"]["p80_mm"]
+    base = client.post("/predict", json=_example()).json()["summary"]["p80_mm"]
+    assert softer > base  # smaller A: less fines per breakage
+    req["attachments"] = {"feed_csv": "size_mm,passing_pct\n1,50\n2,40\n"}
+    r = client.post("/predict", json=req)
+    assert r.status_code == 422 and "feed_csv" in r.json()["detail"]["field"]
+    req["attachments"] = {"secret_file": "x"}
+    assert client.post("/predict", json=req).status_code == 422
