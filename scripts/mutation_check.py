@@ -61,7 +61,7 @@ class Mutant:
 
 
 def m(name: str, file: str, original: str, mutated: str, tests: list[str]) -> Mutant:
-    return Mutant(name, file, original, mutated, tuple(tests))
+    return Mutant(name, file, original, mutated, tuple(dict.fromkeys(tests)))
 
 
 BK = "src/msmill/breakage.py"
