@@ -44,7 +44,7 @@ import tomli_w
 
 from msmill._version import __version__
 from msmill.dem.mill.checks import check_run_budget, check_run_inputs
-from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene
+from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene, scene_extent
 from msmill.dem.mill.stats import (
     MillStatistics,
     StatsSettings,
@@ -477,6 +477,11 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
         rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady, settings=stats_settings,
         size_edges_m=edges, provenance=prov,
     )
-    # runs saved before outcomes existed: steady if the old criterion found steady state
-    outcome = res.get("outcome", "steady" if steady is not None else "not_steady")
-    return mark_statistics(ms, outcome, res.get("feed_scale"))
+    feed_scale = res.get("feed_scale")
+    outcome = res.get("outcome")
+    if outcome is None:  # saved before outcomes existed: today's criterion on the saved time series
+        feed_scale = scene_extent(m, sizes, d["mode"])[3]
+        ts = raw["timeseries"]
+        outcome = assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(),
+                         op.feed_tph * 1000.0 / 3600.0 * feed_scale, RunSettings().criterion()).outcome
+    return mark_statistics(ms, outcome, feed_scale)
