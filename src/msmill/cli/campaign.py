@@ -116,6 +116,10 @@ def plan_cmd(
     n: Annotated[int, typer.Option("--n", help="Number of new design points.")] = 4,
     planner: Annotated[str, typer.Option(help="Planner name (registered in msmill.surrogate.campaign.PLANNERS).")]
     = "active",
+    cost_power: Annotated[float, typer.Option(
+        "--cost-power", help="Exponent of the expected DEM cost in the acquisition (0: ignore cost; 1: "
+                             "variance per second of DEM).")] = 1.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the candidate design.")] = 0,
     db: DbOpt = None,
 ) -> None:
     """Let a planner (the surrogate's active learning) choose the next design points."""
@@ -124,7 +128,10 @@ def plan_cmd(
     if planner not in cm.PLANNERS:
         raise MsmillInputError("--planner", planner, ", ".join(sorted(cm.PLANNERS)) or "no planner installed yet")
     st = open_store(db)
-    added, existing = st.add_points(name, cm.PLANNERS[planner](st, name, n))
+    if not 0 <= cost_power <= 4:
+        raise MsmillInputError("--cost-power", cost_power, "a number 0-4")
+    kwargs = {"cost_power": cost_power, "seed": seed} if planner == "active" else {}
+    added, existing = st.add_points(name, cm.PLANNERS[planner](st, name, n, **kwargs))
     typer.echo(f"planned {added} runs ({existing} already in the campaign)")
 
 

@@ -56,7 +56,7 @@ DEFAULT_STALE_S = 120.0
 PLANNERS: dict[str, Callable[[Store, str, int], list[DesignPoint]]] = {}
 
 
-def active_planner(store: Store, name: str, n: int, seed: int = 0) -> list[DesignPoint]:
+def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: float = 1.0) -> list[DesignPoint]:
     """Next ``n`` design points of a campaign by the surrogate's cost-aware active learning.
 
     Fits :class:`msmill.surrogate.stage_model.StageSurrogate` to the store's
@@ -83,7 +83,7 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0) -> list[Desig
     pend = np.array([[d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg] for d in pending]).reshape(-1, 4)
     model = StageSurrogate().fit(runs).gp_ if len(runs) >= 2 else None
     plan = plan_batch(model, n, space, n_existing=len(runs), pending=pend if len(pend) else None,
-                      cost=CostModel.from_runs(runs, space), seed=seed)
+                      cost=CostModel.from_runs(runs, space), cost_power=cost_power, seed=seed)
     out = []
     for size, feed, speed, gate in plan.points:
         op = OperatingPoint(feed_tph=float(feed), speed_rpm=float(speed), gate_deg=float(gate))
