@@ -114,7 +114,7 @@ def test_mill_with_surrogate_has_a_band_bracketing_p80(provider, grid):
     t = res.psd_table
     assert np.all(t["product_passing_pct_p05"] <= t["product_passing_pct"] + 1e-9)
     assert np.all(t["product_passing_pct_p95"] >= t["product_passing_pct"] - 1e-9)
-    table = Mill("UG2", "default", grid=grid)
+    table = Mill("UG2", "table", grid=grid)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         assert table.run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40),

@@ -26,7 +26,7 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
     file = "my_mill.toml"        # optional; default Machine.default()
 
     [stage_parameters]
-    file = "default"             # the packaged DEM-derived table, or a path (a surrogate JSON too)
+    file = "default"             # the shipped surrogate ("table": the single-point DEM table), or a path
 
     [model]                      # sub-models and solver (msmill.model.Mill)
     solver = "expected_value"
@@ -57,7 +57,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
-from msmill.model.providers import DEFAULT_TABLE, default_table_path
+from msmill.model.providers import DEFAULT_TABLE, named_parameter_path
 
 
 class _Section(BaseModel):
@@ -247,8 +247,9 @@ class RunFile(_Section):
     def stage_parameter_path(self) -> Path:
         """The stage-parameter file (the packaged default table for ``"default"``)."""
         v = self.stage_parameters.file
-        if v == DEFAULT_TABLE:
-            return default_table_path(f"{self.name}.stage_parameters.file")
+        named = named_parameter_path(v, f"{self.name}.stage_parameters.file")
+        if named is not None:
+            return named
         p = self.path(v)
         if not p.is_file():
             raise MsmillInputError(f"{self.name}.stage_parameters.file", v, "an existing table or run-statistics file")

@@ -44,6 +44,10 @@ class SurrogateProvider:
 
     def __init__(self, surrogate: StageSurrogate, source: str = "GP surrogate") -> None:
         self.surrogate = surrogate
+        #: slice-to-full-mill correction (:class:`msmill.surrogate.fidelity.SliceToFullBias`) or None
+        self.correction = getattr(surrogate, "slice_to_full_", None)
+        if self.correction is not None and self.correction.n_pairs:
+            source = f"{source} (slice-to-full corrected, {self.correction.n_pairs} pairs)"
         self.source = source
 
     @classmethod
@@ -133,9 +137,12 @@ class SurrogateProvider:
         )
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
-        """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point."""
+        """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point (slice-to-full corrected)."""
         X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
-        return self._params(self.surrogate.predict_targets(X), sizes_mm, X)
+        Y = self.surrogate.predict_targets(X)
+        if self.correction is not None:
+            Y = self.correction.apply(Y)
+        return self._params(Y, sizes_mm, X)
 
     def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
                                 gate_deg=None, seed: int | None = 0) -> list[StageParameters]:
@@ -143,7 +150,10 @@ class SurrogateProvider:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", OutOfDomainWarning)  # already said by stage_parameters
             X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
-        Z = self.surrogate.sample_targets(X, n_samples, rng=seed)
+        rng = np.random.default_rng(seed)
+        Z = self.surrogate.sample_targets(X, n_samples, rng=rng)
+        if self.correction is not None:
+            Z = self.correction.sample(Z, rng)
         return [self._params(z, sizes_mm, X) for z in Z]
 
     def __repr__(self) -> str:
