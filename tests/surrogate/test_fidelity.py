@@ -48,7 +48,7 @@ def test_one_pair_recovers_the_factor_with_its_own_size_as_uncertainty(table_run
 def test_consistent_pairs_give_a_tight_correction_scattered_pairs_a_wide_one(table_runs, layout):
     runs = table_runs[1:4]
     same = SliceToFullBias.fit(layout, [(r, synthetic_full(r, 1.25)) for r in runs])
-    spread = SliceToFullBias.fit(layout, [(r, synthetic_full(r, f)) for r, f in zip(runs, (1.05, 1.25, 1.5))])
+    spread = SliceToFullBias.fit(layout, [(r, synthetic_full(r, f)) for r, f in zip(runs, (1.05, 1.25, 1.5), strict=True)])
     i = layout.slices(3)["count"].start
     assert same.n_pairs == 3 and np.exp(same.offset[i]) == pytest.approx(1.25)
     assert np.exp(spread.offset[i]) == pytest.approx(np.exp(np.mean(np.log([1.05, 1.25, 1.5]))))
@@ -57,7 +57,7 @@ def test_consistent_pairs_give_a_tight_correction_scattered_pairs_a_wide_one(tab
     # (the synthetic full run keeps the slice's standard error on a lambda f times larger)
     def s_mean(factors):
         return np.mean([(r.stages[2].sampling_error["secondary_lambda"] / r.stages[2].secondary_lambda) ** 2
-                        * (1 + f ** -2) for r, f in zip(runs, factors)])
+                        * (1 + f ** -2) for r, f in zip(runs, factors, strict=True)])
     s = s_mean([1.25] * 3)
     assert same.var[i] == pytest.approx(s / 3, rel=1e-6)
     # scattered pairs: plus the between-point scatter, counted for a new point (1 + 1/n)
@@ -78,7 +78,7 @@ def test_pairs_are_matched_by_design_point(table_runs):
 def corrected(saved, table_runs, layout):
     model = persist.load(saved)
     model.slice_to_full_ = SliceToFullBias.fit(layout, [(r, synthetic_full(r, f, 0.01))
-                                                        for r, f in zip(table_runs[:2], (1.2, 1.4))])
+                                                        for r, f in zip(table_runs[:2], (1.2, 1.4), strict=True)])
     return model
 
 
