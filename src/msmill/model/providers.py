@@ -340,7 +340,7 @@ def load_provider(path: str | Path) -> Any:
         from msmill.surrogate.provider import SurrogateProvider
 
         prov = SurrogateProvider.from_file(p)
-        if str(path) == DEFAULT_TABLE:
+        if p == default_surrogate_path():
             prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
         return prov
     if p.suffix.lower() == ".json" and p.exists():
