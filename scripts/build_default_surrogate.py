@@ -41,7 +41,7 @@ def git_state(root: Path = ROOT) -> dict[str, object]:
             "export_uncommitted": bool(run("status", "--porcelain", "--", str(EXPORT)).strip())}
 
 
-def train(export: Path, loo: str = "refit", n_restarts: int = 2):
+def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
     from msmill.surrogate.accuracy import loo_scores
     from msmill.surrogate.campaign_export import read_export, split_runs
@@ -53,7 +53,7 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2):
     if len(slices) < 2:
         sys.exit(f"{export}: {len(slices)} steady slice runs; at least 2 are needed")
     model = StageSurrogate(n_restarts=n_restarts).fit([r.statistics for r in slices])
-    pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls])
+    pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls]) if correct else []
     if pairs:
         model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs)
     report = loo_scores(model, refit=loo == "refit")
@@ -72,8 +72,9 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2):
                 "per_stage": report.per_stage.reset_index().to_dict(orient="list")},
         "domain": {k: [float(v) for v in dom[i]] for i, k in
                    enumerate(("size_mm", "feed_tph", "speed_rpm", "gate_deg"))},
-        "slice_to_full": (model.slice_to_full_.lambda_factors(model.training_.layout)
-                          if pairs else "no paired full-mill runs: no correction"),
+        "slice_to_full": (model.slice_to_full_.lambda_factors(model.training_.layout) if pairs else
+                          "no correction (--no-slice-to-full)" if not correct else
+                          "no paired full-mill runs: no correction"),
     }
     return model, report, prov
 
@@ -86,11 +87,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--loo", choices=("refit", "closed"), default="refit",
                     help="leave-one-out: refit every GP (honest) or closed form (fast)")
     ap.add_argument("--restarts", type=int, default=2, help="optimiser restarts per target")
+    ap.add_argument("--no-slice-to-full", action="store_true",
+                    help="ship the slice prediction without the slice-to-full-mill correction")
     a = ap.parse_args(argv)
     from msmill.surrogate.persist import save
 
     t0 = time.process_time()
-    model, report, prov = train(a.export.resolve(), a.loo, a.restarts)
+    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full)
     prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     prov["cpu_s"] = round(time.process_time() - t0, 1)
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -295,6 +295,26 @@ def p80_table(provider) -> list[str]:
     return rows
 
 
+def pair_table(slices, fulls) -> list[str]:
+    """Slice against full-mill values of the paired runs, stage by stage."""
+    from msmill.surrogate.fidelity import match_pairs
+
+    pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls])
+    if not pairs:
+        return []
+    out = ["| design point | stage | kickback slice / full | refeed | pass-through | hit probability | "
+           "lambda slice / full (ratio) |", "|---|---|---|---|---|---|---|"]
+    for sl, fu in pairs:
+        d = sl.design
+        for a, b in zip(sl.stages, fu.stages, strict=True):
+            out.append(f"| {d.size_mm:g} mm, {d.feed_tph:g} t/h, {d.speed_rpm:g} rpm, {d.gate_deg:g} deg | "
+                       f"{a.stage} | {a.kickback:.3f} / {b.kickback:.3f} | {a.refeed:.3f} / {b.refeed:.3f} | "
+                       f"{a.pass_through:.3f} / {b.pass_through:.3f} | {a.primary_hit_probability:.3f} / "
+                       f"{b.primary_hit_probability:.3f} | {a.secondary_lambda:.3f} / {b.secondary_lambda:.3f} "
+                       f"({b.secondary_lambda / a.secondary_lambda:.2f}) |")
+    return [*out, ""]
+
+
 def git_commit() -> str:
     """HEAD of the repository."""
     try:
@@ -409,6 +429,7 @@ def render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, expor
         "## Slice-to-full-mill correction",
         "",
     ]
+    L += pair_table(slices, fulls)
     if bias is not None and bias.n_pairs:
         L += [f"{bias.n_pairs} paired runs ({', '.join(bias.pairs)}). Full/slice factor on the secondary "
               "impacts per primary impact, per stage (exp of the log offset, +- 1 sd):", "",
