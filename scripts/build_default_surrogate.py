@@ -41,7 +41,8 @@ def git_state(root: Path = ROOT) -> dict[str, object]:
             "export_uncommitted": bool(run("status", "--porcelain", "--", str(EXPORT)).strip())}
 
 
-def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True):
+def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
+          groups: tuple[str, ...] | None = ("count",)):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
     from msmill.surrogate.accuracy import loo_scores
     from msmill.surrogate.campaign_export import read_export, split_runs
@@ -55,7 +56,16 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
     model = StageSurrogate(n_restarts=n_restarts).fit([r.statistics for r in slices])
     pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls]) if correct else []
     if pairs:
-        model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs)
+        model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs, groups=groups)
+        full = SliceToFullBias.fit(model.training_.layout, pairs)
+        lay = model.training_.layout
+        measured = {g: {"mean_abs_offset": float(np.mean([np.abs(full.offset[lay.slices(s)[g]]).mean()
+                                                          for s in range(1, lay.n_stages + 1)])),
+                        "mean_sd": float(np.mean([np.sqrt(full.var[lay.slices(s)[g]]).mean()
+                                                  for s in range(1, lay.n_stages + 1)]))}
+                    for g, _ in lay.groups()}
+    else:
+        measured = {}
     report = loo_scores(model, refit=loo == "refit")
     dom = model.domain_
     prov = {
@@ -75,6 +85,8 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
         "slice_to_full": (model.slice_to_full_.lambda_factors(model.training_.layout) if pairs else
                           "no correction (--no-slice-to-full)" if not correct else
                           "no paired full-mill runs: no correction"),
+        "slice_to_full_groups_applied": list(groups) if groups else "all",
+        "slice_to_full_measured_target_space": measured,
     }
     return model, report, prov
 
@@ -87,13 +99,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--loo", choices=("refit", "closed"), default="refit",
                     help="leave-one-out: refit every GP (honest) or closed form (fast)")
     ap.add_argument("--restarts", type=int, default=2, help="optimiser restarts per target")
+    ap.add_argument("--correct-groups", default="count",
+                    help="target groups the slice-to-full correction is applied to, comma-separated, or 'all' "
+                         "(default: count, the secondary impacts the slice is known to under-count)")
     ap.add_argument("--no-slice-to-full", action="store_true",
                     help="ship the slice prediction without the slice-to-full-mill correction")
     a = ap.parse_args(argv)
     from msmill.surrogate.persist import save
 
     t0 = time.process_time()
-    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full)
+    groups = None if a.correct_groups == "all" else tuple(a.correct_groups.split(","))
+    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full, groups)
     prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     prov["cpu_s"] = round(time.process_time() - t0, 1)
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -37,10 +37,11 @@ def layout(table_runs):
 def test_one_pair_recovers_the_factor_with_its_own_size_as_uncertainty(table_runs, layout):
     run = table_runs[2]
     bias = SliceToFullBias.fit(layout, [(run, synthetic_full(run, 1.3))])
-    for d in bias.lambda_factors(layout):
+    for d, st in zip(bias.lambda_factors(layout), run.stages, strict=True):
         assert d["lambda_factor"] == pytest.approx(1.3, rel=1e-9)
-        # tau = |ln 1.3| (one pair) plus the sampling variance: sd at least 1.3 * ln 1.3
-        assert d["lambda_factor_sd"] >= 1.3 * np.log(1.3) * np.sqrt(2) - 1e-9
+        # one pair: tau^2 = d^2 - s (the part noise does not explain), var = s + 2 tau^2
+        s = (st.sampling_error["secondary_lambda"] / st.secondary_lambda) ** 2 * (1 + 1.3 ** -2)
+        assert (d["lambda_factor_sd"] / 1.3) ** 2 == pytest.approx(s + 2 * (np.log(1.3) ** 2 - s), rel=1e-6)
     streams = np.r_[[bias.offset[layout.slices(s)["streams"]] for s in range(1, 6)]]
     np.testing.assert_allclose(streams, 0.0, atol=1e-12)  # identical streams: no stream correction
 
@@ -118,3 +119,19 @@ def test_correction_survives_save_and_load(corrected, tmp_path):
     np.testing.assert_array_equal(back.slice_to_full_.var, corrected.slice_to_full_.var)
     a, b = _params(SurrogateProvider(corrected)), _params(SurrogateProvider(back))
     np.testing.assert_array_equal(a.secondary_lambda, b.secondary_lambda)
+
+
+def test_correction_limited_to_groups(table_runs, layout):
+    run = table_runs[3]
+    full = synthetic_full(run, 1.4, 0.03)
+    only = SliceToFullBias.fit(layout, [(run, full)], groups=("count",))
+    every = SliceToFullBias.fit(layout, [(run, full)])
+    for s in range(1, 6):
+        sl = layout.slices(s)
+        assert only.offset[sl["count"]][0] == pytest.approx(np.log(1.4))
+        assert np.all(only.offset[sl["streams"]] == 0) and np.all(only.var[sl["streams"]] == 0)
+        assert np.all(np.abs(every.offset[sl["streams"]]) > 0)
+    back = SliceToFullBias.from_dict(only.to_dict(), layout.n_targets)
+    assert back.groups == ("count",)
+    with pytest.raises(Exception, match="groups"):
+        SliceToFullBias.fit(layout, [(run, full)], groups=("lambda",))

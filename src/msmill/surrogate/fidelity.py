@@ -18,8 +18,9 @@ sampling variances ``s_i`` (the two runs' delta-method variances added):
 
 * ``b = mean(d_i)``;
 * between-point scatter ``tau^2 = max(var(d_i) - mean(s_i), 0)`` for ``n >= 2``;
-  with one pair it cannot be estimated and ``tau^2 = d_1^2`` (the correction is
-  taken to be uncertain by its own size: conservative);
+  with one pair it cannot be estimated and ``tau^2 = max(d_1^2 - s_1, 0)`` (the
+  part of the difference the sampling noise does not explain is taken to be as
+  uncertain as it is large: conservative);
 * ``var_b = mean(s_i) / n + tau^2 (1 + 1/n)`` — the uncertainty of the mean plus
   the scatter of the bias at a new design point.
 
@@ -84,10 +85,18 @@ class SliceToFullBias:
     var: np.ndarray
     n_pairs: int
     pairs: tuple[str, ...] = ()
+    groups: tuple[str, ...] | None = None
 
     @classmethod
-    def fit(cls, layout: TargetLayout, pairs: list[tuple[RunStatistics, RunStatistics]]) -> SliceToFullBias:
-        """Estimate from ``(slice, full)`` run pairs at the same design points (see the module docstring)."""
+    def fit(cls, layout: TargetLayout, pairs: list[tuple[RunStatistics, RunStatistics]],
+            groups: tuple[str, ...] | None = None) -> SliceToFullBias:
+        """Estimate from ``(slice, full)`` run pairs at the same design points (see the module docstring).
+
+        ``groups`` limits the correction to these per-stage target groups
+        (``streams``, ``hit``, ``primary_velocity``, ``secondary_velocity``,
+        ``count``, ...; the run-level time is never corrected then); the other
+        targets get offset and variance 0. ``None``: every target.
+        """
         if not pairs:
             raise MsmillInputError("pairs", 0, "at least one (slice, full) pair of runs at the same design point")
         enc = [(encode_run(s, layout), encode_run(f, layout)) for s, f in pairs]
@@ -95,11 +104,21 @@ class SliceToFullBias:
         s = np.array([vs + vf for (_, vs), (_, vf) in enc])
         n = len(pairs)
         b = d.mean(axis=0)
-        tau2 = np.maximum(d.var(axis=0, ddof=1) - s.mean(axis=0), 0.0) if n >= 2 else d[0] ** 2
+        spread = d.var(axis=0, ddof=1) if n >= 2 else d[0] ** 2
+        tau2 = np.maximum(spread - s.mean(axis=0), 0.0)
         var = s.mean(axis=0) / n + tau2 * (1.0 + 1.0 / n)
+        if groups is not None:
+            known = {g for g, _ in layout.groups()}
+            if not set(groups) <= known:
+                raise MsmillInputError("groups", ", ".join(sorted(set(groups) - known)), ", ".join(sorted(known)))
+            keep = np.zeros(layout.n_targets, dtype=bool)
+            for st in range(1, layout.n_stages + 1):
+                for g in groups:
+                    keep[layout.slices(st)[g]] = True
+            b, var = np.where(keep, b, 0.0), np.where(keep, var, 0.0)
         labels = tuple(f"{p.design.size_mm:g}mm-{p.design.feed_tph:g}tph-{p.design.speed_rpm:g}rpm-"
                        f"{p.design.gate_deg:g}deg" for p, _ in pairs)
-        return cls(b, var, n, labels)
+        return cls(b, var, n, labels, None if groups is None else tuple(groups))
 
     @classmethod
     def none(cls, layout: TargetLayout) -> SliceToFullBias:
@@ -130,6 +149,7 @@ class SliceToFullBias:
         """Plain dict for the surrogate JSON."""
         return {"offset": [float(v) for v in self.offset], "var": [float(v) for v in self.var],
                 "n_pairs": self.n_pairs, "pairs": list(self.pairs),
+                "groups": None if self.groups is None else list(self.groups),
                 "model": "y_full = y_slice + b, b ~ N(offset, var) per target (msmill.surrogate.fidelity)"}
 
     @classmethod
@@ -139,4 +159,5 @@ class SliceToFullBias:
         if off.shape != (n_targets,) or var.shape != (n_targets,) or (var < 0).any():
             raise MsmillInputError("surrogate.slice_to_full", f"{off.size} offsets",
                                    f"{n_targets} offsets and non-negative variances")
-        return cls(off, var, int(d.get("n_pairs", 0)), tuple(d.get("pairs", ())))
+        g = d.get("groups")
+        return cls(off, var, int(d.get("n_pairs", 0)), tuple(d.get("pairs", ())), None if g is None else tuple(g))
