@@ -60,13 +60,36 @@ def synthetic_table(n_stages: int = 5) -> StageParameterTable:
     return StageParameterTable.model_validate({"runs": runs, "provenance": {"note": "SYNTHETIC"}})
 
 
+def _poisson_counts(table: StageParameterTable) -> StageParameterTable:
+    """The table with each stage's secondary-count distribution replaced by the Poisson of its mean."""
+    from msmill.stageparams import CountDistribution
+
+    runs = [r.model_copy(update={"stages": [
+        s.model_copy(update={"secondary_count": CountDistribution.poisson(s.secondary_lambda)}) for s in r.stages]})
+        for r in table.runs]
+    return table.model_copy(update={"runs": runs})
+
+
 def main() -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--table", default=None, help="stage-parameter table (default: the packaged one)")
+    ap.add_argument("--poisson-counts", action="store_true",
+                    help="replace every secondary-count distribution by the Poisson of its mean")
+    args = ap.parse_args()
     warnings.simplefilter("ignore")
     t = time.perf_counter()
     from importlib import resources
 
     default = resources.files("msmill").joinpath("data/stage_parameters/default.json")
-    if default.is_file():
+    if args.table:
+        table = StageParameterTable.from_json(args.table)
+        if args.poisson_counts:
+            table = _poisson_counts(table)
+        provider = TableProvider(table, source=f"{args.table}{' (Poisson counts)' if args.poisson_counts else ''}")
+        source = provider.source
+    elif default.is_file():
         provider = TableProvider.from_file(str(default))
         source = "packaged DEM-derived table"
     else:

@@ -9,7 +9,9 @@ at 40 deg) for several rock sizes, and writes a
 the file and beside it (``default.provenance.json``). Each run's raw data and
 plots go to ``--runs-dir`` (not shipped).
 
-Run: ``python scripts/build_stage_table.py [--sizes-mm 10 14 20 30] [--measure-s 0.5]``
+Run: ``python scripts/build_stage_table.py [--sizes-mm 10 14 20 30] [--measure-s 0.5]``;
+``--restat`` recomputes the statistics (e.g. the secondary-impact count
+families) from the raw data saved in ``--runs-dir`` without running the DEM.
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ def main() -> None:
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
     ap.add_argument("--restat", action="store_true",
                     help="do not run the DEM: recompute the statistics of the runs saved in --runs-dir")
+    ap.add_argument("--stats-dir", type=Path, default=None,
+                    help="with --restat: write each run's recomputed statistics.json to STATS_DIR/size_<d>mm "
+                         "instead of back into its run folder")
     args = ap.parse_args()
     if args.restat:
         _restat(args)
@@ -98,7 +103,9 @@ def _restat(args) -> None:
         ms = stats_from_dir(d)
         st = ms.run.model_copy(update={"provenance": {**old.get("provenance", {}),
                                                       "statistics_recomputed_by": ms.run.provenance}})
-        st.to_json(d / "statistics.json")
+        out_dir = d if args.stats_dir is None else args.stats_dir / d.name
+        out_dir.mkdir(parents=True, exist_ok=True)
+        st.to_json(out_dir / "statistics.json")
         runs.append(st)
         res = saved["result"]
         per_run.append({"size_mm": size, "wall_s": round(res["wall_s"], 1),
@@ -106,7 +113,10 @@ def _restat(args) -> None:
                         "characteristic_time_s": st.characteristic_time_s, "dt_s": res["dt_s"],
                         "kl_primary_v_lambda_secondary_v": {
                             f"stage{s.stage}": [s.primary_velocity_kl, s.secondary_lambda_kl, s.secondary_velocity_kl]
-                            for s in st.stages}})
+                            for s in st.stages},
+                        "secondary_count_family_kl": {
+                            f"stage{s.stage}": [s.secondary_count_selection.chosen, s.secondary_count_selection.kl]
+                            for s in st.stages if s.secondary_count_selection is not None}})
         print(json.dumps(per_run[-1]), flush=True)
     _write(args, machine, op, settings, runs, per_run, t_all, dem_wall_s=sum(r["wall_s"] for r in per_run))
 

@@ -107,7 +107,7 @@ def test_breakage_table_custom_grid(capsys):
         (["--size-mm", "0"], "--size-mm"),
         (["--grid-min-mm", "50"], "--grid-min-mm"),
         (["--grid-max-mm", "5"], "--grid-max-mm"),
-        (["--damage", "1.5"], "damage"),
+        (["--damage", "1.5"], "--damage"),
         (["--ore", "nope"], "ore"),
     ],
 )

@@ -35,6 +35,7 @@ from msmill.psd import PSD, SizeGrid
 
 __all__ = [
     "J_KG_PER_KWH_T",
+    "T10_CONVENTIONS",
     "TN_SIZES",
     "DamageResult",
     "TnConstants",
@@ -46,10 +47,12 @@ __all__ = [
     "default_tn_constants",
     "ecs_kwh_t_to_velocity",
     "fragment_psd",
+    "fragment_t10_pct",
     "is_broken",
     "j_kg_to_kwh_t",
     "kwh_t_to_j_kg",
     "mean_fracture_energy_kwh_t",
+    "population_t10_pct",
     "survivor_energy_ratio",
     "t10_pct",
     "tn_pct",
@@ -109,7 +112,8 @@ def _damage(value: Any, name: str = "damage") -> NDArray[np.float64]:
 def velocity_to_ecs_j_kg(v_m_s: ArrayLike) -> NDArray[np.float64] | float:
     """Specific impact energy ``E_cs = v**2 / 2`` (J/kg) from the normal impact speed (m/s)."""
     v = _arr(v_m_s, "velocity_m_s")
-    return _ret(0.5 * v * v)
+    with np.errstate(over="ignore"):  # |v| > 1e154 m/s gives inf, not numpy's overflow warning
+        return _ret(0.5 * v * v)
 
 
 def j_kg_to_kwh_t(e_j_kg: ArrayLike) -> NDArray[np.float64] | float:
@@ -171,7 +175,8 @@ def breakage_probability(
     bb = _pos(b, "b", "breakability (t/kWh)")
     lref = _pos(l_ref_mm, "l_ref_mm", "reference size (mm)")
     d = _damage(damage)
-    x = bb * e * size / (lref * (1.0 - d))
+    with np.errstate(over="ignore"):  # a product beyond 1e308 is +inf: P_b = 1, its correct limit
+        x = bb * e * size / (lref * (1.0 - d))
     return _ret(-np.expm1(-x))
 
 
@@ -192,6 +197,44 @@ def t10_pct(pb: ArrayLike, A: ArrayLike) -> NDArray[np.float64] | float:
     if np.any((a <= 0) | (a > 100)):
         raise MsmillInputError("A", A, "A (%) in (0, 100]")
     return _ret(a * p)
+
+
+#: The two readings of A and b (docs/breakage.md, "The t10 convention"):
+#: ``"paper"``: a broken rock's fragments have ``t10 = A P_b`` (paper Eq. 12 read literally), so the
+#: population of a drop-weight test (broken and unbroken rock) has ``t10 = A P_b**2``;
+#: ``"jk"``: the population t10 after one impact is the JK law ``A P_b = A (1 - exp(-b E L / L_ref))``,
+#: a broken rock's fragments have ``t10 = A``.
+T10_CONVENTIONS: tuple[str, ...] = ("jk", "paper")
+
+
+def _convention(convention: str) -> str:
+    if convention not in T10_CONVENTIONS:
+        raise MsmillInputError("t10 convention", convention, "one of " + ", ".join(map(repr, T10_CONVENTIONS)))
+    return convention
+
+
+def fragment_t10_pct(pb: ArrayLike, A: float, convention: str = "jk") -> NDArray[np.float64] | float:
+    """t10 (%) of the fragments of a rock broken by an impact of breakage probability ``pb``.
+
+    ``"paper"``: ``A pb``; ``"jk"``: ``A`` (see :data:`T10_CONVENTIONS`).
+    """
+    p = np.asarray(pb, dtype=float)
+    out = A * p if _convention(convention) == "paper" else np.full(p.shape, float(A))
+    return _ret(np.asarray(out, dtype=float))
+
+
+def population_t10_pct(
+    ecs_kwh_t: ArrayLike, size_mm: ArrayLike, A: float, b: float, l_ref_mm: float, convention: str = "jk",
+) -> NDArray[np.float64] | float:
+    """t10 (%) of the whole population after one impact per rock (what a drop-weight test measures).
+
+    Unbroken rock adds nothing below a tenth of its size, so the population t10 is
+    ``P_b * fragment_t10``: ``A P_b**2`` (``"paper"``) or ``A P_b`` (``"jk"``, the JK law), with
+    ``P_b`` from Eq. 11 at zero damage.
+    """
+    x = b * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float) / l_ref_mm
+    pb = -np.expm1(-x)
+    return _ret(np.asarray(pb * fragment_t10_pct(pb, A, convention), dtype=float))
 
 
 def tn_pct(t10: ArrayLike, k: ArrayLike, s: ArrayLike) -> NDArray[np.float64] | float:

@@ -1,8 +1,15 @@
 """Calibration of the breakage model (paper Eq. 11-12, Section 3.2.1) to drop-weight data.
 
-Model: ``t10 = A (1 - exp(-b E_cs L / L_ref))`` with ``t10`` in %, ``E_cs`` in
+The fitted model is the laboratory test simulated through the breakage
+sub-model the mill model uses: one impact per rock at the tested size and
+energy, and the t10 of the whole population (broken and unbroken rock). With
+the t10 convention ``"jk"`` (default, :data:`msmill.breakage.T10_CONVENTIONS`)
+that is the JK law ``t10 = A (1 - exp(-b E_cs L / L_ref))``; with ``"paper"``
+(broken rock ``t10 = A P_b``) it is ``A P_b**2``. ``t10`` in %, ``E_cs`` in
 kWh/t, ``L`` and ``L_ref`` in mm. Data: a table with columns ``size_mm``,
 ``ecs_kwh_t`` and ``t10_pct`` (one row per test or per size/energy mean).
+A caller that has the sub-model itself may pass its simulated lab test as
+``lab_test`` (``msmill.model.submodels.lab_test``).
 
 Identifiability: ``b`` and ``L_ref`` enter only through ``b / L_ref``, so t10
 data cannot determine both. :func:`calibrate` fits ``L_ref`` (default), or
@@ -16,7 +23,7 @@ Standard errors come from the Jacobian at the optimum,
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +31,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from msmill.breakage import T10_CONVENTIONS, population_t10_pct
 from msmill.errors import MsmillInputError
 from msmill.ore import DEFAULT_L_REF_MM, Ore
 
@@ -53,6 +61,12 @@ def t10_model_pct(
     return A_pct * -np.expm1(-x)
 
 
+#: Plausibility bounds of drop-weight data: drop-weight and JK rotary breakage tests span
+#: about 0.01-5 kWh/t on 10-100 mm rocks; beyond these a row is a unit or typing error.
+MAX_ECS_KWH_T = 100.0
+MAX_SIZE_MM = 1000.0
+
+
 def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.DataFrame:
     """Check a drop-weight table and return it with float columns ``size_mm, ecs_kwh_t, t10_pct``.
 
@@ -78,8 +92,9 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", df[col].iloc[i], "a finite number")
         df[col] = vals.astype(float)
     checks = (
-        ("size_mm", df["size_mm"] <= 0, "a size > 0 mm"),
-        ("ecs_kwh_t", df["ecs_kwh_t"] < 0, "a specific energy >= 0 kWh/t"),
+        ("size_mm", (df["size_mm"] <= 0) | (df["size_mm"] > MAX_SIZE_MM), f"a size in (0, {MAX_SIZE_MM:g}] mm"),
+        ("ecs_kwh_t", (df["ecs_kwh_t"] < 0) | (df["ecs_kwh_t"] > MAX_ECS_KWH_T),
+         f"a specific energy in [0, {MAX_ECS_KWH_T:g}] kWh/t"),
         ("t10_pct", (df["t10_pct"] < 0) | (df["t10_pct"] > 100), "t10 within 0-100 %"),
     )
     for col, mask, allowed in checks:
@@ -88,19 +103,22 @@ def validate_dropweight_frame(frame: pd.DataFrame, origin: str = "data") -> pd.D
             raise MsmillInputError(f"{origin}.{col}[row {i + 1}]", float(df[col].iloc[i]), allowed)
     if len(df) < 2:
         raise MsmillInputError(f"{origin}.rows", len(df), "at least 2 data rows")
+    for col in ("t10_pct", "ecs_kwh_t"):
+        v = df[col].to_numpy()
+        if np.ptp(v) == 0:
+            raise MsmillInputError(f"{origin}.{col}", f"{v[0]:g} in every row",
+                                   "values that vary between rows (a constant column has nothing to fit)")
+    if not (df["t10_pct"] > 0).any():
+        raise MsmillInputError(f"{origin}.t10_pct", "0 in every row", "some rows with t10 > 0 %")
     return df.reset_index(drop=True)
 
 
 def read_dropweight_csv(path: str | Path) -> pd.DataFrame:
     """Read and validate a drop-weight CSV (``#`` lines are comments)."""
+    from msmill.validate import read_csv
+
     p = Path(path)
-    if not p.is_file():
-        raise MsmillInputError("path", str(p), "an existing CSV file")
-    try:
-        frame = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise MsmillInputError("path", str(p), f"a readable CSV file ({exc})") from exc
-    return validate_dropweight_frame(frame, origin=p.name)
+    return validate_dropweight_frame(read_csv(p, "path", "drop-weight CSV file"), origin=p.name)
 
 
 @dataclass(frozen=True)
@@ -138,13 +156,14 @@ class CalibrationResult:
     residuals: pd.DataFrame = field(repr=False)
     success: bool = True
     message: str = ""
+    convention: str = "jk"
 
     def to_ore(self, ore: Ore, source: str = "") -> Ore:
         """Copy of ``ore`` with the calibrated parameters and provenance."""
         note = source or (
             f"msmill calibration: fitted {', '.join(self.fitted)}; "
             + ", ".join(f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g}" for k in self.fitted)
-            + f"; R^2 = {self.r_squared:.4f}, n = {self.n_points}"
+            + f"; R^2 = {self.r_squared:.4f}, n = {self.n_points}; t10 convention {self.convention!r}"
         )
         new = ore.with_l_ref(self.params["l_ref_mm"], note)
         upd: dict[str, object] = {}
@@ -164,8 +183,10 @@ def calibrate(
     A_pct: float | None = None,
     b_t_per_kwh: float | None = None,
     l_ref_mm: float | None = None,
+    convention: str = "jk",
+    lab_test: Callable[..., NDArray[np.float64]] | None = None,
 ) -> CalibrationResult:
-    """Fit Eq. 11-12 to drop-weight data by nonlinear least squares.
+    """Fit Eq. 11-12, read in a t10 convention, to drop-weight data by nonlinear least squares.
 
     Parameters
     ----------
@@ -178,6 +199,12 @@ def calibrate(
         (not ``b_t_per_kwh`` together with ``l_ref_mm``). Default: ``L_ref`` only.
     A_pct, b_t_per_kwh, l_ref_mm : float, optional
         Held values / start values overriding the ore's.
+    convention : {"jk", "paper"}
+        t10 convention of the breakage sub-model the parameters are for
+        (:func:`msmill.breakage.population_t10_pct`).
+    lab_test : callable, optional
+        ``lab_test(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm) -> t10_pct``: the population
+        t10 of the simulated laboratory test; overrides ``convention``.
 
     Returns
     -------
@@ -185,6 +212,8 @@ def calibrate(
     """
     from scipy.optimize import least_squares
 
+    if convention not in T10_CONVENTIONS:
+        raise MsmillInputError("convention", convention, "one of " + ", ".join(map(repr, T10_CONVENTIONS)))
     df = validate_dropweight_frame(data) if isinstance(data, pd.DataFrame) else read_dropweight_csv(data)
     fit = tuple(dict.fromkeys(fit))
     if not fit or any(f not in FIT_PARAMETERS for f in fit):
@@ -224,8 +253,13 @@ def calibrate(
         d.update(dict(zip(fit, (float(v) for v in x), strict=True)))
         return d
 
+    def model(p: dict[str, float]) -> NDArray[np.float64]:
+        if lab_test is not None:
+            return np.asarray(lab_test(size, ecs, **p), dtype=float)
+        return np.asarray(population_t10_pct(ecs, size, p["A_pct"], p["b_t_per_kwh"], p["l_ref_mm"], convention))
+
     def resid(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        return t10_model_pct(size, ecs, **unpack(x)) - t10
+        return model(unpack(x)) - t10
 
     sol = least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", method="trf")
     params = unpack(sol.x)
@@ -240,7 +274,9 @@ def calibrate(
     except np.linalg.LinAlgError:
         se = np.full(p, np.inf)
     ss_tot = float(np.sum((t10 - t10.mean()) ** 2))
-    fitted_vals = t10_model_pct(size, ecs, **params)
+    at_bound = bool(np.any(np.isclose(sol.x, lo, rtol=1e-6) | np.isclose(sol.x, hi, rtol=1e-6)))
+    message = str(sol.message) + ("; a fitted parameter sits at its bound" if at_bound else "")
+    fitted_vals = model(params)
     table = df.assign(t10_fit_pct=fitted_vals, residual_pct=t10 - fitted_vals)
     return CalibrationResult(
         params=params,
@@ -250,6 +286,7 @@ def calibrate(
         rmse_pct=math.sqrt(ssr / n),
         n_points=n,
         residuals=table,
-        success=bool(sol.success),
-        message=str(sol.message),
+        success=bool(sol.success) and not at_bound and bool(np.all(np.isfinite(se))),
+        message=message,
+        convention=getattr(lab_test, "convention", "custom lab test") if lab_test is not None else convention,
     )

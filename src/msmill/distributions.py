@@ -30,6 +30,31 @@ Empirical densities
   finite sample of ``N`` draws from the true model carries a bias of about
   ``(n_bins - 1) / (2 N)``, so small samples cannot reach very small KL.
 
+Count families
+--------------
+Besides the Poisson, the secondary-impact count can be a negative binomial
+(:class:`NegativeBinomialKLFit`), a zero-inflated Poisson
+(:class:`ZeroInflatedPoissonKLFit`) or a finite mixture of Poissons
+(:class:`PoissonMixtureKLFit`, 1-3 components). Each is fitted by minimising
+``D_KL(P || Q)`` over the observed counts, which is maximum likelihood on the
+count sample (``-N sum P ln Q`` is the negative log-likelihood):
+
+* negative binomial (mean ``m``, size ``r``, variance ``m + m^2/r``): the
+  likelihood's ``m``-equation gives ``m`` = sample mean exactly, so only ``ln r``
+  is searched (bounded scalar search, ``r`` in ``[1e-3, 1e4]``; the upper bound
+  is the Poisson limit reached by under-dispersed samples);
+* zero-inflated Poisson (``pi`` extra zeros, Poisson ``lambda``): the
+  likelihood equations are ``(1 - pi) lambda`` = sample mean and
+  ``pi + (1 - pi) e^-lambda`` = observed fraction of zeros, one root in
+  ``lambda`` (``pi = 0`` when there is no excess of zeros);
+* Poisson mixture: EM on the count histogram from several deterministic
+  starts, then a joint L-BFGS-B polish of all ``2K - 1`` parameters.
+
+:class:`CountFamilySelection` fits every candidate and keeps the one with the
+lowest information criterion (BIC by default, ``-2 ln L + p ln N``; ties go to
+fewer parameters). Every fitted family maps onto
+:class:`msmill.stageparams.CountDistribution` (``to_count_distribution``).
+
 The mixture fit starts from scikit-learn's ``GaussianMixture`` (EM) for
 ``K = 1..k_max`` components, keeps the ``K`` with the lowest BIC, and then
 refines all ``3K - 1`` free parameters by minimising the binned KL with
@@ -46,9 +71,20 @@ import numpy as np
 from scipy import optimize, special, stats
 
 from msmill.errors import MsmillInputError
-from msmill.stageparams import GaussianMixture
+from msmill.stageparams import CountCandidate, CountDistribution, CountSelection, GaussianMixture
 
-__all__ = ["GaussianMixtureKLFit", "PoissonKLFit", "kl_divergence"]
+__all__ = [
+    "COUNT_CANDIDATES",
+    "CountFamilySelection",
+    "GaussianMixtureKLFit",
+    "NegativeBinomialKLFit",
+    "PoissonKLFit",
+    "PoissonMixtureKLFit",
+    "ZeroInflatedPoissonKLFit",
+    "count_batch_stderr",
+    "counts_from_histogram",
+    "kl_divergence",
+]
 
 
 def kl_divergence(p: np.ndarray, q: np.ndarray) -> float:
@@ -67,48 +103,389 @@ def kl_divergence(p: np.ndarray, q: np.ndarray) -> float:
     return float(np.sum(p[m] * np.log(p[m] / np.maximum(q[m], 1e-300))))
 
 
-class PoissonKLFit:
-    """Poisson distribution of counts fitted by minimum KL divergence (paper Eq. 13, 15).
+def counts_from_histogram(histogram: Any) -> np.ndarray:
+    """The count sample behind a histogram (``histogram[k]`` = number of samples equal to ``k``)."""
+    h = _check_histogram(histogram)
+    return np.repeat(np.arange(h.size), h)
+
+
+def _check_histogram(histogram: Any) -> np.ndarray:
+    h = np.asarray(histogram)
+    if h.ndim != 1 or h.size == 0 or not np.all(np.isfinite(h)) or np.any(h < 0) or np.any(h != np.round(h)):
+        raise MsmillInputError("histogram", f"shape {h.shape}", "a 1-D array of counts >= 0")
+    if h.sum() == 0:
+        raise MsmillInputError("histogram", "no samples", "at least one sample")
+    return h.astype(np.int64)
+
+
+class _CountKLFit:
+    """Shared machinery of the count-family fits (see the module docstring).
 
     Attributes (after :meth:`fit`)
     ------------------------------
-    lambda_ : float
-        Poisson mean; equal to the sample mean, which minimises
-        ``D_KL(empirical || Poisson)`` (see module docstring).
     kl_ : float
-        ``D_KL(empirical pmf || Poisson(lambda_))`` (nats).
+        ``D_KL(empirical pmf || fitted pmf)`` over the observed counts (nats).
+    log_likelihood_ : float
+        ``sum_k n_k ln Q_k`` of the sample.
+    aic_, bic_ : float
+        ``-2 ln L + 2 p`` and ``-2 ln L + p ln N`` (``p = n_params``).
     n_samples_ : int
-        Number of counts fitted.
-    support_ : ndarray
-        Observed count values ``k`` (ascending).
-    empirical_pmf_ : ndarray
-        Empirical probability of each ``support_`` value.
-    lambda_stderr_ : float
-        Standard error of ``lambda_`` (``sqrt(var / n)`` of the sample).
+    histogram_ : ndarray
+        ``histogram_[k]`` = number of samples equal to ``k``.
+    support_, empirical_pmf_ : ndarray
+        Observed counts (ascending) and their empirical probabilities.
     """
 
-    def fit(self, counts: Any) -> PoissonKLFit:
+    name = ""
+    n_params = 0
+
+    def fit(self, counts: Any) -> Any:
         """Fit to an array of non-negative integer counts; returns ``self``."""
         k = np.asarray(counts)
         if k.ndim != 1 or k.size == 0:
             raise MsmillInputError("counts", f"shape {k.shape}", "a non-empty 1-D array of counts")
         if not np.all(np.isfinite(k)) or np.any(k < 0) or np.any(k != np.round(k)):
             raise MsmillInputError("counts", "non-integer or negative values", "integers >= 0")
-        k = k.astype(np.int64)
-        values, n = np.unique(k, return_counts=True)
-        p = n / k.size
-        lam = float(k.mean())
-        self.n_samples_ = int(k.size)
-        self.support_ = values
-        self.empirical_pmf_ = p
-        self.lambda_ = lam
-        self.lambda_stderr_ = float(k.std(ddof=1) / np.sqrt(k.size)) if k.size > 1 else float("nan")
-        self.kl_ = kl_divergence(p, self.pmf(values))
+        return self.fit_histogram(np.bincount(k.astype(np.int64)))
+
+    def fit_histogram(self, histogram: Any) -> Any:
+        """Fit to a count histogram (``histogram[k]`` samples equal to ``k``); returns ``self``."""
+        h = _check_histogram(histogram)
+        self.histogram_ = h
+        self.n_samples_ = int(h.sum())
+        self.support_ = np.flatnonzero(h)
+        self._n = h[self.support_].astype(float)
+        self.empirical_pmf_ = self._n / self.n_samples_
+        self.mean_count_ = float(np.dot(self.support_, self._n) / self.n_samples_)
+        self._learn()
+        q = self.pmf(self.support_)
+        self.kl_ = kl_divergence(self.empirical_pmf_, q)
+        self.log_likelihood_ = float(np.dot(self._n, np.log(np.maximum(q, 1e-300))))
+        self.aic_ = -2.0 * self.log_likelihood_ + 2.0 * self.n_params
+        self.bic_ = -2.0 * self.log_likelihood_ + self.n_params * np.log(self.n_samples_)
         return self
+
+    def _learn(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _nll(self, q: np.ndarray) -> float:
+        """Cross-entropy ``-sum P ln Q`` (KL up to a constant)."""
+        return float(-np.dot(self.empirical_pmf_, np.log(np.maximum(q, 1e-300))))
+
+    def pmf(self, k: Any) -> np.ndarray:
+        """Probability of each count in ``k`` under the fitted family (native parameters)."""
+        raise NotImplementedError  # pragma: no cover
+
+    def to_count_distribution(self) -> CountDistribution:
+        """The fit as a :class:`msmill.stageparams.CountDistribution`."""
+        raise NotImplementedError  # pragma: no cover
+
+    @property
+    def params_(self) -> dict[str, float]:
+        """Native parameters (the ``params`` of :meth:`to_count_distribution`)."""
+        return dict(self.to_count_distribution().params)
+
+
+class PoissonKLFit(_CountKLFit):
+    """Poisson distribution of counts fitted by minimum KL divergence (paper Eq. 13, 15).
+
+    Attributes (after :meth:`fit`, besides those of every count fit)
+    -----------------------------------------------------------------
+    lambda_ : float
+        Poisson mean; equal to the sample mean, which minimises
+        ``D_KL(empirical || Poisson)`` (see module docstring).
+    lambda_stderr_ : float
+        Standard error of ``lambda_`` (``sqrt(var / n)`` of the sample).
+    """
+
+    name = "poisson"
+    n_params = 1
+
+    def _learn(self) -> None:
+        lam = self.mean_count_
+        self.lambda_ = lam
+        n = self.n_samples_
+        var = float(np.dot(self._n, (self.support_ - lam) ** 2)) / (n - 1) if n > 1 else float("nan")
+        self.lambda_stderr_ = float(np.sqrt(var / n)) if n > 1 else float("nan")
 
     def pmf(self, k: Any) -> np.ndarray:
         """Poisson probability of each count in ``k``."""
         return stats.poisson.pmf(np.asarray(k), self.lambda_)
+
+    def to_count_distribution(self) -> CountDistribution:
+        """``CountDistribution.poisson(lambda_)``."""
+        return CountDistribution.poisson(self.lambda_)
+
+
+class NegativeBinomialKLFit(_CountKLFit):
+    """Negative binomial (Gamma-Poisson) counts fitted by minimum KL divergence.
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    mean_ : float
+        Mean (= sample mean, the likelihood optimum).
+    size_ : float
+        Size (shape) ``r`` of the Gamma mixing density; variance
+        ``mean_ + mean_^2 / size_``. In ``[1e-3, 1e4]`` (the upper bound is
+        the Poisson limit).
+    """
+
+    name = "negative_binomial"
+    n_params = 2
+    size_bounds = (1e-3, 1e4)
+
+    def _learn(self) -> None:
+        m = self.mean_count_
+        self.mean_ = m
+        lo, hi = np.log(self.size_bounds[0]), np.log(self.size_bounds[1])
+        if m <= 0:
+            self.size_ = self.size_bounds[1]
+            return
+        f = lambda lr: self._nll(stats.nbinom.pmf(self.support_, np.exp(lr), np.exp(lr) / (np.exp(lr) + m)))  # noqa: E731
+        res = optimize.minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-8})
+        lr = float(res.x) if f(res.x) <= f(hi) else hi
+        self.size_ = float(np.exp(lr))
+
+    def pmf(self, k: Any) -> np.ndarray:
+        """Negative-binomial probability of each count in ``k``."""
+        r = self.size_
+        return stats.nbinom.pmf(np.asarray(k), r, r / (r + self.mean_))
+
+    def to_count_distribution(self) -> CountDistribution:
+        """The Gauss-quadrature Poisson mixture of the fit (``CountDistribution.negative_binomial``)."""
+        return CountDistribution.negative_binomial(self.mean_, self.size_)
+
+
+class ZeroInflatedPoissonKLFit(_CountKLFit):
+    """Zero-inflated Poisson ``pi delta_0 + (1 - pi) Poisson(lambda)`` by minimum KL divergence.
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    pi_ : float
+        Extra probability of zero (``0 <= pi_ < 1``).
+    lambda_ : float
+        Mean of the Poisson part.
+    """
+
+    name = "zero_inflated_poisson"
+    n_params = 2
+
+    def _learn(self) -> None:
+        m = self.mean_count_
+        p0 = float(self.histogram_[0] / self.n_samples_)
+        if m <= 0 or p0 <= np.exp(-m) or p0 >= 1:  # no excess of zeros: plain Poisson
+            self.pi_, self.lambda_ = 0.0, m
+            return
+        # (1 - pi) lambda = m and pi + (1 - pi) e^-lambda = p0  =>  m (1 - e^-l) = l (1 - p0)
+        g = lambda lam: m * -np.expm1(-lam) - lam * (1.0 - p0)  # noqa: E731
+        lam = optimize.brentq(g, m * (1 - 1e-12), m / (1.0 - p0) + 1e-9, xtol=1e-14)
+        self.lambda_ = float(lam)
+        self.pi_ = float(1.0 - m / lam)
+
+    def pmf(self, k: Any) -> np.ndarray:
+        """Zero-inflated Poisson probability of each count in ``k``."""
+        k = np.asarray(k)
+        return (1.0 - self.pi_) * stats.poisson.pmf(k, self.lambda_) + self.pi_ * (k == 0)
+
+    def to_count_distribution(self) -> CountDistribution:
+        """Exactly the two-component mixture ``[pi, 1 - pi]`` of means ``[0, lambda]``."""
+        return CountDistribution.zero_inflated_poisson(self.pi_, self.lambda_)
+
+
+class PoissonMixtureKLFit(_CountKLFit):
+    """Finite mixture of ``n_components`` Poissons fitted by minimum KL divergence.
+
+    Parameters
+    ----------
+    n_components : int
+        Number of components ``K`` (1-3 used by the selection).
+    max_iter : int
+        EM iterations per start.
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    weights_, means_ : ndarray
+        Component weights and Poisson means, ascending means.
+    """
+
+    name = "poisson_mixture"
+
+    def __init__(self, n_components: int = 2, max_iter: int = 300) -> None:
+        self.n_components = n_components
+        self.max_iter = max_iter
+
+    @property
+    def n_params(self) -> int:  # type: ignore[override]
+        """``2 K - 1`` free parameters."""
+        return 2 * int(self.n_components) - 1
+
+    def _starts(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        k = int(self.n_components)
+        x = np.repeat(self.support_, self._n.astype(np.int64)).astype(float)
+        m = max(self.mean_count_, 1e-3)
+        out = [(np.full(k, 1.0 / k), np.maximum(np.quantile(x, (np.arange(k) + 0.5) / k), 0.05 * m)
+                * (1 + 0.1 * np.arange(k)))]
+        out.append((np.full(k, 1.0 / k), m * np.geomspace(0.1, 3.0, k)))
+        if k > 1:  # one component near zero (zero inflation) and the rest spread over the tail
+            tail = np.geomspace(0.7, 3.0, k - 1) * m
+            out.append((np.r_[0.3, np.full(k - 1, 0.7 / (k - 1))], np.r_[1e-3, tail]))
+        return out
+
+    def _em(self, w: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        kk, nk = self.support_.astype(float), self._n
+        ll_old = -np.inf
+        for _ in range(self.max_iter):
+            lp = np.log(np.maximum(w, 1e-300))[:, None] + stats.poisson.logpmf(kk[None, :], mu[:, None])
+            top = lp.max(axis=0)
+            q = np.exp(lp - top)
+            tot = q.sum(axis=0)
+            ll = float(np.dot(nk, top + np.log(tot)))
+            r = q / tot * nk  # (K, support) responsibility-weighted counts
+            sw = r.sum(axis=1)
+            w = sw / sw.sum()
+            mu = np.where(sw > 0, (r @ kk) / np.maximum(sw, 1e-300), mu)
+            if ll - ll_old < 1e-11 * max(1.0, abs(ll)):
+                break
+            ll_old = ll
+        return w, np.maximum(mu, 0.0), ll
+
+    def _mix_pmf(self, w: np.ndarray, mu: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return w @ stats.poisson.pmf(np.asarray(k)[None, :], mu[:, None])
+
+    def _learn(self) -> None:
+        if not isinstance(self.n_components, int | np.integer) or self.n_components < 1:
+            raise MsmillInputError("n_components", self.n_components, "an integer >= 1")
+        best = max((self._em(w, mu) for w, mu in self._starts()), key=lambda t: t[2])
+        w, mu = self._polish(best[0], best[1])
+        k = int(self.n_components)
+        poisson = (np.r_[1.0, np.zeros(k - 1)], np.full(k, self.mean_count_))  # the nested K = 1 solution
+        if self._nll(self._mix_pmf(*poisson, self.support_)) < self._nll(self._mix_pmf(w, mu, self.support_)):
+            w, mu = poisson  # a local optimum worse than one Poisson: keep the Poisson (nesting holds)
+        order = np.argsort(mu, kind="stable")
+        self.weights_, self.means_ = w[order] / w.sum(), mu[order]
+
+    def _polish(self, w: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint L-BFGS-B refinement of softmax weights and log means (kept only if better)."""
+        k = w.size
+        if k == 1:
+            return w, mu
+
+        def unpack(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            a = np.r_[0.0, th[: k - 1]]
+            ww = np.exp(a - a.max())
+            return ww / ww.sum(), np.exp(th[k - 1:])
+
+        f = lambda th: self._nll(self._mix_pmf(*unpack(th), self.support_))  # noqa: E731
+        w0 = np.maximum(w, 1e-12)
+        th0 = np.r_[np.log(w0[1:] / w0[0]), np.log(np.maximum(mu, 1e-8))]
+        bounds = [(-40.0, 40.0)] * (k - 1) + [(np.log(1e-8), None)] * k
+        res = optimize.minimize(f, np.clip(th0, -40, None), method="L-BFGS-B", bounds=bounds)
+        if np.isfinite(res.fun) and res.fun < f(th0):
+            return unpack(res.x)
+        return w, mu
+
+    def pmf(self, k: Any) -> np.ndarray:
+        """Mixture probability of each count in ``k``."""
+        return self._mix_pmf(self.weights_, self.means_, np.asarray(k))
+
+    def to_count_distribution(self) -> CountDistribution:
+        """``CountDistribution.poisson_mixture(weights_, means_)``."""
+        return CountDistribution.poisson_mixture(self.weights_, self.means_)
+
+
+#: Candidate names of :class:`CountFamilySelection` and the fits they use.
+COUNT_CANDIDATES: dict[str, Any] = {
+    "poisson": PoissonKLFit,
+    "negative_binomial": NegativeBinomialKLFit,
+    "zero_inflated_poisson": ZeroInflatedPoissonKLFit,
+    "poisson_mixture_2": lambda: PoissonMixtureKLFit(2),
+    "poisson_mixture_3": lambda: PoissonMixtureKLFit(3),
+}
+
+
+class CountFamilySelection:
+    """Fit every count family and keep the one with the lowest information criterion.
+
+    Parameters
+    ----------
+    criterion : {"bic", "aic"}
+        Information criterion (default BIC).
+    candidates : sequence of str, optional
+        Names from :data:`COUNT_CANDIDATES` (default: all; a 1-component
+        mixture is the Poisson).
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    fits_ : dict of str to fit
+        Every candidate's fitted estimator.
+    chosen_ : str
+        Name of the selected candidate.
+    best_ : fit
+        Its estimator.
+    kl_ : float
+        Its KL (nats).
+    poisson_kl_ : float
+        KL of the Poisson candidate (nats), for comparison.
+    """
+
+    def __init__(self, criterion: str = "bic", candidates: Any = None) -> None:
+        self.criterion = criterion
+        self.candidates = candidates
+
+    def fit(self, counts: Any) -> CountFamilySelection:
+        """Fit to an array of counts; returns ``self``."""
+        return self.fit_histogram(PoissonKLFit().fit(counts).histogram_)
+
+    def fit_histogram(self, histogram: Any) -> CountFamilySelection:
+        """Fit to a count histogram; returns ``self``."""
+        if self.criterion not in ("bic", "aic"):
+            raise MsmillInputError("criterion", self.criterion, "bic or aic")
+        names = list(self.candidates or COUNT_CANDIDATES)
+        bad = [n for n in names if n not in COUNT_CANDIDATES]
+        if bad or "poisson" not in names:
+            raise MsmillInputError("candidates", bad or names, f"names from {sorted(COUNT_CANDIDATES)} incl. poisson")
+        self.fits_ = {n: COUNT_CANDIDATES[n]().fit_histogram(histogram) for n in names}
+        score = {n: getattr(f, f"{self.criterion}_") for n, f in self.fits_.items()}
+        self.chosen_ = min(names, key=lambda n: (round(score[n], 9), self.fits_[n].n_params))
+        self.best_ = self.fits_[self.chosen_]
+        self.kl_ = float(self.best_.kl_)
+        self.poisson_kl_ = float(self.fits_["poisson"].kl_)
+        self.n_samples_ = int(self.best_.n_samples_)
+        return self
+
+    def to_count_distribution(self) -> CountDistribution:
+        """The chosen fit as a :class:`msmill.stageparams.CountDistribution`."""
+        return self.best_.to_count_distribution()
+
+    def to_selection(self) -> CountSelection:
+        """The selection report (every candidate's KL, log-likelihood, AIC and BIC)."""
+        cands = {n: CountCandidate(family=f.name, n_params=f.n_params, kl=float(f.kl_),
+                                   log_likelihood=float(f.log_likelihood_), aic=float(f.aic_), bic=float(f.bic_))
+                 for n, f in self.fits_.items()}
+        return CountSelection(criterion=self.criterion, chosen=self.chosen_, candidates=cands,
+                              n_samples=self.n_samples_)
+
+
+def count_batch_stderr(candidate: str, batches: list[np.ndarray]) -> dict[str, float]:
+    """Batch-means standard errors of a count family's native parameters and mean.
+
+    The family ``candidate`` (a :data:`COUNT_CANDIDATES` name) is refitted to
+    every non-empty batch of counts; ``SE = std(batch values, ddof=1) /
+    sqrt(n_batches)`` per parameter (mixture components matched by ascending
+    mean). Keys: ``"<param>"``, ``"mean"``, ``"variance"`` and ``"p_zero"``
+    (the last three stay well defined where a native parameter runs to a
+    bound, e.g. a negative binomial's size in a nearly Poisson batch).
+    """
+    rows = []
+    for b in batches:
+        b = np.asarray(b)
+        if b.size:
+            d = COUNT_CANDIDATES[candidate]().fit(b).to_count_distribution()
+            rows.append({**d.params, "mean": d.mean, "variance": d.variance, "p_zero": d.p_zero})
+    if len(rows) < 2:
+        return {}
+    keys = [k for k in rows[0] if all(k in r for r in rows)]
+    return {k: float(np.std([r[k] for r in rows], ddof=1) / np.sqrt(len(rows))) for k in keys}
 
 
 class GaussianMixtureKLFit:

@@ -56,9 +56,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
+from msmill.validate import InputModel
 
 __all__ = ["DESIGN_SPACE", "Deflector", "Machine", "OperatingPoint"]
 
@@ -73,8 +74,22 @@ DESIGN_SPACE: dict[str, tuple[float, float]] = {
 }
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+#: Smallest and largest length a machine field may have (m): below 1 mm a plate or
+#: clearance is numerically meaningless for the DEM, above 100 m it is a typo.
+LENGTH_RANGE_M = (1e-3, 100.0)
+
+
+#: Largest shaft speed accepted (rpm): a 0.19 m flinger tip then moves at 200 m/s,
+#: far past any impact mill (the design space ends at 1900 rpm upper, 3800 rpm bottom).
+MAX_SPEED_RPM = 10_000.0
+#: Largest feed rate accepted (t/h).
+MAX_FEED_TPH = 10_000.0
+
+
+class _Model(InputModel):
+    """Frozen, strict-keyed pydantic base: the constructor raises one-line ``MsmillInputError``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class Deflector(_Model):
@@ -175,13 +190,14 @@ class Machine(_Model):
 
     name: str = "machine"
     n_stages: int = Field(default=5, ge=1, le=20)
+    # flinger counts are bounded: each flinger is a DEM primitive
     stage_spacing_m: float = Field(default=0.45, gt=0)
     bottom_axis_height_m: float = Field(default=0.60, gt=0)
     rotor_axis_offset_m: float = Field(default=0.215, gt=0)
     hub_radius_m: float = Field(default=0.05, gt=0)
     tip_radius_m: float = Field(default=0.19, gt=0)
-    flinger_rows: int = Field(default=6, ge=1)
-    flingers_per_row: int = Field(default=3, ge=1)
+    flinger_rows: int = Field(default=6, ge=1, le=100)
+    flingers_per_row: int = Field(default=3, ge=1, le=36)
     row_pitch_m: float = Field(default=0.10, gt=0)
     row_stagger_deg: float = Field(default=20.0, ge=-360, le=360)
     flinger_thickness_m: float = Field(default=0.012, gt=0)
@@ -198,6 +214,11 @@ class Machine(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> Machine:
+        lo_m, hi_m = LENGTH_RANGE_M
+        for key in type(self).model_fields:
+            v = getattr(self, key)
+            if key.endswith("_m") and not lo_m <= v <= hi_m:
+                raise ValueError(f"{key} = {v:g} m is outside {lo_m:g}-{hi_m:g} m")
         half_w = self.casing_width_m / 2
         if self.tip_radius_m <= self.hub_radius_m:
             raise ValueError(f"tip_radius_m ({self.tip_radius_m}) must exceed hub_radius_m ({self.hub_radius_m})")
@@ -272,15 +293,22 @@ class Machine(_Model):
         The file holds the fields at top level or under a ``[machine]`` table;
         deflectors are ``[[deflectors]]`` (or ``[[machine.deflectors]]``) tables.
         """
+        from msmill.validate import read_text
+
         is_text = isinstance(path_or_text, str) and "\n" in path_or_text
+        if not is_text and not isinstance(path_or_text, str | Path):
+            raise MsmillInputError("machine file", type(path_or_text).__name__, "a path of a machine TOML file")
         source = "machine" if is_text else Path(path_or_text).name
-        text = path_or_text if is_text else Path(path_or_text).read_text(encoding="utf-8")
+        text = path_or_text if is_text else read_text(path_or_text, "machine file", "machine TOML file")
         try:
             data = tomllib.loads(str(text))
         except tomllib.TOMLDecodeError as exc:
             raise MsmillInputError(source, str(exc).split("\n")[0], "valid TOML") from None
         if "machine" in data and isinstance(data["machine"], dict):
             data = data["machine"]
+        if not data:
+            raise MsmillInputError(source, "an empty file", "machine fields (an empty file is not the "
+                                   "default machine; use 'default' or Machine.default())")
         return cls.from_dict(data, source=source)
 
     def to_toml(self, path: str | Path | None = None) -> str:
@@ -449,19 +477,24 @@ class OperatingPoint(_Model):
         Outlet gate angle below the horizontal (deg, 0-90; see :mod:`msmill.machine`).
     """
 
-    feed_tph: float = Field(gt=0)
-    speed_rpm: float | None = Field(default=None, ge=0)
+    feed_tph: float = Field(gt=0, le=MAX_FEED_TPH)
+    speed_rpm: float | None = Field(default=None, ge=0, le=MAX_SPEED_RPM)
     stage_speeds_rpm: list[float] | None = None
-    bottom_speed_factor: float = Field(default=2.0, gt=0)
+    bottom_speed_factor: float = Field(default=2.0, gt=0, le=10)
     gate_deg: float = Field(default=40.0, ge=0, le=90)
 
     @model_validator(mode="after")
     def _check(self) -> OperatingPoint:
         if self.speed_rpm is None and self.stage_speeds_rpm is None:
             raise ValueError("give speed_rpm or stage_speeds_rpm")
+        if self.speed_rpm is not None and self.stage_speeds_rpm is not None:
+            raise ValueError("give speed_rpm or stage_speeds_rpm, not both (one would be ignored)")
         if self.stage_speeds_rpm is not None:
-            if not self.stage_speeds_rpm or any(s < 0 for s in self.stage_speeds_rpm):
-                raise ValueError("stage_speeds_rpm must be a non-empty list of speeds >= 0")
+            if not self.stage_speeds_rpm or any(not 0 <= s <= MAX_SPEED_RPM for s in self.stage_speeds_rpm):
+                raise ValueError(f"stage_speeds_rpm must be a non-empty list of speeds in 0-{MAX_SPEED_RPM:g} rpm")
+        if self.speed_rpm is not None and self.speed_rpm * self.bottom_speed_factor > MAX_SPEED_RPM:
+            raise ValueError(f"bottom stage speed speed_rpm x bottom_speed_factor = "
+                             f"{self.speed_rpm * self.bottom_speed_factor:g} rpm exceeds {MAX_SPEED_RPM:g} rpm")
         _warn_outside("feed_tph", self.feed_tph)
         _warn_outside("gate_deg", self.gate_deg)
         for s in self._upper_speeds():

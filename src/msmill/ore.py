@@ -54,10 +54,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from msmill.breakage import GAMMA_RANGE, TN_SIZES, TnConstants, default_tn_constants
 from msmill.errors import MsmillInputError, from_validation_error
+from msmill.validate import InputModel
 
 __all__ = [
     "DEFAULT_L_REF_MM",
@@ -95,7 +96,7 @@ DEFAULT_L_REF_SOURCE = (
 _SECTIONS = ("breakage", "physical", "elastic", "tn", "damage")
 
 
-class Ore(BaseModel):
+class Ore(InputModel):
     """Validated parameter set of one ore.
 
     Attributes
@@ -219,21 +220,21 @@ class Ore(BaseModel):
             sources["tn"] = default_tn_constants().source
         flat["sources"] = sources
         try:
-            return cls(**flat)
+            return cls.model_validate(flat)
         except ValidationError as exc:
             raise from_validation_error(exc, origin) from exc
 
     @classmethod
     def from_toml(cls, path: str | Path) -> Ore:
         """Load an ore from a TOML file (layout in the module docstring)."""
-        p = Path(path)
-        if not p.is_file():
-            raise MsmillInputError("path", str(p), "an existing ore TOML file")
+        from msmill.validate import read_text
+
+        text = read_text(path, "path", "ore TOML file")  # exists, a file, UTF-8, not huge
         try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise MsmillInputError("path", str(p), f"valid TOML ({exc})") from exc
-        return cls.from_dict(data, origin=p.name)
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise MsmillInputError("path", str(path), f"valid TOML ({str(exc).splitlines()[0]})") from None
+        return cls.from_dict(data, origin=Path(path).name)
 
     def to_dict(self) -> dict[str, Any]:
         """The sectioned TOML layout (``l_ref_mm`` omitted when it is the default)."""

@@ -60,6 +60,35 @@ class MixtureArrays:
 
 
 @dataclass(frozen=True)
+class CountArrays:
+    """Secondary-impact count distributions per (stage, size class) as Poisson mixtures.
+
+    ``P(K = k) = sum_c weights[..., c] Poisson(k; means[..., c])`` (see
+    :class:`msmill.stageparams.CountDistribution`; a mean of 0 is a point mass at 0).
+
+    Attributes
+    ----------
+    weights : ndarray, shape (S, N, C)
+        Component weights (sum 1 over the last axis; padding has weight 0).
+    means : ndarray, shape (S, N, C)
+        Component Poisson means (impacts per primary impact, >= 0).
+    """
+
+    weights: np.ndarray
+    means: np.ndarray
+
+    @classmethod
+    def poisson(cls, lam: np.ndarray) -> CountArrays:
+        """One Poisson component of mean ``lam`` (S, N) per (stage, size class)."""
+        lam = np.asarray(lam, dtype=float)
+        return cls(np.ones((*lam.shape, 1)), lam[..., None].copy())
+
+    def mean(self) -> np.ndarray:
+        """Mean count per (stage, size class), shape (S, N)."""
+        return np.sum(self.weights * self.means, axis=-1)
+
+
+@dataclass(frozen=True)
 class StageParameters:
     """DEM-derived parameters of every stage, read at the model's size classes.
 
@@ -75,6 +104,9 @@ class StageParameters:
         Solid-fraction weights of the horizontal regions, when the DEM gave them.
     region_streams : ndarray, shape (S, N, 6, 3) or None
         Streams per horizontal region.
+    secondary_count : CountArrays or None
+        Distribution of the number of secondary impacts (its mean is
+        ``secondary_lambda``); None means Poisson of ``secondary_lambda``.
     hit_probability : ndarray, shape (S, N)
         Primary (flinger) hit probability per step.
     primary_velocity : MixtureArrays
@@ -93,6 +125,15 @@ class StageParameters:
         True when the velocities are already those at the operating point the
         parameters were requested for (no further speed scaling; see the
         module docstring).
+    transition : ndarray, shape (S+1, N, S+2) or None
+        One-step transition of every compartment (0 = inlet zone, 1..S stages)
+        to compartments ``0..S`` and ``S+1`` (left through the outlet), when the
+        DEM measured it (``destinations``); rows sum to 1.
+    extrapolated : ndarray, shape (N,) of bool or None
+        Size classes whose parameters were extrapolated outside the sizes measured.
+    transition_lag_s : ndarray, shape (N,) or None
+        Lag (s) at which each class's ``transition`` was measured (the runs'
+        characteristic times, interpolated); the transport converts it to the step.
     """
 
     sizes_mm: np.ndarray
@@ -109,6 +150,10 @@ class StageParameters:
     region_streams: np.ndarray | None = None
     source: str = ""
     velocities_at_requested_speeds: bool = False
+    secondary_count: CountArrays | None = None
+    transition: np.ndarray | None = None
+    extrapolated: np.ndarray | None = None
+    transition_lag_s: np.ndarray | None = None
 
     @property
     def n_stages(self) -> int:

@@ -107,7 +107,8 @@ class SizeGrid:
             Ratio between consecutive edges (> 1), default ``sqrt(2)``.
         """
         for name, v in (("min_mm", min_mm), ("max_mm", max_mm), ("ratio", ratio)):
-            if not isinstance(v, int | float | np.floating | np.integer) or not math.isfinite(v):
+            if (isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer)
+                    or not math.isfinite(v)):
                 raise MsmillInputError(name, v, "a finite number")
         if min_mm <= 0:
             raise MsmillInputError("min_mm", min_mm, "a size > 0 mm")
@@ -284,6 +285,8 @@ class PSD:
         sizes_mm: ArrayLike,
         passing_pct: ArrayLike,
         grid: SizeGrid | None = None,
+        *,
+        prefix: str = "",
     ) -> PSD:
         """Build a PSD from a cumulative % passing table.
 
@@ -301,19 +304,25 @@ class PSD:
             sizes) for the oversize. If given, the table is read at the grid's
             edges with :meth:`passing_at`-style log interpolation; material
             coarser than the grid's top edge is lumped into the top class.
+        prefix : str, optional
+            Prepended to the field names in errors and warnings (e.g. ``run.toml.feed.``).
 
         Returns
         -------
         PSD
+
+        Raises
+        ------
+        MsmillInputError
+            For sizes not increasing, % passing outside 0-100 or decreasing, or
+            given as fractions (all <= 1). A table ending below 100 % warns
+            (:class:`msmill.validate.InputWarning`) with the oversize mass.
         """
-        x = _check_sizes(sizes_mm, "size_mm", min_len=2)
-        p = _as_float_array(passing_pct, "passing_pct")
-        if p.shape != x.shape:
-            raise MsmillInputError("passing_pct", passing_pct, f"{x.size} values (one per size)")
-        if not np.all(np.isfinite(p)) or np.any(p < -PASSING_TOL) or np.any(p > 100 + PASSING_TOL):
-            raise MsmillInputError("passing_pct", passing_pct, "values within 0-100 %")
-        if np.any(np.diff(p) < -PASSING_TOL):
-            raise MsmillInputError("passing_pct", passing_pct, "values non-decreasing with size")
+        from msmill.validate import passing
+
+        x = _check_sizes(sizes_mm, f"{prefix}size_mm", min_len=2)
+        # 0-100 %, non-decreasing, not fractions; a last value below 100 % warns (oversize class)
+        p = passing(passing_pct, f"{prefix}passing_pct", x.size, tol=PASSING_TOL)
         p = np.clip(np.maximum.accumulate(p), 0.0, 100.0)
         if grid is None:
             lo = x[0] * x[0] / x[1]
@@ -367,15 +376,9 @@ class PSD:
 
         Lines starting with ``#`` are comments.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise MsmillInputError("path", str(path), "an existing CSV file")
-        try:
-            frame = pd.read_csv(path, comment="#", skipinitialspace=True)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-            raise MsmillInputError("path", str(path), f"a readable CSV file ({exc})") from exc
-        frame.columns = [str(c).strip() for c in frame.columns]
-        return cls.from_frame(frame, grid)
+        from msmill.validate import read_csv
+
+        return cls.from_frame(read_csv(path, "path", "PSD CSV file"), grid)
 
     @classmethod
     def single_class(cls, grid: SizeGrid, size_mm: float) -> PSD:

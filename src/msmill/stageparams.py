@@ -26,8 +26,36 @@ Conventions (schema version 1)
   stage): their count per primary impact is Poisson with mean
   ``secondary_lambda`` (paper Eq. 13) and their relative normal velocity is the
   Gaussian mixture ``secondary_velocity`` (paper Eq. 14).
+* ``destinations`` (optional, per stage) and ``inlet_destinations`` (the
+  inlet zone) refine the three streams: the mass fractions of the rock tagged
+  in a compartment that are found one characteristic time later in compartment
+  0 (inlet zone, the feed chute included), 1..n or n + 1 (left through the
+  outlet). They resolve jumps of more than one stage and the inlet zone's own
+  dynamics (fresh feed enters the inlet zone); the ``dem_matrix`` transport of
+  the mill model uses them (docs/model.md). ``kickback``, ``refeed`` and
+  ``pass_through`` are their sums above, at and below the stage.
 * All quantities are SI (m, s, kg, m/s), except ``size_mm``, ``feed_tph``,
   ``speed_rpm`` and ``gate_deg`` which carry their unit in their name.
+
+Schema version 2 (secondary-impact count families)
+--------------------------------------------------
+* ``secondary_count`` is a :class:`CountDistribution`: the count of secondary
+  impacts per primary impact as a finite mixture of Poissons (``weights``,
+  ``means``; a mean of 0 is a point mass at zero) together with the family it
+  came from (``poisson``, ``negative_binomial``, ``zero_inflated_poisson``,
+  ``poisson_mixture``) and that family's native parameters. A negative
+  binomial is a Gamma mixture of Poissons; it is stored as the
+  ``NB_QUADRATURE_NODES``-point Gauss rule of its mixing density in
+  ``sqrt(lambda)`` (see :func:`negative_binomial_mixture`), which keeps its
+  mean and variance exact.
+* ``secondary_lambda`` stays and equals ``secondary_count.mean``.
+* ``secondary_count_histogram[k]`` is the number of primary impacts followed by
+  exactly ``k`` secondary impacts, so the count fits can be redone without the
+  raw events; ``secondary_count_selection`` reports every candidate family's
+  KL and information criteria and the chosen one.
+* Version-1 documents still load: their stages get a one-component
+  ``poisson`` ``secondary_count`` of mean ``secondary_lambda`` and the
+  document is upgraded to version 2.
 """
 
 from __future__ import annotations
@@ -37,16 +65,18 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from msmill.errors import MsmillInputError, from_validation_error
+from msmill.validate import InputModel
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_SCHEMA_VERSIONS = (1, 2)
 N_REGIONS = 6  # horizontal regions along the rotor axis (paper Section 3.1.2)
 _SUM_TOL = 1e-6
 
 
-class _Frozen(BaseModel):
+class _Frozen(InputModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
@@ -115,6 +145,205 @@ class GaussianMixture(_Frozen):
         return cls(weights=[1.0], means_m_s=[mean_m_s], sigmas_m_s=[sigma_m_s])
 
 
+#: Nodes of the Gauss rule that turns a negative binomial into a Poisson mixture. Total-variation
+#: error of the pmf (table in ``docs/model.md``): <= 2e-7 for mean <= 2 and size >= 1, <= 1e-5 for
+#: mean <= 2 and size >= 0.5, 7e-4 at mean 4, size 0.5; 2e-2 at mean 8, size 0.3 (the worst case
+#: tabulated). Mean and variance are exact.
+NB_QUADRATURE_NODES = 16
+_NB_FINE_NODES = 200
+COUNT_FAMILIES = ("poisson", "negative_binomial", "zero_inflated_poisson", "poisson_mixture")
+
+
+def _gauss_rule(x: np.ndarray, w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n``-point Gauss rule (nodes, weights) of the discrete measure ``sum w_i delta(x_i)`` (Lanczos)."""
+    from scipy import linalg
+
+    n = min(n, int(np.count_nonzero(w > 0)))
+    total = float(w.sum())
+    q = np.zeros((n, x.size))
+    q[0] = np.sqrt(w / total)
+    a, b = np.zeros(n), np.zeros(max(n - 1, 0))
+    for j in range(n):  # short Lanczos recursion with full re-orthogonalisation (n <= ~30)
+        v = x * q[j]
+        a[j] = v @ q[j]
+        v -= q[: j + 1].T @ (q[: j + 1] @ v)
+        if j < n - 1:
+            b[j] = np.linalg.norm(v)
+            q[j + 1] = v / b[j]
+    nodes, vec = linalg.eigh_tridiagonal(a, b)
+    return nodes, total * vec[0] ** 2
+
+
+def negative_binomial_mixture(mean: float, size: float, n_nodes: int = NB_QUADRATURE_NODES
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """Poisson-mixture ``(weights, means)`` of a negative binomial by Gauss quadrature.
+
+    ``NB(mean, size)`` is Poisson(``lambda``) with ``lambda ~ Gamma(size, mean/size)``.
+    The Gamma is first discretised finely (200-point generalised Gauss-Laguerre
+    rule for ``size < 1``, Gauss-Legendre in ``sqrt(lambda)`` between the
+    1e-15 and 1 - 1e-15 quantiles otherwise), then reduced to the
+    ``n_nodes``-point Gauss rule in ``s = sqrt(lambda)`` (the variable in which
+    a Poisson kernel has constant width). The rule integrates polynomials in
+    ``s`` up to degree ``2 n - 1`` exactly, so the mixture's mean and variance
+    equal the negative binomial's.
+    """
+    from scipy import special, stats
+
+    theta = mean / size
+    if mean <= 0:
+        return np.array([1.0]), np.array([0.0])
+    if size < 1:
+        u, w = special.roots_genlaguerre(_NB_FINE_NODES, size - 1.0)
+        s, w = np.sqrt(theta * u), w / special.gamma(size)
+    else:
+        lo, hi = np.sqrt(stats.gamma.ppf([1e-15, 1 - 1e-15], size, scale=theta))
+        x, gw = np.polynomial.legendre.leggauss(_NB_FINE_NODES)
+        s = 0.5 * (hi - lo) * x + 0.5 * (hi + lo)
+        w = 0.5 * (hi - lo) * gw * 2 * s * stats.gamma.pdf(s * s, size, scale=theta)
+    nodes, weights = _gauss_rule(s, w / w.sum(), n_nodes)
+    lam = nodes**2 * (mean / float(np.dot(weights, nodes**2)))  # rounding of the fine rule only
+    return weights / weights.sum(), lam
+
+
+class CountDistribution(_Frozen):
+    """Distribution of the number of secondary impacts per primary impact (schema version 2).
+
+    Every family is stored as a finite mixture of Poissons: ``P(K = k) = sum_c
+    weights[c] * Poisson(k; means[c])`` (a mean of 0 is a point mass at 0).
+
+    Parameters
+    ----------
+    weights : list of float
+        Component weights (>= 0, summing to 1).
+    means : list of float
+        Component Poisson means (>= 0; impacts per primary impact).
+    family : str
+        The fitted family: ``poisson``, ``negative_binomial``,
+        ``zero_inflated_poisson`` or ``poisson_mixture``.
+    params : dict of str to float
+        The family's native parameters: ``lambda`` (Poisson); ``mean``,
+        ``size`` (negative binomial, scipy's ``n``); ``pi`` (extra zero
+        weight), ``lambda`` (zero-inflated Poisson); ``weight_i``, ``mean_i``
+        (mixture, ``i = 1..K``, ascending means).
+    """
+
+    weights: list[float] = Field(min_length=1)
+    means: list[float] = Field(min_length=1)
+    family: Literal["poisson", "negative_binomial", "zero_inflated_poisson", "poisson_mixture"] = "poisson"
+    params: dict[str, float] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _check(self) -> CountDistribution:
+        w, m = np.asarray(self.weights), np.asarray(self.means)
+        if w.size != m.size:
+            raise ValueError("weights and means must have equal lengths")
+        if np.any(w < 0) or abs(w.sum() - 1.0) > _SUM_TOL:
+            raise ValueError(f"count weights must be >= 0 and sum to 1 (sum {w.sum():.6g})")
+        if not np.all(np.isfinite(m)) or np.any(m < 0):
+            raise ValueError("count means must be finite and >= 0")
+        return self
+
+    @property
+    def n_components(self) -> int:
+        """Number of Poisson components."""
+        return len(self.weights)
+
+    @property
+    def mean(self) -> float:
+        """Mean count ``sum w_c m_c``."""
+        return float(np.dot(self.weights, self.means))
+
+    @property
+    def variance(self) -> float:
+        """Variance ``sum w_c (m_c + m_c^2) - mean^2``."""
+        m = np.asarray(self.means)
+        return float(np.dot(self.weights, m + m * m) - self.mean**2)
+
+    @property
+    def p_zero(self) -> float:
+        """Probability of no secondary impact."""
+        return float(np.dot(self.weights, np.exp(-np.asarray(self.means))))
+
+    def pmf(self, k_max: int) -> np.ndarray:
+        """Probabilities of ``k = 0..k_max`` (length ``k_max + 1``) of the stored mixture."""
+        from scipy import stats
+
+        k = np.arange(int(k_max) + 1)
+        return np.asarray(self.weights) @ stats.poisson.pmf(k[None, :], np.asarray(self.means)[:, None])
+
+    def native_pmf(self, k_max: int) -> np.ndarray:
+        """Probabilities of ``k = 0..k_max`` from ``family`` and ``params`` (differs from
+        :meth:`pmf` only by the quadrature error of a negative binomial)."""
+        from scipy import stats
+
+        if self.family != "negative_binomial":
+            return self.pmf(k_max)
+        m, r = self.params["mean"], self.params["size"]
+        return stats.nbinom.pmf(np.arange(int(k_max) + 1), r, r / (r + m))
+
+    # ---------------------------------------------------------------- builders
+    @classmethod
+    def poisson(cls, lam: float) -> CountDistribution:
+        """Poisson of mean ``lam``."""
+        return cls(weights=[1.0], means=[float(lam)], family="poisson", params={"lambda": float(lam)})
+
+    @classmethod
+    def negative_binomial(cls, mean: float, size: float, n_nodes: int = NB_QUADRATURE_NODES) -> CountDistribution:
+        """Negative binomial (variance ``mean + mean^2 / size``) as a Gauss-quadrature Poisson mixture."""
+        w, m = negative_binomial_mixture(float(mean), float(size), n_nodes)
+        return cls(weights=[float(a) for a in w], means=[float(a) for a in m], family="negative_binomial",
+                   params={"mean": float(mean), "size": float(size)})
+
+    @classmethod
+    def zero_inflated_poisson(cls, pi: float, lam: float) -> CountDistribution:
+        """``pi`` point mass at zero plus ``(1 - pi)`` Poisson(``lam``): exactly a 2-component mixture."""
+        return cls(weights=[float(pi), 1.0 - float(pi)], means=[0.0, float(lam)], family="zero_inflated_poisson",
+                   params={"pi": float(pi), "lambda": float(lam)})
+
+    @classmethod
+    def poisson_mixture(cls, weights: Any, means: Any) -> CountDistribution:
+        """Finite Poisson mixture (components sorted by mean)."""
+        order = np.argsort(np.asarray(means, dtype=float), kind="stable")
+        w = np.asarray(weights, dtype=float)[order]
+        w = w / w.sum()
+        m = np.asarray(means, dtype=float)[order]
+        params = {f"{k}_{i + 1}": float(v) for i in range(w.size) for k, v in (("weight", w[i]), ("mean", m[i]))}
+        return cls(weights=[float(a) for a in w], means=[float(a) for a in m], family="poisson_mixture",
+                   params=params)
+
+
+class CountCandidate(_Frozen):
+    """One candidate family of a count-family selection."""
+
+    family: str
+    n_params: int = Field(ge=0)
+    kl: float = Field(description="D_KL(empirical pmf || fitted family), nats")
+    log_likelihood: float
+    aic: float
+    bic: float
+
+
+class CountSelection(_Frozen):
+    """Which count family was chosen for a stage, and how every candidate scored."""
+
+    criterion: Literal["bic", "aic"] = "bic"
+    chosen: str
+    candidates: dict[str, CountCandidate]
+    n_samples: int = Field(ge=0)
+
+    @property
+    def kl(self) -> float:
+        """KL of the chosen candidate (nats)."""
+        return self.candidates[self.chosen].kl
+
+
+def _check_destinations(values: list[float] | None, name: str) -> None:
+    if values is not None:
+        d = np.asarray(values, dtype=float)
+        if d.size < 3 or np.any(d < 0) or abs(d.sum() - 1.0) > _SUM_TOL:
+            raise ValueError(f"{name} must be n + 2 fractions >= 0 summing to 1")
+
+
 class StageStatistics(_Frozen):
     """Impact and transport statistics of one rotor stage at one design point."""
 
@@ -142,12 +371,41 @@ class StageStatistics(_Frozen):
     sampling_error: dict[str, float] = Field(
         default_factory=dict, description="standard errors of the estimates, keyed by field name"
     )
+    secondary_count: CountDistribution | None = Field(
+        default=None, description="count of secondary impacts per primary impact (Poisson of "
+        "secondary_lambda when not given)")
+    secondary_count_histogram: list[int] = Field(
+        default_factory=list, description="number of primary impacts with k = 0, 1, 2, ... secondary impacts")
+    secondary_count_selection: CountSelection | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_count(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("secondary_count") is None and "secondary_lambda" in data:
+            data = {**data, "secondary_count": CountDistribution.poisson(float(data["secondary_lambda"]))}
+        return data
+
+    @model_validator(mode="after")
+    def _check_count(self) -> StageStatistics:
+        if self.secondary_count is not None:
+            m = self.secondary_count.mean
+            if abs(m - self.secondary_lambda) > 1e-6 * max(1.0, self.secondary_lambda):
+                raise ValueError(f"secondary_lambda ({self.secondary_lambda:.6g}) must equal the mean of "
+                                 f"secondary_count ({m:.6g})")
+        if any(n < 0 for n in self.secondary_count_histogram):
+            raise ValueError("secondary_count_histogram must hold counts >= 0")
+        return self
+    destinations: list[float] | None = Field(
+        default=None, description="mass fractions found one characteristic time later in compartment "
+        "0 (inlet zone), 1..n (stages) and n + 1 (left through the outlet)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> StageStatistics:
         total = self.kickback + self.refeed + self.pass_through
         if abs(total - 1.0) > _SUM_TOL:
             raise ValueError(f"kickback + refeed + pass_through must be 1 (got {total:.6g})")
+        _check_destinations(self.destinations, "destinations")
         if self.region_weights is not None:
             w = np.asarray(self.region_weights)
             if w.size != N_REGIONS or np.any(w < 0) or abs(w.sum() - 1) > _SUM_TOL:
@@ -184,7 +442,7 @@ class DesignPoint(_Frozen):
 class RunStatistics(_JsonDocument):
     """All per-stage statistics of one DEM run, with run-level figures and provenance."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Literal[2] = SCHEMA_VERSION
     design: DesignPoint
     mode: Literal["full", "slice"] = "slice"
     characteristic_time_s: float = Field(gt=0)
@@ -194,7 +452,17 @@ class RunStatistics(_JsonDocument):
     mass_out_rate_kg_s: float | None = Field(default=None, ge=0)
     residence_time_s: float | None = Field(default=None, ge=0)
     mean_centre_velocity_m_s: float | None = None
+    inlet_destinations: list[float] | None = Field(
+        default=None, description="as StageStatistics.destinations, for rock tagged in the inlet zone "
+        "(everything above stage 1, the feed chute included)"
+    )
+    inlet_holdup_kg: float | None = Field(default=None, ge=0, description="mean mass in the inlet zone")
     provenance: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _upgrade(cls, data: Any) -> Any:
+        return _upgraded(data)
 
     @model_validator(mode="after")
     def _check(self) -> RunStatistics:
@@ -203,6 +471,10 @@ class RunStatistics(_JsonDocument):
             raise ValueError(f"stages must be numbered 1..n in order (got {numbers})")
         if len(self.design.stage_speeds_rpm) != len(self.stages):
             raise ValueError("design.stage_speeds_rpm must have one speed per stage")
+        _check_destinations(self.inlet_destinations, "inlet_destinations")
+        lengths = {len(d) for d in [self.inlet_destinations] + [s.destinations for s in self.stages] if d is not None}
+        if lengths - {len(self.stages) + 2}:
+            raise ValueError(f"destinations must have n_stages + 2 = {len(self.stages) + 2} entries")
         return self
 
     @property
@@ -213,8 +485,10 @@ class RunStatistics(_JsonDocument):
     @classmethod
     def from_json(cls, path_or_text: str | Path) -> RunStatistics:
         """Read from a JSON file path or JSON text; errors are one line."""
+        from msmill.validate import read_text
+
         p = Path(path_or_text) if not str(path_or_text).lstrip().startswith("{") else None
-        text = p.read_text(encoding="utf-8") if p is not None else str(path_or_text)
+        text = read_text(p, str(p), "JSON file") if p is not None else str(path_or_text)
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -225,8 +499,8 @@ class RunStatistics(_JsonDocument):
     def from_dict(cls, data: dict[str, Any], source: str = "statistics") -> RunStatistics:
         """Validate a plain dict; errors are one line naming the field."""
         version = data.get("schema_version", SCHEMA_VERSION) if isinstance(data, dict) else None
-        if version != SCHEMA_VERSION:
-            raise MsmillInputError(f"{source}.schema_version", version, f"{SCHEMA_VERSION}")
+        if version not in READABLE_SCHEMA_VERSIONS:
+            raise MsmillInputError(f"{source}.schema_version", version, "1 or 2")
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
@@ -238,14 +512,19 @@ class StageParameterTable(_JsonDocument):
 
     This is the shipped default source of stage parameters for the mill model
     (``src/msmill/data/stage_parameters/*.json``) until the surrogate exists. The
-    model interpolates between runs in (log) rock size and clamps outside the
-    sizes covered, with a warning.
+    model interpolates between runs in (log) rock size and extrapolates outside the
+    sizes covered (docs/model.md section 9), reporting the mass share concerned.
     """
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Literal[2] = SCHEMA_VERSION
     kind: Literal["stage_parameter_table"] = "stage_parameter_table"
     runs: list[RunStatistics] = Field(min_length=1)
     provenance: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _upgrade(cls, data: Any) -> Any:
+        return _upgraded(data)
 
     @model_validator(mode="after")
     def _check(self) -> StageParameterTable:
@@ -270,10 +549,17 @@ class StageParameterTable(_JsonDocument):
             data = json.loads(p.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
             raise MsmillInputError(str(p), f"line {exc.lineno}", "valid JSON") from None
-        if not isinstance(data, dict) or data.get("schema_version") != SCHEMA_VERSION:
+        if not isinstance(data, dict) or data.get("schema_version") not in READABLE_SCHEMA_VERSIONS:
             got = data.get("schema_version") if isinstance(data, dict) else type(data).__name__
-            raise MsmillInputError(f"{p.name}.schema_version", got, f"{SCHEMA_VERSION}")
+            raise MsmillInputError(f"{p.name}.schema_version", got, "1 or 2")
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
             raise from_validation_error(exc, prefix=p.name) from None
+
+
+def _upgraded(data: Any) -> Any:
+    """A version-1 document as version 2 (stages gain a Poisson ``secondary_count`` on validation)."""
+    if isinstance(data, dict) and data.get("schema_version") == 1:
+        return {**data, "schema_version": SCHEMA_VERSION}
+    return data

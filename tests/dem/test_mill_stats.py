@@ -82,6 +82,9 @@ def test_known_counts_hit_probability_and_streams():
     # secondary counts per primary: [3, 1] -> lambda 2
     assert s1.secondary_lambda == pytest.approx(2.0)
     assert s1.n_secondary_impacts == 4
+    assert s1.secondary_count_histogram == [0, 1, 0, 1]  # one primary with 1, one with 3
+    assert s1.secondary_count.mean == pytest.approx(2.0)
+    assert set(s1.secondary_count_selection.candidates) >= {"poisson", "negative_binomial"}
     assert s1.n_primary_impacts == 2
     # A is hit within (t, t+0.05] for tags t = 0.06..0.13 (8 of 54 stage-1 tags)
     assert s1.primary_hit_probability == pytest.approx(8 / 54)
@@ -125,3 +128,20 @@ def test_touches_are_dropped_as_events_but_blow_ups_drop_the_rock():
     st = _run(pd.concat([_events(), boom], ignore_index=True)).run
     assert st.stages[0].n_primary_impacts == 0
     assert st.provenance["stats"]["n_rocks_dropped_as_blow_ups"] == 1
+
+
+def test_destinations_refine_the_streams_and_tag_the_inlet_zone():
+    st = _run().run
+    s1, s2 = st.stages
+    for s in (s1, s2):
+        d = np.asarray(s.destinations)
+        assert d.size == 4 and d.sum() == pytest.approx(1.0)
+        i = s.stage
+        assert d[:i].sum() == pytest.approx(s.kickback)
+        assert d[i] == pytest.approx(s.refeed)
+        assert d[i + 1:].sum() == pytest.approx(s.pass_through)
+    assert s1.destinations[0] == pytest.approx(5 / 54)  # D into the inlet zone
+    assert s2.destinations[3] == pytest.approx(5 / 19)  # E out through the outlet
+    # D sits in the inlet zone from 0.12 s: its 4 tags (0.12-0.15 s) are all still there 0.05 s later
+    assert st.inlet_destinations == pytest.approx([1.0, 0.0, 0.0, 0.0])
+    assert st.inlet_holdup_kg == pytest.approx(2700 * 4 / 3 * np.pi * R**3 * 9 / 21)

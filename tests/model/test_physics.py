@@ -71,19 +71,24 @@ def _one_impact_provider(n_stages: int, v: float) -> RunProvider:
     return RunProvider(run.model_copy(update={"stages": stages}), source="SYNTHETIC")
 
 
-def test_one_stage_one_impact_matches_hand_calculation(op):
-    """All mass passes straight through one stage and is hit exactly once at 40 m/s."""
+@pytest.mark.parametrize("breakage", ["ab_t10", "jk_t10"])
+def test_one_stage_one_impact_matches_hand_calculation(op, breakage):
+    """All mass passes straight through one stage and is hit exactly once at 40 m/s.
+
+    Broken rock's t10: ``A P_b`` (paper Eq. 12, ``ab_t10``) or ``A`` (JK convention, ``jk_t10``).
+    """
     grid = SizeGrid.geometric(0.038, 45.0)
     j = grid.n_classes - 2
     feed = PSD(grid, np.eye(grid.n_classes)[j])
     op1 = OperatingPoint(feed_tph=30.0, stage_speeds_rpm=[1500.0], gate_deg=40.0)
-    res = Mill("UG2", _one_impact_provider(1, 40.0), impacts="dem", damage="none",
+    res = Mill("UG2", _one_impact_provider(1, 40.0), impacts="dem", damage="none", breakage=breakage,
                impacted="all").run(feed, op1)
     ore = BreakageParameters.from_ore(__import__("msmill.ore", fromlist=["get_ore"]).get_ore("UG2"))
     e = 0.5 * 40.0**2 / 3600.0  # kWh/t
     L = grid.mids_mm[j]
     pb = 1.0 - np.exp(-ore.b_t_kwh * e * L / ore.l_ref_mm)  # Eq. 11 by hand
-    B = bk.appearance_matrix(grid, ore.A_pct * pb, ore.tn)  # t10 = A P_b, Eq. 12
+    t10 = ore.A_pct * pb if breakage == "ab_t10" else ore.A_pct
+    B = bk.appearance_matrix(grid, t10, ore.tn)
     expected = pb * B[:, j]
     expected[j] += 1.0 - pb
     assert np.allclose(res.product_psd.fractions, expected, atol=5e-4, rtol=0)
@@ -123,10 +128,16 @@ def test_higher_speed_never_coarsens(provider, feed):
     assert prev[10] > feed.passing_pct[10] + 1.0
 
 
-def test_out_of_range_sizes_and_operating_point_warn(feed):
+def test_out_of_range_sizes_reported_and_operating_point_warns(feed):
     prov = TableProvider(synthetic_table(sizes_mm=(2.0, 30.0)), source="SYNTHETIC")
-    with pytest.warns(OutOfDomainWarning, match="clamped"):
-        Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutOfDomainWarning)  # extrapolated sizes are reported, not warned
+        res = Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0))
+    mids = res.feed_psd.grid.mids_mm
+    out = (mids < 2.0) | (mids > 30.0)
+    assert res.extrapolated_feed_pct == pytest.approx(100 * feed.fractions[out].sum())
+    assert res.extrapolated_product_pct == pytest.approx(100 * res.product_psd.fractions[out].sum())
+    assert 0 < res.extrapolated_feed_pct < 100
     with pytest.warns(OutOfDomainWarning, match="another operating point"):
         Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=45.0, speed_rpm=1700.0, gate_deg=40.0))
     grid = SizeGrid.geometric(2.0, 30.0)

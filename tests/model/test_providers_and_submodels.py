@@ -80,20 +80,21 @@ def test_json_table_and_run_providers(tmp_path):
     r = load_provider(tmp_path / "run.json")
     assert isinstance(t, TableProvider) and isinstance(r, RunProvider)
     assert isinstance(t, StageParameterProvider) and isinstance(r, StageParameterProvider)
-    with pytest.warns(OutOfDomainWarning, match="clamped"):
-        p = r.stage_parameters(np.array([1.0, 10.0, 40.0]))
+    p = r.stage_parameters(np.array([1.0, 10.0, 40.0]))  # one run: clamped, flagged, no warning
     assert np.allclose(p.hit_probability[:, 0], p.hit_probability[:, 2])
+    assert p.extrapolated.tolist() == [True, False, True]
     # mixtures interpolate as a mixture of the neighbours: weights stay valid
     q = t.stage_parameters(np.array([5.0]))
     assert np.allclose(q.primary_velocity.weights.sum(axis=-1), 1.0)
 
 
-def test_clamping_warns_once_per_call():
+def test_sizes_outside_the_table_do_not_warn():
     prov = TableProvider(synthetic_table(sizes_mm=(2.0, 30.0)))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        prov.stage_parameters(np.array([0.5, 1.0, 5.0, 50.0]))
-    assert sum(issubclass(w.category, OutOfDomainWarning) for w in caught) == 1
+        p = prov.stage_parameters(np.array([0.5, 1.0, 5.0, 50.0]))
+    assert not any(issubclass(w.category, OutOfDomainWarning) for w in caught)
+    assert p.extrapolated.tolist() == [True, True, False, True]
 
 
 def test_unknown_submodel_name_suggests():

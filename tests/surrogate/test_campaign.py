@@ -98,7 +98,7 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
     assert {r.seed for r in st.runs(campaign="k")} == {2}
     assert cli(["campaign", "create", "bad", "--db", db, "--set", "warp=9"]) == 2
     assert cli(["campaign", "status", "nope", "--db", db]) == 2
-    assert cli(["campaign", "plan", "k", "--db", db]) == 2  # no planner installed yet
+    assert cli(["campaign", "plan", "k", "--db", db, "--planner", "oracle"]) == 2  # not a registered planner
     assert cli(["db", "list", "--db", db, "--size-mm", "abc"]) == 2
     assert "error:" in capsys.readouterr().err
     assert cli(["db", "list", "--db", db, "--size-mm", "20", "--campaign", "k"]) == 0
@@ -162,7 +162,7 @@ def test_active_planner_within_campaign_domain(tmp_path) -> None:
     st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
     machine = Machine.default()
     for run in StageParameterTable.from_json(default_table_path()).runs:
-        st.record_run(run, machine)
+        st.record_run(run, machine, allow_not_steady=True)  # the 20 mm re-run did not settle (docs/mill-dem.md)
     st.create_campaign("al", machine, options={"size_range_mm": [8.0, 20.0]})
     first = PLANNERS["active"](st, "al", 3)
     st.add_points("al", first)

@@ -7,10 +7,15 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from msmill.errors import MsmillInputError
+from msmill.cli.console import console
+from msmill.validate import limit, number
+
+#: Largest impact speed accepted (m/s): ten times the fastest flinger tip of an impact mill.
+MAX_VELOCITY_M_S = 1000.0
+#: Largest rock accepted (mm): drop-weight data and the Ab-t10 model end near 100 mm.
+MAX_SIZE_MM = 1000.0
 
 app = typer.Typer(help="Breakage of a single impact: energy, P_b, t10, t_n and fragment PSD.",
                   no_args_is_help=True)
@@ -32,12 +37,15 @@ def table_cmd(
     from msmill.psd import SizeGrid
 
     ore = resolve_ore(ore_name)
-    if not (math.isfinite(velocity) and velocity >= 0):
-        raise MsmillInputError("--velocity", velocity, "a speed >= 0 m/s")
-    if not (math.isfinite(size_mm) and size_mm > 0):
-        raise MsmillInputError("--size-mm", size_mm, "a size > 0 mm")
-    if not (math.isfinite(grid_min_mm) and 0 < grid_min_mm < size_mm):
-        raise MsmillInputError("--grid-min-mm", grid_min_mm, f"a size in (0, {size_mm}) mm")
+    number(velocity, "--velocity", unit="m/s", ge=0, le=MAX_VELOCITY_M_S)
+    number(size_mm, "--size-mm", unit="mm", gt=0, le=MAX_SIZE_MM)
+    number(damage, "--damage", ge=0, lt=1)
+    number(grid_min_mm, "--grid-min-mm", unit="mm", gt=0, lt=size_mm)
+    if grid_max_mm is not None:
+        number(grid_max_mm, "--grid-max-mm", unit="mm", gt=size_mm, le=100 * size_mm)
+    top = grid_max_mm or size_mm * 2**0.25
+    n_classes = math.ceil(math.log(top / grid_min_mm) / math.log(math.sqrt(2.0)))
+    limit(n_classes, "--grid-min-mm/--size-mm", "grid_classes")
     ecs_j = float(br.velocity_to_ecs_j_kg(velocity))
     ecs_kwh = float(br.j_kg_to_kwh_t(ecs_j))
     res = br.damage_after_impact(ecs_kwh, size_mm, ore.b_t_per_kwh, ore.l_ref_mm, ore.gamma,
@@ -52,13 +60,11 @@ def table_cmd(
         n = max(1, math.ceil(math.log(size_mm * 2**0.25 / grid_min_mm) / math.log(r) - 1e-9))
         grid = SizeGrid(size_mm * 2**0.25 / r ** np.arange(n, -1, -1))
     else:
-        if not (math.isfinite(grid_max_mm) and grid_max_mm > size_mm):
-            raise MsmillInputError("--grid-max-mm", grid_max_mm, f"a size > --size-mm ({size_mm} mm)")
         grid = SizeGrid.geometric(grid_min_mm, grid_max_mm)
     parent = int(grid.class_of(size_mm))
     frag = br.fragment_psd(grid, parent, t10, ore.tn)
 
-    con = Console(width=120)
+    con = console(120)
     head = Table(title=f"impact of a {size_mm:g} mm {ore.name} rock at {velocity:g} m/s")
     head.add_column("quantity")
     head.add_column("value")

@@ -113,8 +113,9 @@ def list_cmd(
     size_mm: RangeOpt = None, feed_tph: RangeOpt = None, speed_rpm: RangeOpt = None, gate_deg: RangeOpt = None,
 ) -> None:
     """List runs, filtered by campaign, status, machine and design variables."""
-    from rich.console import Console
     from rich.table import Table
+
+    from msmill.cli.console import console
 
     runs = open_store(db).runs(campaign=campaign, status=status, machine_hash=machine, filters=design_filters(
         size_mm=size_mm, feed_tph=feed_tph, speed_rpm=speed_rpm, gate_deg=gate_deg))
@@ -125,7 +126,7 @@ def list_cmd(
         t.add_row(str(r.id), r.status, r.outcome or "-", f"{d.size_mm:g}", f"{d.feed_tph:g}", f"{d.speed_rpm:g}",
                   f"{d.gate_deg:g}", r.mode, r.source, r.campaign or "-", str(r.attempts),
                   f"{r.wall_s:.1f}" if r.wall_s is not None else "-", r.machine_hash[:10])
-    Console(width=200).print(t)
+    console(200).print(t)
     typer.echo(f"{len(runs)} runs")
 
 

@@ -30,14 +30,24 @@ def run_cmd(
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
 ) -> None:
     """Run the mill DEM to steady state, record a window, write events, statistics and plots."""
+    from msmill.cli.output import atomic_output, check_writable
+    from msmill.dem.mill.checks import check_run_inputs
     from msmill.dem.mill.run import RunSettings, run_mill, save_run
     from msmill.machine import Machine, OperatingPoint
 
+    # every input is checked, and --out probed for writing, before the (long) simulation starts
     machine = Machine.default() if str(machine_toml) == "default" else Machine.from_toml(machine_toml)
-    op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor, gate_deg=gate_deg)
-    if measure_s <= 0:
-        raise MsmillInputError("--measure-s", measure_s, "a time > 0 s")
+    try:
+        op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor,
+                            gate_deg=gate_deg)
+    except MsmillInputError as exc:  # name the options as typed
+        names = {"feed_tph": "--feed-tph", "speed_rpm": "--speed-rpm", "bottom_speed_factor": "--bottom-factor",
+                 "gate_deg": "--gate-deg"}
+        field = "/".join(names.get(f, f) for f in exc.field.split("/"))
+        raise MsmillInputError(field, exc.value, exc.allowed) from None
     settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed)
+    check_run_inputs(machine, settings, size_mm)
+    out = check_writable(out, "--out")
     mode = "slice" if slice_ else "full"
     if no_progress:
         result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings)
@@ -52,10 +62,14 @@ def run_cmd(
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
 
             result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb)
-    save_run(result, out, vtk=vtk)
     from msmill.plots.dem import plot_run
 
-    plot_run(result, out)
+    inputs = [] if str(machine_toml) == "default" else [machine_toml]
+    run_settings = {"size_mm": size_mm, "mode": mode, "operating_point": op.model_dump(), "seed": seed,
+                    "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk}
+    with atomic_output(out, inputs=inputs, settings=run_settings) as stage:
+        save_run(result, stage, vtk=vtk)
+        plot_run(result, stage)
     st = result.stats.run if result.stats else None
     ss = result.steady_state_time_s
     typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "
@@ -70,18 +84,31 @@ def stats_cmd(
     out: Annotated[Path | None, typer.Option("--out", help="JSON file (default RUN_DIR/statistics.json).")] = None,
 ) -> None:
     """Recompute the per-stage statistics of a saved run from its raw events and snapshots."""
+    from msmill.cli.output import atomic_output, atomic_write_bytes, check_writable
     from msmill.dem.mill.run import stats_from_dir
     from msmill.plots.dem import plot_stage_impacts
 
     if not run_dir.is_dir():
         raise MsmillInputError("run_dir", str(run_dir), "an existing directory written by 'msmill dem run'")
+    check_writable(run_dir, "run_dir")
+    if out is not None:
+        if out.is_dir():
+            raise MsmillInputError("--out", str(out), "a JSON file path (this is a directory)")
+        check_writable(out.parent if str(out.parent) else Path("."), "--out")
     ms = stats_from_dir(run_dir)
     target = out or run_dir / "statistics.json"
-    ms.run.to_json(target)
-    plot_stage_impacts(ms, run_dir / "stage_impacts.png")
+    # the run folder is updated in place: its other files and their manifest entries are kept
+    with atomic_output(run_dir, field="run_dir", settings={"command": "dem stats"}, update=True) as stage:
+        plot_stage_impacts(ms, stage / "stage_impacts.png")
+        if out is None:
+            ms.run.to_json(stage / "statistics.json")
+    if out is not None:
+        atomic_write_bytes(out, ms.run.to_json().encode())
     for s in ms.run.stages:
         typer.echo(f"stage {s.stage}: kick {s.kickback:.3f} refeed {s.refeed:.3f} pass {s.pass_through:.3f} "
-                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}")
+                   f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}"
+                   + (f" counts {s.secondary_count_selection.chosen} (KL {s.secondary_count_selection.kl:.3f})"
+                      if s.secondary_count_selection else ""))
     typer.echo(f"written {target}")
 
 

@@ -9,8 +9,10 @@ prints that as one line on stderr and exits with status 2, never a traceback.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import warnings
+from pathlib import Path
 
 import typer
 
@@ -36,6 +38,11 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("campaign", "app", "campaign"),
     ("serve", "serve", "serve"),
     ("surrogate", "app", "surrogate"),
+    ("validate", "validate", "validate"),
+    ("validate", "calibrate", "calibrate"),
+    ("sweep", "sweep", "sweep"),
+    ("sweep", "optimize", "optimize"),
+    ("report", "report", "report"),
 ]
 
 
@@ -65,22 +72,65 @@ def _register() -> None:
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:
-    return f"warning: {message}\n"
+    text = " ".join(str(message).split())
+    if issubclass(category, RuntimeWarning) and "encountered in" in text:
+        # a floating-point problem inside numpy: say where, not numpy's bare phrase
+        where = Path(filename).stem
+        return (f"warning: numerical problem in msmill ({text}, module {where}); "
+                "results may be inaccurate: check the magnitudes of the inputs\n")
+    return f"warning: {text}\n"
+
+
+_SHOWN: set[str] = set()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    text = _format_warning(message, category, filename, lineno)
+    if text not in _SHOWN:  # each warning once per command, wherever it was raised from
+        _SHOWN.add(text)
+        (file or sys.stderr).write(text)
+
+
+def _usage_error(exc: Exception) -> int:
+    if type(exc).__name__ == "NoArgsIsHelpError":  # a bare group: its help, as click shows it
+        exc.show()
+        return getattr(exc, "exit_code", 2)
+    ctx = getattr(exc, "ctx", None)
+    where = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+    msg = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+    param = getattr(exc, "param", None)
+    if param is not None:
+        opts = list(getattr(param, "opts", ()) or ()) or [str(getattr(param, "name", ""))]
+        if not any(o in msg for o in opts):
+            msg = f"{'/'.join(opts)}: {msg}"
+    typer.echo(f"error: {' '.join(msg.split())}{where}", err=True)
+    return getattr(exc, "exit_code", 2) or 2
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Run the CLI and return its exit status (0 ok, 1 failure, 2 bad input)."""
+    """Run the CLI and return its exit status (0 ok, 1 failure, 2 bad input).
+
+    Every failure is one ``error:`` line on stderr, never a traceback; an
+    unexpected exception (a bug) says so, exit status 1 (``MSMILL_DEBUG=1``
+    shows the traceback). Warnings print once each as ``warning:`` lines.
+    """
     warnings.formatwarning = _format_warning
     try:
-        app(args=argv, prog_name="msmill", standalone_mode=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")  # each distinct warning once
+            warnings.showwarning = _show_warning
+            _SHOWN.clear()
+            status = app(args=argv, prog_name="msmill", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code
-    except typer.TyperException as exc:  # usage errors, bad parameters (click underneath)
-        exc.show()
-        return getattr(exc, "exit_code", 2)
     except typer.Abort:
         typer.echo("aborted", err=True)
         return 1
+    except KeyboardInterrupt:
+        typer.echo("aborted", err=True)
+        return 130
+    except typer.TyperException as exc:  # usage errors, bad parameters (click underneath)
+        return _usage_error(exc)
     except MsmillInputError as exc:
         typer.echo(f"error: {exc}", err=True)
         return 2
@@ -90,12 +140,24 @@ def run(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         typer.echo(f"error: file not found: {exc.filename}", err=True)
         return 2
+    except OSError as exc:  # permissions, full disk, ...: the system's one-line reason
+        typer.echo(f"error: {exc.filename or 'file'}: {exc.strerror or exc}", err=True)
+        return 2 if isinstance(exc, PermissionError | IsADirectoryError | NotADirectoryError) else 1
+    except MemoryError:
+        typer.echo("error: out of memory (an input asks for more than this machine has)", err=True)
+        return 1
     except Exception as exc:  # pydantic errors raised outside our loaders
         if type(exc).__name__ == "ValidationError" and hasattr(exc, "errors"):
             typer.echo(f"error: {from_validation_error(exc)}", err=True)
             return 2
-        raise
-    return 0
+        if os.environ.get("MSMILL_DEBUG"):
+            raise
+        msg = " ".join(str(exc).split())[:200]
+        typer.echo(f"error: internal error, a bug in msmill ({type(exc).__name__}: {msg}); "
+                   "please report it (MSMILL_DEBUG=1 shows the traceback)", err=True)
+        return 1
+    # click returns a command's typer.Exit(code) as the value in non-standalone mode
+    return status if isinstance(status, int) else 0
 
 
 def main() -> None:

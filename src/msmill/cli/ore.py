@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
+from msmill.cli.console import console
 from msmill.errors import MsmillInputError
+from msmill.validate import number
 
 if TYPE_CHECKING:
+    from rich.console import Console
+
     from msmill.ore import Ore
 
 app = typer.Typer(help="Ore parameter sets: list, show, calibrate L_ref from drop-weight data.",
@@ -19,7 +23,7 @@ app = typer.Typer(help="Ore parameter sets: list, show, calibrate L_ref from dro
 
 
 def _console() -> Console:
-    return Console(width=140, soft_wrap=False)
+    return console(140)
 
 
 def resolve_ore(name_or_path: str) -> Ore:
@@ -90,15 +94,31 @@ def calibrate_cmd(
         "--l-ref-mm", help="L_ref held with --fit-ab (default: the ore's).")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Write the calibrated ore as TOML.")] = None,
     residuals: Annotated[bool, typer.Option("--residuals/--no-residuals", help="Print the residual table.")] = True,
+    breakage: Annotated[str | None, typer.Option(
+        "--breakage", help="Breakage sub-model whose parameters are fitted (default: the model's default, "
+        "jk_t10); the drop-weight test is simulated through it.")] = None,
 ) -> None:
     """Fit L_ref (optionally A, or A and b) of Eq. 11-12 to drop-weight data."""
     from msmill.calibration import calibrate
+    from msmill.cli.output import atomic_write_bytes, check_writable
+    from msmill.model import submodels as sm
 
     if fit_ab and fit_a:
         raise MsmillInputError("--fit-a/--fit-ab", "both", "one of --fit-a or --fit-ab")
+    if out is not None:
+        if out.is_dir():
+            raise MsmillInputError("--out", str(out), "a TOML file path (this is a directory)")
+        check_writable(out.parent if str(out.parent) else Path("."), "--out")
+    if l_ref_mm is not None:
+        number(l_ref_mm, "--l-ref-mm", unit="mm", gt=0)
     ore = resolve_ore(ore_name)
+    name = breakage or sm.DEFAULTS["breakage"]
+    with_t10 = [k for k, f in sm.SUBMODELS["breakage"].items() if hasattr(f, "t10_convention")]
+    if name not in with_t10:
+        raise MsmillInputError("--breakage", name, sm.did_you_mean(name, with_t10))
     fit = ("A_pct", "b_t_per_kwh") if fit_ab else (("A_pct", "l_ref_mm") if fit_a else ("l_ref_mm",))
-    res = calibrate(data, ore, fit=fit, l_ref_mm=l_ref_mm)
+    lab = sm.lab_test(name, sm.BreakageParameters.from_ore(ore).tn)
+    res = calibrate(data, ore, fit=fit, l_ref_mm=l_ref_mm, lab_test=lab)
     con = _console()
     table = Table(title=f"calibration of {ore.name} on {data.name} (n = {res.n_points})")
     for col in ("parameter", "value", "std. error", "status"):
@@ -111,19 +131,41 @@ def calibrate_cmd(
             table.add_row(k, f"{v:.4g} {units[k]}", "-", "held")
     con.print(table)
     con.print(f"R^2 = {res.r_squared:.4f}   RMSE = {res.rmse_pct:.3g} % t10   "
-              f"converged: {res.success}")
+              f"converged: {res.success}   breakage sub-model: {name}")
     if fit_ab:
         con.print("note: b and L_ref enter Eq. 11 only as b/L_ref; b is fitted for the held L_ref.")
+    if math.isfinite(res.r_squared) and res.r_squared < 0:
+        con.print(f"warning: R^2 = {res.r_squared:.3g} < 0: the fitted model describes t10 worse than its "
+                  "mean; check the data's units (size_mm, ecs_kwh_t, t10_pct)")
+    if not res.success:
+        con.print(f"warning: the fit did not converge cleanly ({res.message}); do not use these values")
     if residuals:
-        rt = Table(title="residuals")
-        for col in res.residuals.columns:
-            rt.add_column(col)
-        for row in res.residuals.itertuples(index=False):
-            rt.add_row(*(f"{x:.4g}" for x in row))
-        con.print(rt)
+        _print_residuals(con, res.residuals)
     if out is not None:
         import tomli_w
 
         new = res.to_ore(ore)
-        out.write_text(tomli_w.dumps(new.to_dict()), encoding="utf-8")
+        atomic_write_bytes(out, tomli_w.dumps(new.to_dict()).encode("utf-8"))
         con.print(f"wrote {out}")
+
+
+#: Residual rows printed by ``ore calibrate`` (the largest by magnitude; all are in
+#: ``CalibrationResult.residuals``).
+MAX_RESIDUAL_ROWS = 30
+
+
+def _print_residuals(con: Console, table) -> None:
+    """The largest residuals as a table (all of them if there are few)."""
+    n = len(table)
+    shown = table
+    title = "residuals"
+    if n > MAX_RESIDUAL_ROWS:
+        order = table["residual_pct"].abs().to_numpy().argsort()[::-1][:MAX_RESIDUAL_ROWS]
+        shown = table.iloc[sorted(order)]
+        title = f"residuals: the {MAX_RESIDUAL_ROWS} largest of {n} rows (in file order)"
+    rt = Table(title=title)
+    for col in shown.columns:
+        rt.add_column(col)
+    for row in shown.itertuples(index=False):
+        rt.add_row(*(f"{x:.4g}" for x in row))
+    con.print(rt)

@@ -20,16 +20,19 @@ def predict(
     solver: Annotated[str | None, typer.Option(help="Override [model] solver.")] = None,
 ) -> None:
     """Predict the product PSD, hold-up and impact energy of a mill run file."""
+    from msmill.cli.output import atomic_output, check_writable
     from msmill.model.runfile import RunFile
 
     rf = RunFile.from_toml(run_file)
     if solver is not None:
-        rf = rf.model_copy(update={"model": rf.model.model_copy(update={"solver": solver})})
+        rf = RunFile.model_validate({**rf.model_dump(), "base_dir": rf.base_dir, "name": rf.name,
+                                     "model": {**rf.model.model_dump(), "solver": solver}})
+    folder = check_writable(out if out is not None else rf.path(rf.output.dir),
+                            "--out" if out is not None else f"{rf.name}.output.dir")
     mill, feed, op = rf.build()
     result = mill.run(feed, op)
 
-    # render everything in memory first: nothing is half-written on error
-    folder = out if out is not None else rf.path(rf.output.dir)
+    # render everything in memory first, then commit the set atomically with a manifest
     csv_name = Path(rf.output.csv)
     stem = csv_name.stem
     files: dict[str, bytes] = {
@@ -42,17 +45,25 @@ def predict(
 
         for key, fig in prediction_figures(result, title=rf.title).items():
             files[f"{stem}_{key}.png"] = png_bytes(fig)
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, data in files.items():
-        (folder / name).write_bytes(data)
+    settings = {"run_file": rf.model_dump(mode="json"), "solver": result.solver}
+    with atomic_output(folder, field="--out", inputs=[run_file], settings=settings) as stage:
+        for name, data in files.items():
+            (stage / name).write_bytes(data)
     _print_summary(rf, mill, result, folder, list(files))
 
 
+def _impact_kw(result) -> float:
+    from msmill.model.power import power_estimate
+
+    return power_estimate(result).impact_kw
+
+
 def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
-    from rich.console import Console
     from rich.table import Table
 
-    con = Console(width=120, soft_wrap=False)
+    from msmill.cli.console import console
+
+    con = console(120)
     t = Table(title=rf.title or rf.name, show_header=True)
     t.add_column("quantity")
     t.add_column("value", justify="right")
@@ -70,7 +81,10 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("primary impacts per rock (mass-weighted)", f"{result.primary_impacts_per_t:.3g}"),
         ("secondary impacts per rock (mass-weighted)", f"{result.secondary_impacts_per_t:.3g}"),
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
+        ("impact power (kW; no-load not included, docs/validation.md)", f"{_impact_kw(result):.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
+        ("feed / product mass with extrapolated stage statistics (%)",
+         f"{result.extrapolated_feed_pct:.3g} / {result.extrapolated_product_pct:.3g}"),
     ]
     for r in rows:
         t.add_row(*r)
@@ -87,5 +101,5 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
     con.print(f"solver: {result.solver}; sub-models: "
               + ", ".join(f"{k}={v}" for k, v in result.submodels.items()))
     for note in result.notes:
-        con.print(f"note: {note}")
+        con.print(f"note: {note}", soft_wrap=True)
     con.print(f"wrote {', '.join(names)} to {folder}")

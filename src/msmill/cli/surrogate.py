@@ -17,6 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from msmill.cli.console import console
 from msmill.errors import MsmillInputError
 
 app = typer.Typer(help="Gaussian-process surrogate of the stage statistics: fit, score, plan.",
@@ -24,7 +25,7 @@ app = typer.Typer(help="Gaussian-process surrogate of the stage statistics: fit,
 
 
 def _console() -> Console:
-    return Console(width=140, soft_wrap=False)
+    return console(140)
 
 
 def load_runs(sources: list[str]) -> list:

@@ -6,6 +6,7 @@ as ``msmill.Mill`` / ``msmill.simulate``), the stage-parameter providers
 :class:`MillResult`. See ``docs/model.md``.
 """
 
+from msmill.model import breakage_swebrec as _breakage_swebrec  # noqa: F401  (registers "vogel_swebrec")
 from msmill.model.mill import Mill, simulate
 from msmill.model.providers import (
     RunProvider,

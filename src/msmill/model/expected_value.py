@@ -14,7 +14,8 @@ linear operator averaged over the velocity distribution by Gauss-Hermite
 quadrature per mixture component (velocities clipped at 0); a Poisson number of
 secondary impacts is ``expm(lambda (T - I))`` on a state augmented with the
 fragments made so far (which are not hit again in that step) and two counters
-(number of impacts and energy delivered). The steady state solves
+(number of impacts and energy delivered), and a Poisson-mixture number is the
+weighted sum of those per-component operators (:func:`secondary_series`). The steady state solves
 ``(I - M) x = f`` directly (sparse LU).
 """
 
@@ -29,7 +30,7 @@ import scipy.sparse.linalg as spla
 
 from msmill.errors import MsmillError
 from msmill.model.parameters import MixtureArrays
-from msmill.model.submodels import ImpactStatistics, specific_energy_kwh_t
+from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
 
 
 def quadrature(mix: MixtureArrays, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -156,6 +157,114 @@ def _block_diag(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Largest number of secondary impacts summed by the power series before falling back to expm.
+SERIES_MAX_IMPACTS = 2000
+_SERIES_TAIL = 1e-18  # P(K > k_max) and the neglected part of E[K] stay below this (per unit mass)
+
+
+def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray,
+                     method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Survivor operator and impact-weighted operator of a Poisson-mixture number of secondary impacts.
+
+    With one-impact survivor block ``S_i`` (size class ``i``; survivors keep
+    their size) and ``K ~ sum_c w_c Poisson(lam_c)`` impacts, the survivors of
+    the impacts are ``E[S^K] = sum_k P(K = k) S^k`` and the mass impacted by the
+    ``j``-th impact is ``P(K > j) S^j``, so the expected number of impacts
+    applied to the mass is ``phi = sum_j P(K > j) S^j``. Two exact constructions:
+
+    * ``"expm"``: per component ``A = lam_c (S - I)``, ``E[S^K] = e^A`` and
+      ``phi = lam_c phi1(A)``, ``phi1(A) = int_0^1 e^(tA) dt``, both read off one
+      batched ``expm`` of ``[[A, 0], [I, 0]]`` (``expm([[A, 0], [C, 0]]) =
+      [[e^A, 0], [C phi1(A), I]]``); a mixture is the ``w_c``-weighted sum of
+      the per-component operators (the step is linear in the count
+      distribution) and a component of mean 0 contributes ``e^A = I``,
+      ``phi = 0``. One ``expm`` per active (size class, component).
+    * ``"series"``: the two sums above, to the ``k_max`` where ``P(K > k_max)``
+      and ``sum_{j > k_max} P(K > j)`` are below 1e-18 (``S >= 0`` with
+      column sums <= 1, so the neglected part of every column is below that:
+      exact to rounding). All terms are non-negative, so there is no
+      cancellation; the cost is ``k_max`` batched products, independent of
+      the number of components.
+
+    ``"auto"`` (default) uses the series unless ``k_max`` would exceed
+    :data:`SERIES_MAX_IMPACTS`.
+
+    Parameters
+    ----------
+    survive : ndarray (N, nd, nd)
+        One-impact survivor blocks per size class.
+    weights, means : ndarray (N, C)
+        Count mixture per size class.
+    method : {"auto", "series", "expm"}
+
+    Returns
+    -------
+    eA, phi : ndarray (N, nd, nd)
+        ``E[S^K]`` and ``sum_j P(K > j) S^j``.
+    """
+    w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
+    if method not in ("auto", "series", "expm"):
+        raise ValueError(method)
+    if method != "expm":
+        tails = _count_tails(w, lam, SERIES_MAX_IMPACTS if method == "auto" else None)
+        if tails is not None:
+            return _power_series(survive, *tails)
+    return _expm_series(survive, w, lam)
+
+
+def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(P(K = k), P(K > k))`` for ``k = 0..k_max``, shape (N, k_max + 1); None beyond ``k_cap``."""
+    from scipy import special
+
+    lam_max = float(lam[w > 0].max()) if np.any(w > 0) else 0.0
+    k_max = int(lam_max + 12.0 * np.sqrt(lam_max) + 40)  # Poisson mass beyond: < 1e-30
+    if k_cap is not None and k_max > k_cap:
+        return None
+    k = np.arange(k_max + 2, dtype=float)
+    lp = special.xlogy(k, lam[..., None]) - lam[..., None] - special.gammaln(k + 1.0)  # (N, C, k_max + 2)
+    pk = np.einsum("nc,nck->nk", w, np.exp(lp))
+    pk /= pk.sum(axis=1, keepdims=True)  # the weights' and the pmf's rounding: total mass exactly 1
+    qk = np.cumsum(pk[:, ::-1], axis=1)[:, ::-1][:, 1:]  # P(K > k), summed from the tail: no cancellation
+    if qk[:, -1].max() > _SERIES_TAIL:  # pragma: no cover - the bound above is generous
+        return None
+    return pk[:, :-1], qk
+
+
+def _power_series(survive: np.ndarray, pk: np.ndarray, qk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n, nd, _ = survive.shape
+    power = np.broadcast_to(np.eye(nd), (n, nd, nd)).copy()
+    eA = np.zeros((n, nd, nd))
+    phi = np.zeros((n, nd, nd))
+    for j in range(pk.shape[1]):  # loop over the impact number, batched over size classes
+        eA += pk[:, j, None, None] * power
+        phi += qk[:, j, None, None] * power
+        power = survive @ power
+    return eA, phi
+
+
+def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n, nd, _ = survive.shape
+    n_c = w.shape[1]
+    idle = (w > 0) & (lam <= 0)
+    eA = np.sum(w * idle, axis=1)[:, None, None] * np.eye(nd)[None]
+    phi = np.zeros((n, nd, nd))
+    active = np.flatnonzero((w > 0) & (lam > 0))  # flat (i, c) indices; only these need an expm
+    if active.size:
+        i = active // n_c
+        lam_ic = lam.ravel()[active][:, None, None]
+        Z = np.zeros((active.size, 2 * nd, 2 * nd))
+        Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])
+        Z[:, nd:, :nd] = np.eye(nd)[None]
+        X = scipy.linalg.expm(Z)
+        wic = w.ravel()[active][:, None, None]
+        full = np.zeros((2, n * n_c, nd, nd))
+        full[0, active] = wic * X[:, :nd, :nd]
+        full[1, active] = wic * lam_ic * X[:, nd:, :nd]
+        full = full.reshape(2, n, n_c, nd, nd).sum(axis=2)
+        eA, phi = eA + full[0], full[1]
+    return eA, phi
+
+
 def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, breakage, damage,
                    n_damage: int, n_nodes: int) -> StageOperator:
     """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
@@ -169,20 +278,9 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
     sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
     prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
     sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
-    lam = stats.secondary_lambda[stage]  # (N,)
     Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
-    # Poisson series of secondary impacts = expm(lam (T - I)) on the state augmented with
-    # the fragments made so far and two counters. Survivors keep their size, so the
-    # survivor block is block-diagonal per size class i with A_i = lam_i (S_i - I);
-    # fragments and counters absorb, hence expm([[A, 0], [C, 0]]) = [[e^A, 0], [C phi1(A), I]]
-    # with phi1(A) = int_0^1 e^(tA) dt, both read off one batched expm of [[A, 0], [I, 0]].
-    A = lam[:, None, None] * (sec.survive - np.eye(nd)[None])
-    Z = np.zeros((n, 2 * nd, 2 * nd))
-    Z[:, :nd, :nd] = A
-    Z[:, nd:, :nd] = np.eye(nd)[None]
-    X = scipy.linalg.expm(Z) if np.any(lam > 0) else np.broadcast_to(np.eye(2 * nd), Z.shape)
-    eA = X[:, :nd, :nd]
-    phi = X[:, nd:, :nd] * lam[:, None, None]  # (N, nd, nd), lam_i phi1(A_i)
+    counts = stats.count_mixture()
+    eA, phi = secondary_series(sec.survive, counts.weights[stage], counts.means[stage])
     # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
     surv = np.einsum("ide,ief->idf", eA, Sp)
     frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))
@@ -228,6 +326,7 @@ class LinearMill:
     n_stages: int
     n_sizes: int
     n_damage: int
+    feed_compartment: int = 1
 
     @property
     def n_state(self) -> int:
@@ -235,9 +334,9 @@ class LinearMill:
         return self.M.shape[0]
 
     def feed_vector(self, feed_fractions: np.ndarray, tonnes_per_step: float) -> np.ndarray:
-        """Fresh feed of one step (undamaged, into stage 1) as a state vector (t)."""
+        """Fresh feed of one step (undamaged, into the feed compartment) as a state vector (t)."""
         f = np.zeros(self.n_state)
-        ns = self.n_sizes * self.n_damage
+        ns = self.n_sizes * self.n_damage * self.feed_compartment
         f[ns + np.arange(self.n_sizes) * self.n_damage] = np.asarray(feed_fractions) * tonnes_per_step
         return f
 
@@ -251,7 +350,7 @@ class LinearMill:
         return np.maximum(x, 0.0)
 
 
-def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics, breakage, damage,
+def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, damage,
              n_damage: int, n_nodes: int, impacted: str = "refeed") -> LinearMill:
     """Assemble the step operator of the whole mill.
 
@@ -259,8 +358,9 @@ def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics,
     ----------
     edges_mm : ndarray (N+1,)
         Size-class edges (mm).
-    streams : ndarray (S, N, 3)
-        ``[kickback, refeed, pass_through]`` per stage and size class.
+    streams : Transition or ndarray (S, N, 3)
+        One-step transport of every compartment (:class:`msmill.model.submodels.Transition`),
+        or ``[kickback, refeed, pass_through]`` per stage and size class.
     stats : ImpactStatistics
         Impact statistics (S, N).
     breakage, damage
@@ -270,42 +370,42 @@ def assemble(edges_mm: np.ndarray, streams: np.ndarray, stats: ImpactStatistics,
     n_nodes : int
         Gauss-Hermite nodes per mixture component.
     impacted : {"refeed", "all"}
-        Which mass is impacted in a step (see docs/model.md).
+        Which mass is impacted in a step (see docs/model.md): the mass that stays
+        in its stage, or all of a stage's mass before it moves.
     """
-    n_st = streams.shape[0]
+    tr = as_transition(streams)
+    T = tr.matrix  # (C, N, C+1), C = S + 1 compartments
+    n_st = tr.n_stages
     n = edges_mm.size - 1
     nd = n_damage
     ns = n * nd
     stage_ops = [stage_operator(edges_mm, stats, s, breakage, damage, nd, n_nodes) for s in range(n_st)]
-    K = [sp.diags(np.repeat(streams[s, :, 0], nd)) for s in range(n_st)]
-    R = [sp.diags(np.repeat(streams[s, :, 1], nd)) for s in range(n_st)]
-    P = [sp.diags(np.repeat(streams[s, :, 2], nd)) for s in range(n_st)]
-    G = [sp.csr_matrix(op.G) for op in stage_ops]
+    if impacted not in ("refeed", "all"):  # pragma: no cover - validated by Mill
+        raise ValueError(impacted)
+
+    def move(c: int, c2: int) -> sp.dia_matrix:
+        return sp.diags(np.repeat(T[c, :, c2], nd))
+
     blocks: list[list] = [[None] * (n_st + 1) for _ in range(n_st + 1)]
-    blocks[1][0] = sp.identity(ns)
     imp_blocks: list = [sp.csr_matrix((ns, ns))]
-    for s in range(n_st):
-        c = s + 1
-        if impacted == "refeed":
-            blocks[c][c] = G[s] @ R[s]
-            up, down = K[s], P[s]
-            imp_blocks.append(R[s])
-        elif impacted == "all":
-            blocks[c][c] = R[s] @ G[s]
-            up, down = K[s] @ G[s], P[s] @ G[s]
-            imp_blocks.append(sp.identity(ns))
-        else:  # pragma: no cover - validated by Mill
-            raise ValueError(impacted)
-        blocks[c - 1][c] = up
-        if c < n_st:
-            blocks[c + 1][c] = down
-        else:
-            last_down = down
+    out_blocks: list = []
     for c in range(n_st + 1):
-        if blocks[c][c] is None:
-            blocks[c][c] = sp.csr_matrix((ns, ns))
+        G = sp.csr_matrix(stage_ops[c - 1].G) if c >= 1 else None
+        for c2 in range(n_st + 2):
+            if G is None or (impacted == "refeed" and c2 != c):
+                b = move(c, c2)  # the inlet zone is not impacted; with "refeed" only what stays is
+            elif impacted == "refeed":
+                b = G @ move(c, c2)
+            else:
+                b = move(c, c2) @ G  # "all": impacts first, then the products move
+            if c2 == n_st + 1:
+                out_blocks.append(b)
+            elif np.any(T[c, :, c2]) or c2 == c:
+                blocks[c2][c] = b
+        if c >= 1:
+            imp_blocks.append(move(c, c) if impacted == "refeed" else sp.identity(ns))
     M = sp.bmat(blocks, format="csr")
     collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
-    out_op = sp.hstack([sp.csr_matrix((n, n_st * ns)), collapse @ last_down], format="csr")
+    out_op = sp.hstack([collapse @ b for b in out_blocks], format="csr")
     return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
-                      n_stages=n_st, n_sizes=n, n_damage=nd)
+                      n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)

@@ -16,6 +16,7 @@ Example
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import warnings
 from pathlib import Path
 from typing import Any
@@ -23,19 +24,26 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from msmill.errors import MsmillInputError
+from msmill.errors import MsmillInputError, SummaryNote
 from msmill.model import submodels as sm
 from msmill.model.expected_value import LinearMill, assemble
 from msmill.model.montecarlo import MonteCarloSolver
 from msmill.model.providers import StageParameterProvider, load_provider
 from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
+from msmill.validate import InputWarning, integer, limit, number
 
 SOLVERS = ("expected_value", "monte_carlo")
 IMPACTED = ("refeed", "all")
 DEFAULT_PASSING_SIZES_MM = (0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0)
 DEFAULT_MIN_SIZE_MM = 0.038
 J_PER_KWH = 3.6e6
+#: Fewest Monte-Carlo steps accepted (``mc_steps``): the mill needs ~100 characteristic
+#: times to fill, so a handful of steps reports the filling mill's first trickle.
+MIN_MC_STEPS = 50
+#: Shortfall of the Monte-Carlo product rate below the feed rate over the collection
+#: window above which the run is reported as not at steady state.
+MC_STEADY_TOL = 0.1
 #: Centred moving-average window (steps) of the Monte-Carlo product rate for the
 #: time to steady state.
 MC_SMOOTHING_STEPS = 25
@@ -66,10 +74,13 @@ def breakage_parameters(ore: Any) -> sm.BreakageParameters:
     """Ore name (looked up with ``msmill.ore.get_ore``), ``Ore`` object or :class:`BreakageParameters`."""
     if isinstance(ore, sm.BreakageParameters):
         return ore
-    if isinstance(ore, str):
-        from msmill.ore import get_ore  # core layer; imported lazily
+    from msmill.ore import Ore, get_ore  # core layer; imported lazily
 
+    if isinstance(ore, str):
         ore = get_ore(ore)
+    if not isinstance(ore, Ore):
+        raise MsmillInputError("ore", ore if ore is None else type(ore).__name__,
+                               "an ore name (msmill ore list), a msmill.ore.Ore or BreakageParameters")
     return sm.BreakageParameters.from_ore(ore)
 
 
@@ -79,7 +90,9 @@ def _operating_point(op: Any, feed_tph: float | None = None) -> Any:
     if op is None:
         raise MsmillInputError("operating_point", None, "an OperatingPoint or a dict of its fields")
     if isinstance(op, dict):
-        op = OperatingPoint.model_validate({**op, **({"feed_tph": feed_tph} if feed_tph else {})})
+        op = OperatingPoint(**{**op, **({"feed_tph": feed_tph} if feed_tph else {})})
+    if not isinstance(op, OperatingPoint):
+        raise MsmillInputError("operating_point", type(op).__name__, "an OperatingPoint or a dict of its fields")
     return op
 
 
@@ -96,8 +109,8 @@ class Mill:
         Mill geometry; only its ``n_stages`` is used (checked against the provider).
     transport, impacts, breakage, damage : str or object, optional
         Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
-        implementing the step's protocol. Defaults: ``regions``,
-        ``speed_scaled``, ``ab_t10``, ``tavares``.
+        implementing the step's protocol. Defaults: ``dem_matrix``,
+        ``speed_scaled``, ``jk_t10``, ``tavares``.
     solver : {"expected_value", "monte_carlo"}
         How to solve (default expected value).
     impacted : {"refeed", "all"}
@@ -161,10 +174,26 @@ class Mill:
             raise MsmillInputError("solver", solver, sm.did_you_mean(solver, list(SOLVERS)))
         if impacted not in IMPACTED:
             raise MsmillInputError("impacted", impacted, sm.did_you_mean(impacted, list(IMPACTED)))
-        for name, v, lo in (("damage_classes", damage_classes, 1), ("quadrature_nodes", quadrature_nodes, 1),
-                            ("parcels_per_step", parcels_per_step, 1)):
-            if not isinstance(v, int | np.integer) or v < lo:
-                raise MsmillInputError(name, v, f"an integer >= {lo}")
+        damage_classes = integer(damage_classes, "damage_classes", ge=1)
+        limit(damage_classes, "damage_classes")
+        quadrature_nodes = integer(quadrature_nodes, "quadrature_nodes", ge=1)
+        limit(quadrature_nodes, "quadrature_nodes")
+        parcels_per_step = integer(parcels_per_step, "parcels_per_step", ge=1)
+        limit(parcels_per_step, "parcels_per_step")
+        if mc_steps is not None:
+            mc_steps = integer(mc_steps, "mc_steps", ge=MIN_MC_STEPS)
+            limit(mc_steps, "mc_steps")
+            limit(parcels_per_step * mc_steps, "parcels_per_step x mc_steps", "parcels_total")
+        if seed is not None:
+            seed = integer(seed, "seed", ge=0, le=2**63 - 1)
+        if grid is not None and not isinstance(grid, SizeGrid):
+            raise MsmillInputError("grid", type(grid).__name__, "a msmill.psd.SizeGrid or None")
+        if grid is not None:
+            limit(grid.n_classes, "grid", "grid_classes")
+        try:
+            passing_sizes_mm = [number(s, "passing_sizes_mm", unit="mm", gt=0) for s in passing_sizes_mm]
+        except TypeError:
+            raise MsmillInputError("passing_sizes_mm", passing_sizes_mm, "a list of sizes > 0 mm") from None
         self.solver = solver
         self.impacted = impacted
         self.grid = grid
@@ -226,8 +255,9 @@ class Mill:
             with warnings.catch_warnings(record=True) as caught, _single_threaded_blas():
                 warnings.simplefilter("always")
                 params = self.provider.stage_parameters(grid.mids_mm, speeds, op.feed_tph, op.gate_deg)
-                streams = np.asarray(self.transport.streams(params), dtype=float)
-                stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+                streams = sm.transition_of(self.transport, params)
+                stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
+                                                  np.asarray(speeds, dtype=float))
                 lm = None
                 if self.solver == "expected_value" or self.mc_steps is None:
                     lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage,
@@ -237,7 +267,8 @@ class Mill:
                 self._cache.pop(next(iter(self._cache)))
             self._cache[key] = hit
         for message, category in hit[4]:
-            warnings.warn(message, category, stacklevel=3)
+            if not issubclass(category, SummaryNote):  # notes go to MillResult.notes only
+                warnings.warn(message, category, stacklevel=3)
         return hit
 
     # ------------------------------------------------------------------ running
@@ -261,21 +292,30 @@ class Mill:
         if not isinstance(feed, PSD):
             raise MsmillInputError("feed", type(feed).__name__, "a msmill.psd.PSD")
         op = _operating_point(operating_point)
+        max_steps = integer(max_steps, "max_steps", ge=1)
+        limit(max_steps, "max_steps", "time_steps")
         with _single_threaded_blas():
             return self._run(feed, op, timeseries, max_steps)
 
     def _run(self, feed: PSD, op: Any, timeseries: bool, max_steps: int) -> MillResult:
         grid = self.model_grid(feed)
+        above = 100.0 - float(feed.passing_at(float(grid.edges_mm[-1])))
+        if above > 1e-6:
+            warnings.warn(f"{above:.3g} % of the feed is coarser than the model grid's top size "
+                          f"({grid.edges_mm[-1]:.4g} mm) and is lumped into its top class",
+                          InputWarning, stacklevel=3)
         feed_m = feed.rebin(grid) if feed.grid != grid else feed
         params, streams, stats, lm, caught = self.prepare(grid, op)
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        notes += [streams.note] if streams.note else []
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
             res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
         else:
             res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+        res = _with_extrapolated_share(res, params)
         if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
             key = (grid.edges_mm.tobytes(), feed_m.fractions.tobytes(), tuple(op.stage_speeds(self.provider.n_stages)),
                    float(op.feed_tph), float(op.gate_deg))
@@ -303,8 +343,9 @@ class Mill:
                                                         op.feed_tph, op.gate_deg, seed=self.seed or 0)
         passing, p80 = [], []
         for params in samples:
-            streams = np.asarray(self.transport.streams(params), dtype=float)
-            stats = self.impacts.impacts(params, np.asarray(speeds, dtype=float))
+            streams = sm.transition_of(self.transport, params)
+            stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
+                                              np.asarray(speeds, dtype=float))
             lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage, self.band_damage_classes,
                           self.band_quadrature_nodes, self.impacted)
             tps = op.feed_tph * params.characteristic_time_s / 3600.0
@@ -366,10 +407,18 @@ class Mill:
             t_ss = time_to_steady_state(np.arange(1, prod.size + 1), prod / tps, 1.0, tol=0.001)
             warm = int(2 * (t_ss if np.isfinite(t_ss) else prod.size)) + 10
             n_steps = warm + 200
+        limit(self.parcels_per_step * n_steps, f"parcels_per_step x steps ({self.parcels_per_step} x {n_steps})",
+              "parcels_total")
         solver = MonteCarloSolver(self.parcels_per_step, self.seed)
         run = solver.run(grid.edges_mm, streams, stats, self.breakage, self.damage, feed.fractions,
                          tps, n_steps, warm, self.impacted)
         coll = run.product[warm:].sum(axis=0)
+        out_ratio = float(coll.sum()) / max((n_steps - warm) * tps, 1e-300)
+        if out_ratio < 1.0 - MC_STEADY_TOL:
+            warnings.warn(f"Monte Carlo with mc_steps={n_steps}: over its last {n_steps - warm} steps the mill "
+                          f"put out {100 * out_ratio:.3g} % of its feed, so it was still filling and the "
+                          "product PSD is not the steady one; raise mc_steps or leave it unset",
+                          InputWarning, stacklevel=4)
         per = {k: v / (n_steps - warm) for k, v in run.counts.items()}  # per step
         notes = [*notes, f"Monte Carlo: {self.parcels_per_step} parcels/step, {n_steps} steps, "
                  f"statistics over the last {n_steps - warm}, seed {self.seed}"]
@@ -431,6 +480,16 @@ class Mill:
             mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
             solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
         )
+
+
+def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
+    """The result with the feed and product mass % whose stage parameters were extrapolated."""
+    mask = getattr(params, "extrapolated", None)
+    if mask is None:
+        return res
+    mask = np.asarray(mask, dtype=bool)
+    return dataclasses.replace(res, extrapolated_feed_pct=100.0 * float(res.feed_psd.fractions[mask].sum()),
+                               extrapolated_product_pct=100.0 * float(res.product_psd.fractions[mask].sum()))
 
 
 def simulate(ore: Any, feed: PSD, operating_point: Any, stage_parameters: Any, machine: Any = None,

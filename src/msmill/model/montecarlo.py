@@ -7,21 +7,26 @@ impact rounds (the k-th secondary impact) and nothing per parcel.
 
 Per step (same semantics as the expected-value solver, docs/model.md):
 
-1. transport: each parcel in a stage draws kickback / refeed / pass-through
-   from its stage's and size class's streams; inlet-zone parcels move to stage 1;
+1. transport: each parcel draws the compartment it is in one step later from
+   its compartment's and size class's row of the transition
+   (:class:`msmill.model.submodels.Transition`; with three streams: kickback /
+   refeed / pass-through, and inlet-zone parcels move to stage 1);
 2. impacts (on the parcels that stay, or on all parcels in the stages when
    ``impacted="all"``, in which case impacts come before the transport draw):
    a primary impact with the hit probability, at a velocity drawn from the
    mixture (clipped at 0); break with ``P_b(E, L, D)``; survivors take the
    Tavares damage and break if it reaches the threshold; survivors of the
-   primary impact draw ``K ~ Poisson(lambda)`` secondary impacts, applied one
-   after another until the parcel breaks;
+   primary impact draw their number ``K`` of secondary impacts (a component
+   ``c`` of the Poisson-mixture count distribution with probability ``w_c``,
+   then ``K ~ Poisson(lambda_c)``; one component is the paper's Poisson),
+   applied one after another until the parcel breaks;
 3. a broken parcel keeps its mass and becomes one fragment parcel whose size
    class is drawn from the appearance column (probability = mass fraction), with
    damage 0 (unbiased for the expected PSD; mass conserved exactly);
-4. parcels passing through the bottom stage leave as product; stage-1
-   kickback goes to the inlet zone; the step's fresh feed parcels (stratified
-   over the feed PSD, equal mass) enter stage 1.
+4. parcels drawn to leave (the bottom stage's pass-through) leave as product;
+   the step's fresh feed parcels (stratified over the feed PSD, equal mass)
+   enter the feed compartment (stage 1 with three streams, the inlet zone with
+   the DEM's matrix).
 """
 
 from __future__ import annotations
@@ -32,8 +37,8 @@ import numpy as np
 
 from msmill.errors import MsmillError
 from msmill.model.expected_value import split_damage
-from msmill.model.parameters import MixtureArrays
-from msmill.model.submodels import ImpactStatistics, specific_energy_kwh_t
+from msmill.model.parameters import CountArrays, MixtureArrays
+from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
 
 
 @dataclass
@@ -77,6 +82,15 @@ def _sample_mixture(rng: np.random.Generator, mix: MixtureArrays, st: np.ndarray
     return np.maximum(mu + sd * rng.standard_normal(st.size), 0.0)
 
 
+def _sample_count(rng: np.random.Generator, counts: CountArrays, st: np.ndarray, cls: np.ndarray) -> np.ndarray:
+    """Secondary-impact counts: draw the mixture component, then the Poisson count of its mean."""
+    w = counts.weights[st, cls]  # (m, C)
+    if w.shape[1] == 1:
+        return rng.poisson(counts.means[st, cls, 0])
+    c = _sample_class(rng, w)
+    return rng.poisson(counts.means[st, cls, c])
+
+
 def _sample_class(rng: np.random.Generator, cols: np.ndarray) -> np.ndarray:
     c = np.cumsum(cols, axis=1)
     u = rng.random(cols.shape[0])[:, None] * c[:, -1:]
@@ -116,9 +130,10 @@ class MonteCarloSolver:
         edges = np.asarray(edges_mm, dtype=float)
         mids = np.sqrt(edges[:-1] * edges[1:])
         n = mids.size
-        n_st = streams.shape[0]
+        tr = as_transition(streams)
+        n_st = tr.n_stages
         th = float(damage.threshold)
-        cum_streams = np.cumsum(streams, axis=-1)
+        cum_dest = np.cumsum(tr.matrix, axis=-1)  # (S+1, N, S+2)
         feed_cdf = np.cumsum(np.asarray(feed_fractions, dtype=float))
         feed_cdf /= feed_cdf[-1]
         m0 = tonnes_per_step / self.parcels_per_step
@@ -166,6 +181,8 @@ class MonteCarloSolver:
             dmg[s] = ds
             return broke
 
+        count_mix = stats.count_mixture()
+
         def impacts(idx: np.ndarray, collect: bool) -> None:
             st = comp[idx] - 1
             hit = rng.random(idx.size) < stats.hit_probability[st, cls[idx]]
@@ -174,7 +191,7 @@ class MonteCarloSolver:
                 return
             broke = impact(h, stats.primary_velocity, collect, "primary")
             alive = h[~broke]
-            k = rng.poisson(stats.secondary_lambda[comp[alive] - 1, cls[alive]])
+            k = _sample_count(rng, count_mix, comp[alive] - 1, cls[alive])
             j = 0
             while alive.size:
                 sel = k > j
@@ -191,25 +208,22 @@ class MonteCarloSolver:
             if impacted == "all":
                 impacts(np.flatnonzero(in_stage), collect)
             # transport draw (post-impact size class when impacts come first)
-            move = np.zeros(comp.size, dtype=np.int64)
-            idx = np.flatnonzero(in_stage)
-            cs = cum_streams[comp[idx] - 1, cls[idx]]
-            u = rng.random(idx.size) * cs[:, 2]
-            move[idx] = np.where(u < cs[:, 0], -1, np.where(u < cs[:, 1], 0, 1))
-            move[comp == 0] = 1
+            cs = cum_dest[comp, cls]  # (m, S+2)
+            u = rng.random(comp.size) * cs[:, -1]
+            dest = np.minimum((cs <= u[:, None]).sum(axis=1), n_st + 1)
             if impacted == "refeed":
-                impacts(idx[move[idx] == 0], collect)
-            comp = comp + move
+                impacts(np.flatnonzero(in_stage & (dest == comp)), collect)
+            comp = dest
             out = comp > n_st
             if np.any(out):
                 np.add.at(product[t], cls[out], mass[out])
                 total_out += mass[out].sum()
                 keep = ~out
                 comp, cls, dmg, mass = comp[keep], cls[keep], dmg[keep], mass[keep]
-            # fresh feed: stratified over the feed PSD, equal mass, undamaged, into stage 1
+            # fresh feed: stratified over the feed PSD, equal mass, undamaged, into the feed compartment
             u = (np.arange(self.parcels_per_step) + rng.random()) / self.parcels_per_step
             new_cls = np.minimum(np.searchsorted(feed_cdf, u, side="right"), n - 1)
-            comp = np.concatenate([comp, np.ones(new_cls.size, dtype=np.int64)])
+            comp = np.concatenate([comp, np.full(new_cls.size, tr.feed_compartment, dtype=np.int64)])
             cls = np.concatenate([cls, new_cls])
             dmg = np.concatenate([dmg, np.zeros(new_cls.size)])
             mass = np.concatenate([mass, np.full(new_cls.size, m0)])

@@ -7,6 +7,11 @@ re-exported here so existing imports keep working.
 
 from __future__ import annotations
 
-from msmill.providers_base import MixtureArrays, StageParameterProvider, StageParameters
+from msmill.providers_base import (
+    CountArrays,
+    MixtureArrays,
+    StageParameterProvider,
+    StageParameters,
+)
 
-__all__ = ["MixtureArrays", "StageParameterProvider", "StageParameters"]
+__all__ = ["CountArrays", "MixtureArrays", "StageParameterProvider", "StageParameters"]

@@ -14,20 +14,24 @@ Providers shipped here
     format defined in :func:`read_simple_table`. Values are interpolated
     linearly in ``ln(size)`` between runs; velocity mixtures are interpolated
     as a mixture of the two neighbouring mixtures (weights ``1 - w`` and
-    ``w``), which keeps every interpolated distribution valid.
+    ``w``), which keeps every interpolated distribution valid; secondary-impact
+    count distributions (Poisson mixtures) are interpolated the same way.
 :class:`RunProvider`
     The statistics of one DEM run (:class:`msmill.stageparams.RunStatistics`),
     applied to every size.
 
-Sizes outside the sizes covered are clamped to the nearest run, with one
-:class:`msmill.errors.OutOfDomainWarning`. An operating point that differs
-from the one the statistics were measured at also warns.
+Sizes outside the sizes covered are extrapolated (a table: the end run's
+values continued along the table's least-squares trend in ``ln(size)``, up to
+:data:`EXTRAPOLATION_SPANS` times the covered span, then held; one run:
+clamped) and flagged in ``StageParameters.extrapolated``; the mill result
+reports the share of feed and product mass concerned (no warning). An
+operating point that differs from the one the statistics were measured at
+warns.
 """
 
 from __future__ import annotations
 
 import csv
-import tomllib
 import warnings
 from pathlib import Path
 from typing import Any
@@ -35,9 +39,20 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from msmill.errors import MsmillInputError, OutOfDomainWarning, from_validation_error
-from msmill.providers_base import MixtureArrays, StageParameterProvider, StageParameters
-from msmill.stageparams import RunStatistics, StageParameterTable, StageStatistics
+from msmill.errors import MsmillInputError, OutOfDomainWarning, SummaryNote, from_validation_error
+from msmill.providers_base import (
+    CountArrays,
+    MixtureArrays,
+    StageParameterProvider,
+    StageParameters,
+)
+from msmill.stageparams import (
+    CountDistribution,
+    RunStatistics,
+    StageParameterTable,
+    StageStatistics,
+)
+from msmill.validate import existing_file, read_text, read_toml
 
 __all__ = [
     "RunProvider",
@@ -61,7 +76,7 @@ def _check_operating_point(design, stage_speeds_rpm, feed_tph, gate_deg, source:
         a = np.asarray(stage_speeds_rpm, dtype=float)
         b = np.asarray(design.stage_speeds_rpm, dtype=float)
         if a.shape != b.shape or np.any(np.abs(a - b) > _REL_TOL * np.maximum(b, 1.0)):
-            diffs.append(f"stage speeds {list(np.round(a, 1))} rpm vs {list(np.round(b, 1))} rpm")
+            diffs.append(f"stage speeds {np.round(a, 1).tolist()} rpm vs {np.round(b, 1).tolist()} rpm")
     if feed_tph is not None and abs(feed_tph - design.feed_tph) > _REL_TOL * design.feed_tph:
         diffs.append(f"feed {feed_tph:g} t/h vs {design.feed_tph:g} t/h")
     if gate_deg is not None and abs(gate_deg - design.gate_deg) > 0.5:
@@ -120,12 +135,40 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
             arr[1, i, :, : w.shape[1]] = m
             arr[2, i, :, : w.shape[1]] = sd
         out[key] = arr
+    out["sc"] = _count_rows(runs)
     has_regions = all(s.region_weights is not None and s.region_streams is not None
                       for r in runs for s in r.stages)
     if has_regions:
         out["rw"] = np.array([[s.region_weights for s in r.stages] for r in runs])
         out["rs"] = np.array([[s.region_streams for s in r.stages] for r in runs])
+    if all(r.inlet_destinations is not None and all(s.destinations is not None for s in r.stages) for r in runs):
+        out["tr"] = np.array([[r.inlet_destinations] + [s.destinations for s in r.stages] for r in runs])
     return out
+
+
+def _count_rows(runs: list[RunStatistics]) -> np.ndarray:
+    """Secondary-count mixtures stacked as (2, R, S, C): weights, means (padding weight 0)."""
+    counts = [[s.secondary_count or CountDistribution.poisson(s.secondary_lambda) for s in r.stages] for r in runs]
+    c = max(d.n_components for row in counts for d in row)
+    arr = np.zeros((2, len(runs), runs[0].n_stages, c))
+    for i, row in enumerate(counts):
+        for j, d in enumerate(row):
+            arr[0, i, j, : d.n_components] = d.weights
+            arr[1, i, j, : d.n_components] = d.means
+    return arr
+
+
+#: Extrapolation reach beyond the sizes covered, as a multiple of the covered ln-size span
+#: (docs/model.md, "Sizes outside the stage statistics"): a table covering 6-30 mm extrapolates
+#: its trends down to 1.2 mm and up to 150 mm, and holds the values reached there beyond.
+EXTRAPOLATION_SPANS = 1.0
+
+
+def _trend_slope(xr: np.ndarray, arr: np.ndarray) -> np.ndarray:
+    """Least-squares slope of ``arr`` (R, ...) against ``xr`` (R,) over all runs (per element)."""
+    dx = xr - xr.mean()
+    shape = (-1,) + (1,) * (arr.ndim - 1)
+    return np.sum(dx.reshape(shape) * (arr - arr.mean(axis=0)), axis=0) / np.sum(dx * dx)
 
 
 def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
@@ -133,16 +176,15 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
     sizes = np.asarray(sizes_mm, dtype=float)
     lo, hi = run_sizes[0], run_sizes[-1]
     outside = (sizes < lo * (1 - 1e-9)) | (sizes > hi * (1 + 1e-9))
-    if np.any(outside):
-        warnings.warn(
-            f"{int(outside.sum())} of {sizes.size} size classes "
-            f"({sizes[outside].min():.3g}-{sizes[outside].max():.3g} mm) lie outside the "
-            f"{lo:g}-{hi:g} mm covered by {source}; their stage parameters are clamped "
-            "to the nearest size", OutOfDomainWarning, stacklevel=3)
     a = _run_arrays(runs)
     _check_velocities(runs, source)
     x = np.log(np.clip(sizes, lo, hi))
     xr = np.log(run_sizes)
+    # outside the sizes covered: the end run's value plus the table's ln-size trend (least squares over
+    # all runs) times the distance, the distance capped at EXTRAPOLATION_SPANS x the covered span
+    reach = EXTRAPOLATION_SPANS * (xr[-1] - xr[0])
+    x_out = np.clip(np.log(sizes), xr[0] - reach, xr[-1] + reach)
+    dx_out = np.where(outside, x_out - x, 0.0)  # 0 inside; one run: reach 0, i.e. clamped
     if len(runs) == 1:
         j = np.zeros(sizes.size, dtype=int)
         w = np.zeros(sizes.size)
@@ -157,7 +199,11 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         a0 = np.moveaxis(arr[j], 0, 1)
         a1 = np.moveaxis(arr[j1], 0, 1)
         ww = w.reshape((1, -1) + (1,) * (a0.ndim - 2))
-        return (1 - ww) * a0 + ww * a1
+        out = (1 - ww) * a0 + ww * a1
+        if len(runs) > 1 and np.any(outside):
+            slope = _trend_slope(xr, arr)[:, None]  # (S, 1, ...)
+            out = out + slope * dx_out.reshape((1, -1) + (1,) * (a0.ndim - 2))
+        return out
 
     def mix(arr: np.ndarray) -> MixtureArrays:
         # arr (3, R, S, K): concatenate neighbours' components with weights (1-w), w
@@ -167,27 +213,51 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         weights = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
         means = np.concatenate([p0[1], p1[1]], axis=-1)
         sig = np.concatenate([p0[2], p1[2]], axis=-1)
+        if len(runs) > 1 and np.any(outside):
+            # velocities scale with the trend of ln(mean velocity) in ln(size)
+            ln_mean = np.log(np.maximum(np.sum(arr[0] * arr[1], axis=-1), 1e-6))  # (R, S)
+            f = np.exp(_trend_slope(xr, ln_mean)[:, None, None] * dx_out[None, :, None])
+            means, sig = means * f, sig * f
         return MixtureArrays(weights, means, sig)
 
-    streams = lin(a["streams"])
+    def count_mix(arr: np.ndarray, lam: np.ndarray) -> CountArrays:
+        # arr (2, R, S, C): as for velocities, the interpolated pmf is the (1-w, w) mixture of the
+        # neighbours' pmfs, so its mean is the interpolated secondary_lambda; outside the sizes
+        # covered the end run's shape is kept and its means scaled to the extrapolated lambda
+        p0 = np.moveaxis(arr[:, j], 1, 2)  # (2, S, N, C)
+        p1 = np.moveaxis(arr[:, j1], 1, 2)
+        ww = w[None, :, None]
+        cw = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
+        cm = np.concatenate([p0[1], p1[1]], axis=-1)
+        own = np.sum(cw * cm, axis=-1)
+        scale = np.where(outside[None, :] & (own > 0), lam / np.where(own > 0, own, 1.0), 1.0)
+        return CountArrays(cw, cm * scale[..., None])
+
+    streams = np.maximum(lin(a["streams"]), 0.0)
     streams /= streams.sum(axis=-1, keepdims=True)
-    rw = rs = None
+    rw = rs = tr = None
     if "rw" in a:
-        rw = lin(a["rw"])
-        rs = lin(a["rs"])
+        rw = np.maximum(lin(a["rw"]), 0.0)
+        rw /= rw.sum(axis=-1, keepdims=True)
+        rs = np.maximum(lin(a["rs"]), 0.0)
+        rs /= rs.sum(axis=-1, keepdims=True)
+    if "tr" in a:
+        tr = np.maximum(lin(a["tr"]), 0.0)
+        tr /= tr.sum(axis=-1, keepdims=True)
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
-                      f"using their mean {times.mean():g} s as the time step", OutOfDomainWarning,
+                      f"using their mean {times.mean():g} s as the time step", SummaryNote,
                       stacklevel=3)
     d = runs[0].design
+    lam = np.maximum(lin(a["lam"]), 0.0)
     return StageParameters(
         sizes_mm=sizes.copy(),
         characteristic_time_s=float(times.mean()),
         streams=streams,
         hit_probability=np.clip(lin(a["hit"]), 0.0, 1.0),
         primary_velocity=mix(a["pv"]),
-        secondary_lambda=np.maximum(lin(a["lam"]), 0.0),
+        secondary_lambda=lam,
         secondary_velocity=mix(a["sv"]),
         design_stage_speeds_rpm=np.asarray(d.stage_speeds_rpm, dtype=float),
         design_feed_tph=d.feed_tph,
@@ -195,6 +265,10 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         region_weights=rw,
         region_streams=rs,
         source=source,
+        secondary_count=count_mix(a["sc"], lam),
+        transition=tr,
+        extrapolated=outside,
+        transition_lag_s=None if tr is None else (1 - w) * times[j] + w * times[j1],
     )
 
 
@@ -221,9 +295,7 @@ class TableProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> TableProvider:
         """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing table file")
+        p = existing_file(path, "stage_parameters", "stage-parameter table file")
         if p.suffix.lower() in (".toml", ".csv"):
             return cls(read_simple_table(p), source=p.name)
         return cls(StageParameterTable.from_json(p), source=p.name)
@@ -262,13 +334,11 @@ class RunProvider:
     @classmethod
     def from_file(cls, path: str | Path) -> RunProvider:
         """Read a :class:`RunStatistics` JSON file."""
-        p = Path(path)
-        if not p.exists():
-            raise MsmillInputError("stage_parameters", str(p), "an existing run-statistics file")
+        p = existing_file(path, "stage_parameters", "run-statistics file")
         return cls(RunStatistics.from_json(p), source=p.name)
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None):
-        """The run's parameters at every size (other sizes are clamped, with a warning)."""
+        """The run's parameters at every size (other sizes are clamped and flagged as extrapolated)."""
         _check_operating_point(self.run.design, stage_speeds_rpm, feed_tph, gate_deg, self.source)
         return _interpolate([self.run], sizes_mm, self.source)
 
@@ -318,9 +388,10 @@ def named_parameter_path(name: str, field: str = "stage_parameters") -> Path | N
         return None
     p = default_surrogate_path()
     if p is None:
+        table = default_table_path(field)  # raises first when the table is missing too
         warnings.warn("the shipped default surrogate (msmill/data/surrogates/default.json) is not installed: "
                       "using the single-point DEM table ('table') instead", UserWarning, stacklevel=3)
-        return default_table_path(field)
+        return table
     return p
 
 
@@ -345,7 +416,7 @@ def load_provider(path: str | Path) -> Any:
         return prov
     if p.suffix.lower() == ".json" and p.exists():
         try:
-            kind = json.loads(p.read_text(encoding="utf-8")).get("kind")
+            kind = json.loads(read_text(p, "stage_parameters", "JSON file")).get("kind")
         except (json.JSONDecodeError, AttributeError):
             kind = None
         if kind != "stage_parameter_table":
@@ -426,13 +497,10 @@ def read_simple_table(path: str | Path) -> StageParameterTable:
     """
     p = Path(path)
     if p.suffix.lower() == ".toml":
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
-            raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+        data = read_toml(p, "stage_parameters", "stage-parameter TOML file")
     else:
-        with p.open(newline="", encoding="utf-8") as fh:
-            raw = [r for r in csv.DictReader(line for line in fh if not line.lstrip().startswith("#"))]
+        lines = read_text(p, "stage_parameters", "stage-parameter CSV file").splitlines()
+        raw = [r for r in csv.DictReader(line for line in lines if not line.lstrip().startswith("#"))]
         if not raw:
             raise MsmillInputError(p.name, "no rows", "a CSV table with a header and rows")
         missing = [c for c in _DESIGN_COLS if c not in raw[0]]

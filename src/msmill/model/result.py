@@ -57,6 +57,9 @@ class MillResult:
         The sub-models used, by step.
     notes : tuple of str
         Defaults in use, providers' sources, other remarks.
+    extrapolated_feed_pct, extrapolated_product_pct : float
+        Mass % of the feed and of the product in size classes whose stage
+        parameters were extrapolated outside the sizes the statistics cover.
     p80_band_mm : tuple of float or None
         5-95 % band of P80 (mm) over posterior samples of the stage
         parameters, when the provider gives them (the GP surrogate); else None
@@ -91,6 +94,8 @@ class MillResult:
     solver: str
     submodels: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    extrapolated_feed_pct: float = float("nan")
+    extrapolated_product_pct: float = float("nan")
     p80_band_mm: tuple[float, float] | None = None
     psd_band: pd.DataFrame | None = None
     band_samples: int = 0
@@ -109,6 +114,8 @@ class MillResult:
             "secondary_impacts_per_t": self.secondary_impacts_per_t,
             "specific_impact_energy_kwh_t": self.specific_impact_energy_kwh_t,
             "mass_balance_error": self.mass_balance_error,
+            "extrapolated_feed_pct": self.extrapolated_feed_pct,
+            "extrapolated_product_pct": self.extrapolated_product_pct,
         })
 
 

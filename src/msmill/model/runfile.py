@@ -49,19 +49,28 @@ field (``ug2.toml.feed.rate_tph: got -3; allowed: ...``).
 from __future__ import annotations
 
 import math
-import tomllib
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from msmill.errors import MsmillInputError, from_validation_error
+from msmill.model.mill import MIN_MC_STEPS
 from msmill.model.providers import DEFAULT_TABLE, named_parameter_path
+from msmill.validate import InputModel, InputWarning, limit, read_toml
 
 
-class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Section(InputModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class OreSection(_Section):
@@ -105,6 +114,13 @@ class OperatingSection(_Section):
     gate_deg: float = Field(default=40.0, ge=0, le=90)
 
 
+#: A Rosin-Rammler feed is cut at ``top_mm`` and the tail above it put in the top class;
+#: below this % passing at ``top_mm`` the cut changes the feed materially and warns
+#: (``top_mm = 5`` with ``size_63_mm = 20`` lumps 88 % of the feed; the shipped
+#: platreef example cuts a 7.6 % tail and does not warn).
+RR_MIN_PASSING_AT_TOP_PCT = 80.0
+
+
 class MachineSection(_Section):
     file: str | None = None
 
@@ -120,12 +136,19 @@ class ModelSection(_Section):
     breakage: str | None = None
     damage: str | None = None
     impacted: str = "refeed"
-    damage_classes: int = Field(default=8, ge=1, le=64)
-    quadrature_nodes: int = Field(default=12, ge=1, le=64)
+    damage_classes: int = Field(default=8, ge=1)
+    quadrature_nodes: int = Field(default=12, ge=1)
     parcels_per_step: int = Field(default=2000, ge=1)
-    mc_steps: int | None = Field(default=None, ge=2)
-    seed: int | None = None
+    mc_steps: int | None = Field(default=None, ge=MIN_MC_STEPS)
+    seed: int | None = Field(default=None, ge=0, lt=2**63)
     band_samples: int = Field(default=64, ge=0, le=1024)  # GP posterior samples behind the 5-95 % band
+
+    @field_validator("damage_classes", "quadrature_nodes", "parcels_per_step", "mc_steps")
+    @classmethod
+    def _limits(cls, v: int | None, info: ValidationInfo) -> int | None:
+        if v is not None:
+            limit(v, info.field_name)  # resource limits, msmill.validate.LIMITS
+        return v
 
 
 class GridSection(_Section):
@@ -135,10 +158,20 @@ class GridSection(_Section):
 
 
 class OutputSection(_Section):
-    dir: str = "."
+    dir: str = Field(default=".", min_length=1)
     csv: str = "product.csv"
     plots: bool = True
-    passing_sizes_mm: list[float] = Field(default_factory=lambda: [0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0])
+    passing_sizes_mm: list[float] = Field(default_factory=lambda: [0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0],
+                                          min_length=1, max_length=100)
+
+    @model_validator(mode="after")
+    def _sizes(self) -> OutputSection:
+        c = self.csv
+        if not c.endswith(".csv") or c == ".csv" or "/" in c or "\\" in c or c.startswith("."):
+            raise ValueError("csv must be a plain file name ending in .csv, without a folder part")
+        if any(not s > 0 for s in self.passing_sizes_mm):
+            raise ValueError("passing_sizes_mm must be sizes > 0 mm")
+        return self
 
 
 class RunFile(_Section):
@@ -159,13 +192,8 @@ class RunFile(_Section):
     @classmethod
     def from_toml(cls, path: str | Path) -> RunFile:
         """Read and validate a run file; errors are one line naming the field."""
-        p = Path(path)
-        if not p.is_file():
-            raise MsmillInputError("run file", str(p), "an existing TOML file")
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
-            raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
+        data = read_toml(path, "run file", "TOML file")
+        p = Path(path).expanduser()
         return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
 
     @classmethod
@@ -183,6 +211,10 @@ class RunFile(_Section):
         """
         if not isinstance(data, dict):
             raise MsmillInputError(name, type(data).__name__, "a table of run-file sections")
+        missing = [k for k in ("ore", "feed", "operating") if k not in data]
+        if missing:
+            raise MsmillInputError(f"{name}.{missing[0]}", None, f"a [{missing[0]}] section "
+                                   "(every run file needs [ore], [feed] and [operating])")
         for key in ("base_dir", "name"):
             if key in data:
                 raise MsmillInputError(f"{name}.{key}", data[key], "not a run-file key")
@@ -207,20 +239,38 @@ class RunFile(_Section):
                 rr = f.rosin_rammler
                 grid = SizeGrid.geometric(self.grid.min_mm, rr.top_mm, self.grid.ratio)
                 x = grid.edges_mm[1:]
-                passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
+                with np.errstate(over="ignore", under="ignore"):  # a huge spread is a step: exp(-inf) = 0
+                    passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
+                z = min(rr.spread * math.log(rr.top_mm / rr.size_63_mm), 700.0)  # ln((top / x63)^n)
+                at_top = 100.0 * (1.0 - math.exp(-math.exp(z)))
+                if at_top < RR_MIN_PASSING_AT_TOP_PCT:
+                    warnings.warn(f"{self.name}.feed.rosin_rammler: only {at_top:.3g} % passes top_mm = "
+                                  f"{rr.top_mm:g} mm; the other {100 - at_top:.3g} % is put in the top class",
+                                  InputWarning, stacklevel=2)
                 passing[-1] = 100.0
                 return PSD.from_passing(x, passing, grid=grid)
-            return PSD.from_passing(f.size_mm, f.passing_pct)
+            return PSD.from_passing(f.size_mm, f.passing_pct, prefix=f"{self.name}.feed.")
         except MsmillInputError as exc:
-            raise MsmillInputError(f"{self.name}.feed.{exc.field}", exc.value, exc.allowed) from None
+            field = exc.field if exc.field.startswith(self.name) else f"{self.name}.feed.{exc.field}"
+            raise MsmillInputError(field, exc.value, exc.allowed) from None
 
     def model_grid(self, feed):
         """The model size grid (sqrt(2) series from ``grid.min_mm`` to the feed top by default)."""
         from msmill.psd import SizeGrid
 
-        top = self.grid.max_mm or float(feed.grid.edges_mm[-1])
+        feed_top = float(feed.grid.edges_mm[-1])
+        top = self.grid.max_mm or feed_top
         if top <= self.grid.min_mm:
+            if self.grid.max_mm is None:
+                raise MsmillInputError(f"{self.name}.grid.min_mm", self.grid.min_mm,
+                                       f"a size < the feed's top size ({feed_top:.4g} mm)")
             raise MsmillInputError(f"{self.name}.grid.max_mm", top, f"a size > grid.min_mm ({self.grid.min_mm})")
+        if top < feed_top * (1 - 1e-9):
+            raise MsmillInputError(f"{self.name}.grid.max_mm", self.grid.max_mm,
+                                   f"a size >= the feed's top size ({feed_top:.4g} mm); a smaller grid "
+                                   "would lump the coarser feed into its top class")
+        n = math.ceil(math.log(top / self.grid.min_mm) / math.log(self.grid.ratio) - 1e-9)
+        limit(n, f"{self.name}.grid (min_mm, max_mm, ratio)", "grid_classes")
         return SizeGrid.geometric(self.grid.min_mm, top, self.grid.ratio)
 
     def operating_point(self):
@@ -299,6 +349,9 @@ class RunFile(_Section):
             elif field.startswith(("machine.", "ore.")):
                 field = f"{self.name}.{field}"
             raise MsmillInputError(field, exc.value, exc.allowed) from None
+        if m.solver == "monte_carlo" and m.mc_steps is not None:
+            limit(m.parcels_per_step * m.mc_steps, f"{self.name}.model.parcels_per_step x mc_steps",
+                  "parcels_total")
         try:
             op.stage_speeds(mill.provider.n_stages)
         except MsmillInputError as exc:

@@ -19,6 +19,7 @@ sub-model".
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -27,7 +28,7 @@ import numpy as np
 
 from msmill import breakage as _bk
 from msmill.errors import MsmillInputError
-from msmill.model.parameters import MixtureArrays, StageParameters
+from msmill.model.parameters import CountArrays, MixtureArrays, StageParameters
 from msmill.psd import SizeGrid
 
 KWH_T_PER_J_KG = 1.0 / _bk.J_KG_PER_KWH_T  # 1 kWh/t = 3600 J/kg
@@ -133,12 +134,36 @@ class ImpactStatistics:
         Poisson mean of secondary impacts after a non-breaking primary impact.
     secondary_velocity : MixtureArrays
         Secondary impact velocity (m/s), clipped at 0 when used.
+    secondary_count : CountArrays or None
+        Poisson-mixture distribution of the number of secondary impacts (mean
+        ``secondary_lambda``); None: Poisson of ``secondary_lambda``.
     """
 
     hit_probability: np.ndarray
     primary_velocity: MixtureArrays
     secondary_lambda: np.ndarray
     secondary_velocity: MixtureArrays
+    secondary_count: CountArrays | None = None
+
+    def count_mixture(self) -> CountArrays:
+        """The secondary-count distribution the solvers use (S, N, C)."""
+        if self.secondary_count is None:
+            return CountArrays.poisson(self.secondary_lambda)
+        return self.secondary_count
+
+
+def without_stopped_rotors(stats: ImpactStatistics, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
+    """The impact statistics with no primary impacts (hence no secondary ones) where a stage's rotors stand.
+
+    Whatever the impact sub-model: the DEM statistics were measured with turning
+    rotors; a stage at 0 rpm has no flinger impacts.
+    """
+    speeds = np.asarray(stage_speeds_rpm, dtype=float)
+    stopped = speeds <= 0.0
+    if not np.any(stopped):
+        return stats
+    h = np.where(stopped[:, None], 0.0, stats.hit_probability)
+    return dataclasses.replace(stats, hit_probability=h)
 
 
 @runtime_checkable
@@ -182,7 +207,125 @@ class DamageModel(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class Transition:
+    """One-step transport of every compartment, as the solvers use it.
+
+    Attributes
+    ----------
+    matrix : ndarray (S+1, N, S+2)
+        ``matrix[c, i, c2]``: fraction of the class-``i`` mass in compartment ``c``
+        (0 = inlet zone, 1..S = stages) found one step later in ``c2``
+        (``S+1`` = left the mill as product). Rows sum to 1.
+    feed_compartment : int
+        Compartment the fresh feed of a step enters at the end of the step.
+    note : str
+        Remark for the result's notes (e.g. a fallback), or empty.
+    """
+
+    matrix: np.ndarray
+    feed_compartment: int = 1
+    note: str = ""
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages ``S``."""
+        return int(self.matrix.shape[0] - 1)
+
+    @classmethod
+    def from_streams(cls, streams: np.ndarray, note: str = "") -> Transition:
+        """Three streams per stage (S, N, 3): kickback to ``s - 1``, refeed, pass-through to ``s + 1``.
+
+        The inlet zone empties into stage 1 in one step and the fresh feed enters stage 1
+        (the paper's scheme, ``msmill.stageparams``).
+        """
+        st = np.asarray(streams, dtype=float)
+        n_st, n, _ = st.shape
+        T = np.zeros((n_st + 1, n, n_st + 2))
+        T[0, :, 1] = 1.0
+        s = np.arange(1, n_st + 1)
+        T[s, :, s - 1] = st[:, :, 0]
+        T[s, :, s] = st[:, :, 1]
+        T[s, :, s + 1] = st[:, :, 2]
+        return cls(T, 1, note)
+
+
+def as_transition(transport: Any) -> Transition:
+    """A :class:`Transition`, or three streams (S, N, 3) turned into one."""
+    if isinstance(transport, Transition):
+        return transport
+    return Transition.from_streams(transport)
+
+
+def transition_of(model: Any, params: StageParameters) -> Transition:
+    """The one-step transport a transport sub-model gives (its ``transition`` or its streams)."""
+    if hasattr(model, "transition"):
+        return model.transition(params)
+    return Transition.from_streams(np.asarray(model.streams(params), dtype=float))
+
+
 # -------------------------------------------------------------- implementations
+def _to_step(T: np.ndarray, lag_s: np.ndarray, step_s: float) -> np.ndarray:
+    """Transition matrices measured at ``lag_s`` (per class) as matrices for one step of ``step_s``.
+
+    ``P(step) = P(lag)**(step / lag)`` (the Markov chain's own rule; real part of the
+    principal fractional power, clipped at 0 and re-normalised). Needed when a
+    table's runs have different characteristic times and the model steps at their mean.
+    """
+    import scipy.linalg
+
+    out = T.copy()
+    c = T.shape[0]
+    for i in np.flatnonzero(np.abs(lag_s / step_s - 1.0) > 1e-6):
+        Q = np.eye(c + 1)
+        Q[:c] = T[:, i, :]
+        R = np.real(scipy.linalg.fractional_matrix_power(Q, step_s / lag_s[i]))[:c]
+        R = np.maximum(R, 0.0)
+        out[:, i, :] = R / R.sum(axis=-1, keepdims=True)
+    return out
+
+
+class MatrixTransport:
+    """The DEM's one-lag transition matrix of every compartment, the inlet zone included.
+
+    Rock tagged in compartment ``c`` (inlet zone or stage) is found one
+    characteristic time later in any compartment or has left
+    (``StageStatistics.destinations``, ``RunStatistics.inlet_destinations``),
+    so jumps over more than one stage and the time rock spends above stage 1
+    (feed chute, rock thrown up) are as measured; the fresh feed enters the
+    inlet zone. A class whose matrix was measured at a lag other than the
+    model step (a table whose runs have different characteristic times) gets
+    the matrix's fractional power ``step / lag``. Stage parameters without
+    these fields fall back to the ``regions`` streams (with a note).
+    """
+
+    name = "dem_matrix"
+    requires = ("transition",)
+
+    def transition(self, params: StageParameters) -> Transition:
+        if params.transition is None:
+            return Transition.from_streams(RegionWeightedTransport().streams(params),
+                                           note="transport: the stage parameters have no one-lag destinations; "
+                                           "used the three streams ('regions')")
+        T = np.asarray(params.transition, dtype=float)
+        lag = params.transition_lag_s
+        if lag is not None:
+            T = _to_step(T, np.asarray(lag, dtype=float), float(params.characteristic_time_s))
+        return Transition(T, feed_compartment=0)
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        """The three streams per stage implied by the matrix (kickback / refeed / pass-through)."""
+        T = self.transition(params).matrix
+        s = np.arange(1, T.shape[0])
+        up = np.cumsum(T[1:], axis=-1)  # (S, N, S+2)
+        kick = up[np.arange(s.size), :, s - 1]
+        ref = T[s, :, s]
+        return np.stack([kick, ref, 1.0 - kick - ref], axis=-1)
+
+    def __repr__(self) -> str:
+        return "MatrixTransport()"
+
+
 class RegionWeightedTransport:
     """DEM streams; when region data exist, the solid-fraction-weighted average over regions.
 
@@ -225,7 +368,7 @@ class DemImpacts:
 
     def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
         return ImpactStatistics(params.hit_probability, params.primary_velocity,
-                                params.secondary_lambda, params.secondary_velocity)
+                                params.secondary_lambda, params.secondary_velocity, params.secondary_count)
 
     def __repr__(self) -> str:
         return "DemImpacts()"
@@ -258,7 +401,8 @@ class SpeedScaledImpacts:
         ratio = np.where(design > 0, speeds / np.where(design > 0, design, 1.0), 1.0)
         f = ratio[:, None, None]
         return ImpactStatistics(params.hit_probability, params.primary_velocity.scaled(f),
-                                params.secondary_lambda, params.secondary_velocity.scaled(f))
+                                params.secondary_lambda, params.secondary_velocity.scaled(f),
+                                params.secondary_count)
 
     def __repr__(self) -> str:
         return "SpeedScaledImpacts()"
@@ -295,6 +439,8 @@ class AbT10Breakage:
 
     name = "ab_t10"
     requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")
+    #: t10 convention (``msmill.breakage.T10_CONVENTIONS``): broken rock ``t10 = A P_b``.
+    t10_convention = "paper"
 
     #: Breakage probabilities at which appearance columns are tabulated
     #: (``(k / 1024)**2``; the interpolation error in a column is below 5e-4).
@@ -385,7 +531,108 @@ class AbT10Breakage:
 
     def __repr__(self) -> str:
         o = self.ore
-        return f"AbT10Breakage({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)"
+        return (f"{type(self).__name__}({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, "
+                f"L_ref={o.l_ref_mm:g} mm)")
+
+
+class JkT10Breakage(AbT10Breakage):
+    """Ab-t10 breakage read in the JK drop-weight convention (the default).
+
+    ``P_b = 1 - exp(-b E_cs L / (L_ref (1 - D)))`` as in :class:`AbT10Breakage`,
+    but a broken rock's fragments have ``t10 = A``, so that after one impact the
+    t10 of the whole population (broken and unbroken rock) is the JK law
+    ``A (1 - exp(-b E_cs L / L_ref))`` in which ``A`` and ``b`` are published and
+    fitted (docs/breakage.md, "The t10 convention").
+    """
+
+    name = "jk_t10"
+    t10_convention = "jk"
+
+    def columns(self, edges_mm: np.ndarray) -> np.ndarray:
+        """Appearance columns at ``t10 = A``: ``(parent, class)``, cached per (grid, A, t_n constants)."""
+        edges = np.asarray(edges_mm, dtype=float)
+        tn = self.ore.tn
+        key = ("jk", edges.tobytes(), self.ore.A_pct, None if tn is None else (tuple(tn.k), tuple(tn.s)))
+        col = _APPEARANCE_TABLES.get(key)
+        if col is None:
+            B = _bk.appearance_matrix(SizeGrid(edges), self.ore.A_pct, tn)  # (class i, parent j)
+            col = np.ascontiguousarray(B.T)
+            if len(_APPEARANCE_TABLES) >= 16:
+                _APPEARANCE_TABLES.pop(next(iter(_APPEARANCE_TABLES)))
+            _APPEARANCE_TABLES[key] = col
+        return col
+
+    def fragments(self, edges_mm, parent, pb):
+        """The appearance column at ``t10 = A`` for every ``pb``."""
+        pb = np.asarray(pb, dtype=float)
+        parent = np.broadcast_to(np.asarray(parent, dtype=int), pb.shape)
+        return self.columns(edges_mm)[parent]
+
+    def expected_fragments(self, edges_mm, pb, weights):
+        """``sum_q weights * fragments`` (parents along axis 0): every column is the ``t10 = A`` one."""
+        w = np.asarray(weights, dtype=float).sum(axis=1)  # (N, D)
+        return np.einsum("id,ik->kid", w, self.columns(edges_mm))
+
+
+def simulate_lab_test(breakage: BreakageModel, size_mm: np.ndarray, ecs_kwh_t: np.ndarray) -> np.ndarray:
+    """Population t10 (%) of a drop-weight test simulated through a breakage sub-model.
+
+    One impact per rock of size ``size_mm`` at ``ecs_kwh_t`` (intact rock): a
+    fraction ``probability`` breaks into ``fragments``, the rest stays whole;
+    the result is the % of all the mass passing a tenth of the rock size. The
+    fragments are read on a grid (in units of the rock size, the appearance
+    function depends only on size ratios) with the parent class centred on the
+    rock size and an edge at a tenth of it.
+    """
+    size = np.asarray(size_mm, dtype=float)
+    e = np.asarray(ecs_kwh_t, dtype=float)
+    size, e = np.broadcast_arrays(size, e)
+    edges = np.concatenate([0.1 * 2.0 ** (np.arange(-20, 7) / 2.0), [1.25]])  # parent class [0.8, 1.25]
+    parent = edges.size - 2
+    below = int(np.flatnonzero(np.isclose(edges, 0.1))[0])  # classes < below lie under a tenth
+    pb = np.asarray(breakage.probability(e, size, np.zeros_like(e)), dtype=float)
+    cols = breakage.fragments(edges, np.full(pb.shape, parent), pb)
+    return 100.0 * pb * cols[..., :below].sum(axis=-1)
+
+
+def lab_test(name: str, tn: Any = None):
+    """``lab_test(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm) -> t10_pct`` for :func:`msmill.calibration.calibrate`.
+
+    Builds the named breakage sub-model at the trial parameters and simulates the
+    drop-weight test through it (:func:`simulate_lab_test`).
+    """
+    factory = SUBMODELS["breakage"].get(name)
+    if factory is None:
+        raise MsmillInputError("breakage", name, did_you_mean(name, list(SUBMODELS["breakage"])))
+
+    def run(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm):
+        ore = BreakageParameters("calibration", A_pct=A_pct, b_t_kwh=b_t_per_kwh, l_ref_mm=l_ref_mm, tn=tn)
+        return simulate_lab_test(factory(ore), size_mm, ecs_kwh_t)
+
+    run.convention = getattr(factory, "t10_convention", name)  # type: ignore[attr-defined]
+    return run
+
+
+class NoBreakage:
+    """Rock that never breaks (``P_b = 0``): for transport checks against DEM runs of unbreakable rock."""
+
+    name = "none"
+    requires: tuple[str, ...] = ()
+
+    def __init__(self, ore: BreakageParameters | None = None) -> None:
+        self.ore = ore
+
+    def probability(self, ecs_kwh_t, size_mm, damage):
+        return np.zeros(np.broadcast(ecs_kwh_t, size_mm, damage).shape)
+
+    def fragments(self, edges_mm, parent, pb):
+        """The parent's own class (never used with ``P_b = 0``; keeps the protocol's invariants)."""
+        n = np.asarray(edges_mm).size - 1
+        parent = np.broadcast_to(np.asarray(parent, dtype=int), np.shape(pb))
+        return (parent[..., None] == np.arange(n)).astype(float)
+
+    def __repr__(self) -> str:
+        return "NoBreakage()"
 
 
 class TavaresDamage:
@@ -449,14 +696,14 @@ class NoDamage:
 #: One lookup table per step: name -> factory. Factories of breakage and damage
 #: models take the :class:`BreakageParameters`; the others take nothing.
 SUBMODELS: dict[str, dict[str, Any]] = {
-    "transport": {"regions": RegionWeightedTransport, "bulk": BulkTransport},
+    "transport": {"dem_matrix": MatrixTransport, "regions": RegionWeightedTransport, "bulk": BulkTransport},
     "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
                 "primary_only": NoSecondaryImpacts},
-    "breakage": {"ab_t10": AbT10Breakage},
+    "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "none": NoBreakage},
     "damage": {"tavares": TavaresDamage, "none": NoDamage},
 }
-DEFAULTS: dict[str, str] = {"transport": "regions", "impacts": "speed_scaled",
-                            "breakage": "ab_t10", "damage": "tavares"}
+DEFAULTS: dict[str, str] = {"transport": "dem_matrix", "impacts": "speed_scaled",
+                            "breakage": "jk_t10", "damage": "tavares"}
 _NEEDS_ORE = ("breakage", "damage")
 _PROTOCOLS = {"transport": TransportModel, "impacts": ImpactModel,
               "breakage": BreakageModel, "damage": DamageModel}

@@ -88,6 +88,11 @@ def plot_stage_impacts(stats: Any, path: str | Path | None = None) -> Any:
             a0.bar(k, emp, color="C0", alpha=0.6, label="DEM")
             a0.plot(k, sps.poisson.pmf(k, st.secondary_lambda), "o-", color="C3", ms=3,
                     label=f"Poisson λ={st.secondary_lambda:.2f}, KL={st.secondary_lambda_kl or 0:.3f}")
+            sel = st.secondary_count_selection
+            if sel is not None and sel.chosen != "poisson" and st.secondary_count is not None:
+                a0.plot(k, st.secondary_count.pmf(int(k[-1])), "s-", color="C1", ms=3,
+                        label=f"{sel.chosen.replace('_', ' ')}, KL={sel.kl:.3f}")
+            a0.set_yscale("log")
             a0.legend(fontsize=7)
         a0.set_ylabel(f"stage {st.stage}\nprobability")
         for key, gm, kl, color, label in (

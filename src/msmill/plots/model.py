@@ -57,7 +57,7 @@ def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
     ax.set_ylim(0, 100)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper left")
-    ax.set_title(title or f"reduction ratio F80/P80 = {result.reduction_ratio:.2f}")
+    ax.set_title(title or f"reduction ratio F80/P80 = {result.reduction_ratio:.2f}", parse_math=False)  # user text: no mathtext
     return ax
 
 
@@ -85,7 +85,7 @@ def plot_timeseries(result: Any, ax: Any = None, title: str = "") -> Any:
     lines = ax.get_legend_handles_labels()
     lines2 = ax2.get_legend_handles_labels()
     ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="lower right")
-    ax.set_title(title or "mass in and out of the mill from start-up")
+    ax.set_title(title or "mass in and out of the mill from start-up", parse_math=False)
     return ax
 
 

@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from msmill.errors import OutOfDomainWarning
-from msmill.providers_base import MixtureArrays, StageParameters
+from msmill.providers_base import CountArrays, MixtureArrays, StageParameters
 from msmill.surrogate.space import INPUTS
 from msmill.surrogate.stage_model import StageSurrogate
+from msmill.surrogate.targets import count_arrays_from_summary
 
 _UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
 
@@ -118,6 +119,12 @@ class SurrogateProvider:
             parts = [getattr(p, kind) for p in preds]
             return MixtureArrays(*(stack([q[i] for q in parts]) for i in range(3)))
 
+        counts = None
+        if preds[0].count_var_ratio is not None:  # the runs carried count distributions (schema v2)
+            cw, cm = count_arrays_from_summary(stack([p.secondary_lambda for p in preds]),
+                                               stack([p.count_var_ratio for p in preds]),
+                                               stack([p.count_p_zero for p in preds]))
+            counts = CountArrays(cw, cm)
         rw = rs = None
         if preds[0].region_weights is not None:
             rw = stack([p.region_weights for p in preds])
@@ -133,7 +140,7 @@ class SurrogateProvider:
             design_stage_speeds_rpm=X[:, 0, 2] * m.speed_factors,
             design_feed_tph=float(X[0, 0, 1]), design_gate_deg=float(X[0, 0, 3]),
             region_weights=rw, region_streams=rs, source=self.source,
-            velocities_at_requested_speeds=True,
+            velocities_at_requested_speeds=True, secondary_count=counts,
         )
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:

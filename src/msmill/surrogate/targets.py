@@ -213,6 +213,50 @@ def count_from_summary(mean: float, var_ratio: float, p_zero: float) -> tuple[np
     return np.array([w, 1 - w]), np.array([max(a, 0.0), b])
 
 
+def count_arrays_from_summary(mean: np.ndarray, var_ratio: np.ndarray, p_zero: np.ndarray,
+                              n_grid: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorised :func:`count_from_summary` over arrays of any shape ``(...)``.
+
+    The mixing weight is the grid point closest to the requested zero
+    fraction, refined by linear interpolation where ``p0(w) - p_zero`` changes
+    sign (the scalar version refines by Brent's method; they agree to the
+    grid's interpolation error). Mean and variance are kept exactly.
+
+    Returns
+    -------
+    weights, means : ndarray, shape (..., 2)
+        Two-component Poisson mixtures (a one-Poisson case has weights (1, 0)).
+    """
+    m = np.maximum(np.asarray(mean, dtype=float), MIN_COUNT)[..., None]
+    s2 = (np.asarray(var_ratio, dtype=float)[..., None] - 1.0) * m
+    pz = np.asarray(p_zero, dtype=float)[..., None]
+    over = s2 > 1e-12
+    s2 = np.where(over, s2, 1e-12)
+    w_lo = s2 / (s2 + m * m) + 1e-12
+    t = np.linspace(0.0, 1.0, n_grid)
+    w = w_lo + (MAX_COUNT_WEIGHT - w_lo) * t  # (..., G)
+    a = m - np.sqrt(s2 * (1 - w) / w)
+    b = m + np.sqrt(s2 * w / (1 - w))
+    err = w * np.exp(-np.maximum(a, 0.0)) + (1 - w) * np.exp(-b) - pz
+    change = np.sign(err[..., :-1]) != np.sign(err[..., 1:])
+    first = np.argmax(change, axis=-1)
+    has = change.any(axis=-1)
+    i_best = np.argmin(np.abs(err), axis=-1)
+    e0 = np.take_along_axis(err, first[..., None], -1)[..., 0]
+    e1 = np.take_along_axis(err, first[..., None] + 1, -1)[..., 0]
+    w0 = np.take_along_axis(w, first[..., None], -1)[..., 0]
+    w1 = np.take_along_axis(w, first[..., None] + 1, -1)[..., 0]
+    w_root = w0 + (w1 - w0) * e0 / np.where(e0 == e1, 1.0, e0 - e1)
+    w_pick = np.where(has, w_root, np.take_along_axis(w, i_best[..., None], -1)[..., 0])
+    m0, s20 = m[..., 0], s2[..., 0]
+    lo = np.maximum(m0 - np.sqrt(s20 * (1 - w_pick) / w_pick), 0.0)
+    hi = m0 + np.sqrt(s20 * w_pick / (1 - w_pick))
+    one = ~over[..., 0]
+    weights = np.stack([np.where(one, 1.0, w_pick), np.where(one, 0.0, 1 - w_pick)], axis=-1)
+    means = np.stack([np.where(one, m0, lo), np.where(one, m0, hi)], axis=-1)
+    return weights, means
+
+
 def build_count_distribution(weights: np.ndarray, means: np.ndarray) -> Any:
     """A ``msmill.stageparams.CountDistribution`` when that class exists, else a plain dict.
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import subprocess
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
@@ -41,6 +40,7 @@ import pandas as pd
 import tomli_w
 
 from msmill._version import __version__
+from msmill.dem.mill.checks import check_run_budget, check_run_inputs
 from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene
 from msmill.dem.mill.stats import (
     MillStatistics,
@@ -132,12 +132,12 @@ def run_mill(
         ``"transient"`` or ``"measure"``.
     """
     rs = settings or RunSettings()
-    if rs.measure_s <= 0 or rs.max_time_s <= 0 or rs.chunk_s <= 0:
-        raise MsmillInputError("settings", rs, "positive times")
+    check_run_inputs(machine, rs, size_mm, feed_psd)  # before any work: times, sizes (dem/mill/checks.py)
     wall0 = time.perf_counter()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
     scene = build_scene(machine, op, size_mm=size_mm, feed_psd=feed_psd, mode=mode, rock=rock, ore=ore,
                         max_overlap_fraction=rs.max_overlap_fraction, seed=rs.seed)
+    check_run_budget(scene, rs)  # step count and rocks fed within msmill.validate.LIMITS
     sim = scene.sim
     kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
@@ -263,17 +263,24 @@ def _toml_safe(d: Any) -> Any:
 def load_raw(run_dir: str | Path) -> dict[str, Any]:
     """Read the raw tables and settings a :func:`save_run` directory holds."""
     d = Path(run_dir)
+    if not d.is_dir():
+        raise MsmillInputError("run_dir", str(d), "an existing directory written by 'msmill dem run'")
     if not (d / "events.parquet").exists():
         raise MsmillInputError("run_dir", str(d), "a directory written by 'msmill dem run' (events.parquet missing)")
-    settings = tomllib.loads((d / "run.toml").read_text(encoding="utf-8"))
-    return {
-        "events": pd.read_parquet(d / "events.parquet"),
-        "removed": pd.read_parquet(d / "removed.parquet"),
-        "timeseries": pd.read_parquet(d / "timeseries.parquet"),
-        "snapshots": pd.read_parquet(d / "snapshots.parquet"),
-        "machine": Machine.from_toml(d / "machine.toml"),
-        "settings": settings,
-    }
+    from msmill.validate import read_toml
+
+    settings = read_toml(d / "run.toml", "run_dir/run.toml", "run.toml of a DEM run")
+    for key in ("design", "result", "feed", "rock"):
+        if not isinstance(settings.get(key), dict):
+            raise MsmillInputError(f"run.toml.{key}", settings.get(key), "a table written by 'msmill dem run'")
+    raw: dict[str, Any] = {"settings": settings, "machine": Machine.from_toml(d / "machine.toml")}
+    for name in ("events", "removed", "timeseries", "snapshots"):
+        try:
+            raw[name] = pd.read_parquet(d / f"{name}.parquet")
+        except Exception as exc:  # pyarrow raises many types for a damaged file
+            raise MsmillInputError(f"{name}.parquet", str(d / f"{name}.parquet"),
+                                   f"a readable Parquet file written by 'msmill dem run' ({type(exc).__name__})") from None
+    return raw
 
 
 def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = None) -> MillStatistics:

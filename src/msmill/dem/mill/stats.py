@@ -30,6 +30,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 * **Streams**: rocks in stage ``s`` at a snapshot time ``t`` (tags) are
   located at ``t + tau``: higher stage or inlet zone = kickback, same stage =
   refeed, lower stage or left through the outlet = pass-through. Mass weighted.
+* **Destinations**: the same tagging, also of rocks in the inlet zone
+  (compartment 0, everything above stage 1 including the feed chute), gives
+  the mass fractions found at ``t + tau`` in each compartment ``0..n`` or
+  left through the outlet (``n + 1``): the full one-lag transition matrix
+  (jumps of more than one stage, the inlet zone's dwell).
 * **Hit probability**: mass fraction of the tagged rocks of stage ``s`` that
   receive at least one primary impact from a stage-``s`` rotor within
   ``(t, t + tau]``.
@@ -44,6 +49,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
   impact exceeds ``2 V/(1 - e)`` = 2.5 V at e = 0.2 (2.8 V at the 0.29 the
   engine's step realises at worst, ``docs/dem.md``); the engine faults this
   guards against gave 10^2-10^4 m/s.
+* **Secondary counts**: the number of secondary impacts of each primary
+  impact (in the window) is kept as a histogram and fitted by every count
+  family of :class:`msmill.distributions.CountFamilySelection`; the family with
+  the lowest ``StatsSettings.count_criterion`` (BIC) becomes
+  ``secondary_count``, ``secondary_lambda`` is its mean.
 * **Sampling errors**: standard errors by batch means: the tag times (or
   primary impacts, for the secondary statistics) are split into
   ``n_batches`` consecutive blocks, the statistic is computed per block and
@@ -58,7 +68,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from msmill.distributions import GaussianMixtureKLFit, PoissonKLFit
+from msmill.distributions import CountFamilySelection, GaussianMixtureKLFit, count_batch_stderr
+from msmill.errors import MsmillError
 from msmill.machine import Machine
 from msmill.stageparams import (
     N_REGIONS,
@@ -67,6 +78,11 @@ from msmill.stageparams import (
     RunStatistics,
     StageStatistics,
 )
+
+
+class DemStatisticsError(MsmillError, ValueError):
+    """The recorded run cannot give statistics (e.g. no rock ever reached the stages)."""
+
 
 __all__ = [
     "MillStatistics",
@@ -77,6 +93,7 @@ __all__ = [
     "identify_impacts",
     "snapshots_frame",
     "stage_of_z",
+    "transition_matrix",
 ]
 
 _PLACEHOLDER = GaussianMixture.single(0.0, 1e-3)  # used (with n = 0 and kl None) when a stage has no sample
@@ -97,12 +114,16 @@ class StatsSettings:
     min_fit_samples : int
         Fewer velocity samples than this: the mixture is a single Gaussian
         from the sample mean and standard deviation (KL still reported).
+    count_criterion : {"bic", "aic"}
+        Information criterion choosing the secondary-impact count family
+        (:class:`msmill.distributions.CountFamilySelection`).
     """
 
     min_secondary_speed_m_s: float = 0.5
     k_max: int = 4
     n_batches: int = 5
     min_fit_samples: int = 20
+    count_criterion: str = "bic"
 
 
 @dataclass
@@ -201,7 +222,8 @@ def characteristic_time(
     inside = (st >= 1) & (st <= machine.n_stages)
     v = np.sqrt(snaps["vx_m_s"] ** 2 + snaps["vy_m_s"] ** 2 + snaps["vz_m_s"] ** 2).to_numpy()[inside]
     if v.size == 0 or not np.isfinite(v.mean()) or v.mean() <= 0:
-        raise ValueError("no moving rocks inside the stages: cannot compute the characteristic time")
+        raise DemStatisticsError("no moving rocks inside the stages in the measurement window: cannot compute "
+                                 "the characteristic time (was the run long enough for rock to reach the stages?)")
     speed = float(v.mean())
     tau = machine.stage_spacing_m / speed
     if snapshot_interval_s:
@@ -278,9 +300,11 @@ def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame
 # --------------------------------------------------------------------------- streams
 def _tag_pairs(
     machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, times: np.ndarray, lag: int,
-    rock_density_kg_m3: float,
+    rock_density_kg_m3: float, first_stage: int = 1,
 ) -> pd.DataFrame:
-    """Tagged rocks (stage 1..n at snapshot ``i``) with the stage they are in at snapshot ``i + lag``.
+    """Tagged rocks (stage ``first_stage``..n at snapshot ``i``) with the stage they are in at ``i + lag``.
+
+    ``first_stage = 0`` tags the inlet zone too (``destinations``).
 
     ``times`` are the sorted snapshot times of the window; columns of the
     result: ``time_s`` (tag time), ``t_to`` (time of snapshot ``i + lag``),
@@ -296,7 +320,7 @@ def _tag_pairs(
     snaps = snaps[snaps["i"].notna()].astype({"i": np.int64})
     a = snaps[snaps["i"] + lag < times.size][["i", "time_s", "particle_id", "y_m", "z_m", "radius_m"]].copy()
     a["stage_from"] = stage_of_z(machine, a["z_m"].to_numpy())
-    a = a[(a["stage_from"] >= 1) & (a["stage_from"] <= n)]
+    a = a[(a["stage_from"] >= first_stage) & (a["stage_from"] <= n)]
     a["i_to"] = a["i"] + lag
     a["t_to"] = times[a["i_to"].to_numpy()]
     b = snaps[snaps["i"] >= lag][["i", "particle_id", "z_m"]].rename(columns={"i": "i_to", "z_m": "z_to"})
@@ -328,6 +352,41 @@ def _streams(pairs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     f.columns = ["kickback", "refeed", "pass_through"]
     f["mass_kg"] = tot
     return f
+
+
+def _destinations(pairs: pd.DataFrame, n: int) -> dict[int, list[float]]:
+    """Mass fractions of the rock tagged in compartment ``c`` (0..n) found in ``0..n+1`` one lag later."""
+    if not len(pairs):
+        return {}
+    w = pairs.pivot_table(index="stage_from", columns="stage_to", values="mass_kg", aggfunc="sum", fill_value=0.0)
+    w = w.reindex(columns=range(n + 2), fill_value=0.0)
+    f = w.div(w.sum(axis=1), axis=0)
+    return {int(c): [float(v) for v in f.loc[c].to_numpy()] for c in f.index}
+
+
+def transition_matrix(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
+) -> np.ndarray:
+    """Mass-weighted transition matrix at ``lag`` snapshot intervals, tags in ``window_s``.
+
+    Row ``c`` (0 = inlet zone, 1..n stages): fractions of the rock in ``c`` at a
+    snapshot time in the window found ``lag`` snapshots later in ``0..n`` or
+    gone through the outlet (``n + 1``); shape ``(n + 1, n + 2)``, rows of
+    compartments without tags are NaN. The later snapshots may lie beyond the
+    window. With the lag of ``tau`` these are the ``destinations``; at
+    ``k tau`` they test whether the one-lag transport is Markov
+    (``P(k tau) = P(tau)^k``).
+    """
+    n = machine.n_stages
+    snaps = snapshots_frame(snapshots)
+    times = np.sort(snaps["time_s"].unique())
+    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+    pairs = pairs[(pairs["time_s"] >= window_s[0] - 1e-9) & (pairs["time_s"] <= window_s[1] + 1e-9)]
+    out = np.full((n + 1, n + 2), np.nan)
+    for c, row in _destinations(pairs, n).items():
+        out[c] = row
+    return out
 
 
 def _batch_se(values: np.ndarray) -> float:
@@ -423,7 +482,9 @@ def compute_statistics(
     tag_times = times[: max(times.size - lag, 0)]
 
     # ---- transport
-    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3)
+    pairs_all = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+    pairs = pairs_all[pairs_all["stage_from"] >= 1].copy()
+    dest = _destinations(pairs_all, n)
     streams = _streams(pairs, ["stage_from"]) if len(pairs) else None
     tag_batch = {t: b for b, chunk in enumerate(np.array_split(tag_times, s_.n_batches)) for t in chunk}
     pairs["batch"] = pairs["time_s"].map(tag_batch)
@@ -509,13 +570,8 @@ def compute_statistics(
         sel = pr_stage == s
         cnt = counts_all[pr_rows[sel]]
         v_sec = vn[sec_rows[sec_stage == s]]
-        if cnt.size:
-            pf = PoissonKLFit().fit(cnt)
-            lam, kl_l = pf.lambda_, pf.kl_
-            bl = [cnt[pr_batch[sel] == b].mean() for b in range(s_.n_batches) if np.any(pr_batch[sel] == b)]
-            se["secondary_lambda"] = _batch_se(np.asarray(bl))
-        else:
-            pf, lam, kl_l = None, 0.0, None
+        count_fit = _fit_counts(cnt, pr_batch[sel], s_, se)
+        pf = count_fit["fit"]
         gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
         if v_prim.size > 1:
             se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
@@ -539,14 +595,17 @@ def compute_statistics(
             region_weights=rw, region_streams=rs,
             primary_hit_probability=min(max(ph, 0.0), 1.0),
             primary_velocity=gm_p, primary_velocity_kl=kl_p,
-            secondary_lambda=float(lam), secondary_lambda_kl=kl_l,
+            secondary_lambda=count_fit["lambda"], secondary_lambda_kl=count_fit["poisson_kl"],
+            secondary_count=count_fit["distribution"], secondary_count_histogram=count_fit["histogram"],
+            secondary_count_selection=count_fit["selection"],
             secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
             n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
             n_transport_samples=n_tr, mean_holdup_kg=float(holdup_kg.get(s, 0.0)),
-            sampling_error=se,
+            sampling_error=se, destinations=dest.get(s),
         ))
         samples[s] = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
-        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf}
+        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf,
+                   "secondary_count_families": count_fit["families"]}
 
     # ---- run level
     rem = removed
@@ -561,6 +620,7 @@ def compute_statistics(
     prov = dict(provenance or {})
     prov.setdefault("stats", {}).update({
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
+        "count_criterion": s_.count_criterion,
         "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
         "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
         "n_events_blow_up": int(bad_ev.sum()), "n_touch_events_vn_le_0": n_touch,
@@ -574,9 +634,29 @@ def compute_statistics(
         design=design, mode="full" if mode == "full" else "slice", characteristic_time_s=tau, stages=stages,
         steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
         mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
-        provenance=prov,
+        inlet_destinations=dest.get(0), inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
     )
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+
+
+def _fit_counts(cnt: np.ndarray, batch: np.ndarray, s_: StatsSettings, se: dict[str, float]) -> dict[str, Any]:
+    """Poisson and family-selected fits of one stage's secondary-impact counts (fills ``se``).
+
+    Standard errors by batch means: ``secondary_lambda`` (the mean count) and
+    every native parameter of the chosen family, as ``secondary_count.<name>``.
+    """
+    if cnt.size == 0:
+        return {"fit": None, "families": None, "lambda": 0.0, "poisson_kl": None, "distribution": None,
+                "histogram": [], "selection": None}
+    hist = np.bincount(cnt)
+    sel = CountFamilySelection(criterion=s_.count_criterion).fit_histogram(hist)
+    dist = sel.to_count_distribution()
+    batches = [cnt[batch == b] for b in range(s_.n_batches) if np.any(batch == b)]
+    se["secondary_lambda"] = _batch_se(np.asarray([b.mean() for b in batches]))
+    se.update({f"secondary_count.{k}": v for k, v in count_batch_stderr(sel.chosen_, batches).items()
+               if k != "mean"})
+    return {"fit": sel.fits_["poisson"], "families": sel, "lambda": dist.mean, "poisson_kl": sel.poisson_kl_,
+            "distribution": dist, "histogram": [int(h) for h in hist], "selection": sel.to_selection()}
 
 
 def _fit_velocity(v: np.ndarray, s_: StatsSettings) -> tuple[GaussianMixture, float | None, Any]:

@@ -1,0 +1,156 @@
+"""``msmill sweep RUN.toml`` and ``msmill optimize RUN.toml`` (no physics here: msmill.model.operating)."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from msmill.errors import MsmillInputError
+
+
+def _parse_range(text: str, field: str, with_count: bool) -> tuple[str, list[float]]:
+    """``name=lo:hi[:n]`` or ``name=v1,v2,...`` -> (name, values)."""
+    from msmill.model.operating import VARIABLES
+
+    name, sep, rest = text.partition("=")
+    name = name.strip()
+    if not sep or name not in VARIABLES:
+        raise MsmillInputError(field, text, "NAME=LOW:HIGH" + (":N or NAME=V1,V2,..." if with_count else "")
+                               + f" with NAME one of {', '.join(VARIABLES)}")
+    try:
+        if ":" in rest:
+            parts = [float(p) for p in rest.split(":")]
+            if with_count:
+                if len(parts) not in (2, 3):
+                    raise ValueError
+                n = int(parts[2]) if len(parts) == 3 else 7
+                if n < 1:
+                    raise ValueError
+                return name, list(np.linspace(parts[0], parts[1], n))
+            if len(parts) != 2 or parts[0] > parts[1]:
+                raise ValueError
+            return name, parts
+        if not with_count:
+            raise ValueError
+        return name, [float(p) for p in rest.split(",")]
+    except ValueError:
+        raise MsmillInputError(field, text, "NAME=LOW:HIGH" + (":N or NAME=V1,V2,..." if with_count else "")
+                               + " with numbers (LOW <= HIGH)") from None
+
+
+def _build(run_file: Path, names: list[str]):
+    from msmill.model.runfile import RunFile
+
+    rf = RunFile.from_toml(run_file)
+    mill, feed, op = rf.build()
+    if "feed_scale" in names:
+        mill.grid = None  # the model grid follows each scaled feed's top size
+    return rf, mill, feed, op
+
+
+def sweep(
+    run_file: Annotated[Path, typer.Argument(help="Run file (TOML) giving the ore, feed and other settings.")],
+    var: Annotated[list[str], typer.Option("--var", help="NAME=LOW:HIGH[:N] or NAME=V1,V2 (one or two).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: <run dir>/sweep_out).")] = None,
+    passing_size_mm: Annotated[float | None, typer.Option(help="Also report % passing at this size (mm).")] = None,
+    no_load_kw: Annotated[float, typer.Option(help="Stated no-load power (kW) in the specific energy.")] = 0.0,
+) -> None:
+    """P80, throughput, specific energy and hold-up over one or two operating variables."""
+    from msmill.cli.validate import _console, write_files
+    from msmill.model.operating import sweep as run_sweep
+    from msmill.plots.model import png_bytes
+    from msmill.plots.validation import sweep_plot
+
+    t0 = time.perf_counter()
+    axes = dict(_parse_range(v, "--var", True) for v in var)
+    rf, mill, feed, op = _build(run_file, list(axes))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # off-point warnings: see inside_design_space
+        table = run_sweep(mill, feed, op, axes, passing_size_mm=passing_size_mm, no_load_kw=no_load_kw)
+    names = list(axes)
+    hue = names[1] if len(names) == 2 else None
+    files = {"sweep.csv": table.to_csv(index=False).encode()}
+    for y in ("p80_mm", "specific_energy_kwh_t", "holdup_t"):
+        files[f"sweep_{y}.png"] = png_bytes(sweep_plot(table, names[0], y, hue))
+    dest = out if out is not None else rf.path("sweep_out")
+    write_files(dest, files)
+    con = _console()
+    con.print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def optimize(
+    run_file: Annotated[Path, typer.Argument(help="Run file (TOML) giving the ore, feed and other settings.")],
+    bound: Annotated[list[str], typer.Option("--bound", help="NAME=LOW:HIGH, a variable to optimise (repeatable).")],
+    goal: Annotated[str, typer.Option(help="max_feed or min_energy.")] = "max_feed",
+    target_p80_mm: Annotated[float | None, typer.Option(help="Target: P80 at most this (mm).")] = None,
+    target_passing: Annotated[str | None, typer.Option(help="Target: SIZE_MM:PCT, passing at least PCT %.")] = None,
+    n_grid: Annotated[int, typer.Option(help="Grid points per variable.")] = 7,
+    no_load_kw: Annotated[float, typer.Option(help="Stated no-load power (kW) in the specific energy.")] = 0.0,
+    l_ref_se_mm: Annotated[float | None, typer.Option(help="L_ref standard error (from msmill calibrate): "
+                                                      "re-optimise at L_ref +- s.e.")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: <run dir>/optimize_out).")] = None,
+) -> None:
+    """Settings within the bounds reaching a target P80 (or passing) at the highest feed or lowest energy."""
+    from msmill.cli.validate import _console, write_files
+    from msmill.model.operating import optimize as run_optimize
+    from msmill.model.operating import optimum_sensitivity
+    from msmill.plots.model import png_bytes
+    from msmill.plots.validation import pareto_plot
+
+    t0 = time.perf_counter()
+    bounds = {k: (v[0], v[1]) for k, v in (_parse_range(b, "--bound", False) for b in bound)}
+    tp = None
+    if target_passing is not None:
+        try:
+            a, b = (float(x) for x in target_passing.split(":"))
+        except ValueError:
+            raise MsmillInputError("--target-passing", target_passing, "SIZE_MM:PCT, e.g. 2:60") from None
+        tp = (a, b)
+    rf, mill, feed, op = _build(run_file, list(bounds))
+    opts = dict(goal=goal, target_p80_mm=target_p80_mm, target_passing=tp, n_grid=n_grid, no_load_kw=no_load_kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run_optimize(mill, feed, op, bounds, **opts)
+        sens = None
+        if l_ref_se_mm is not None and res.settings is not None:
+            from msmill.model.mill import Mill
+
+            def make(L: float) -> Mill:
+                import dataclasses
+
+                return Mill(dataclasses.replace(mill.ore, l_ref_mm=L), mill.provider, grid=mill.grid,
+                            breakage=mill.breakage.name, damage=mill.damage.name)
+
+            sens = optimum_sensitivity(make, mill.ore.l_ref_mm, l_ref_se_mm, feed, op, bounds, **opts)
+    files = {"candidates.csv": res.candidates.to_csv(index=False).encode(),
+             "pareto_front.csv": res.front.to_csv(index=False).encode(),
+             "pareto.png": png_bytes(pareto_plot(res.candidates[res.candidates["feasible"]], res.front, res.row,
+                                                 target_p80_mm))}
+    if sens is not None:
+        files["optimum_sensitivity.csv"] = sens.to_csv(index=False).encode()
+    dest = out if out is not None else rf.path("optimize_out")
+    write_files(dest, files)
+    con = _console()
+    if res.settings is None:
+        con.print(f"no setting within the bounds reaches {res.target} ({len(res.candidates)} evaluated)")
+    else:
+        r = res.row
+        con.print(f"best ({res.goal}, {res.target}): "
+                  + ", ".join(f"{k} = {v:.4g}" for k, v in res.settings.items())
+                  + f" -> P80 {r['p80_mm']:.4g} mm, {r['throughput_tph']:.4g} t/h, "
+                    f"{r['specific_energy_kwh_t']:.3g} kWh/t, {r['power_kw']:.3g} kW"
+                  + ("" if r["inside_design_space"] else " (outside the design space)"))
+        if "p80_low_mm" in r:
+            con.print(f"P80 band {r['p80_low_mm']:.4g}-{r['p80_high_mm']:.4g} mm")
+    if sens is not None:
+        con.print("optimum at L_ref -+ s.e.:")
+        con.print(sens.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    elif res.settings is not None:
+        con.print("uncertainty: give --l-ref-se-mm (from msmill calibrate) to re-optimise at L_ref +- s.e.")
+    con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")

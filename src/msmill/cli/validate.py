@@ -1,0 +1,223 @@
+"""``msmill validate DIR`` and ``msmill calibrate DIR``: surveys against the model (no physics here).
+
+Both read a folder of experiment files (``msmill.model.experiments``), call the
+model layer (``msmill.model.validation``, ``msmill.model.fitting``), render
+every output in memory and then write the files (temp file, then rename).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from msmill.errors import MsmillInputError
+
+
+def write_files(folder: Path, files: dict[str, bytes]) -> None:
+    """Write ``files`` into ``folder`` as one atomic set with a manifest (``msmill.cli.output``)."""
+    from msmill.cli.output import atomic_output
+
+    with atomic_output(folder) as stage:
+        for name, data in files.items():
+            (stage / name).write_bytes(data)
+
+
+def _console():
+    from msmill.cli.console import console
+
+    return console(140)
+
+
+def validate(
+    folder: Annotated[Path, typer.Argument(help="Folder of experiment TOML files (docs/validation.md).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default DIR/validation).")] = None,
+    stage_parameters: Annotated[str, typer.Option(help="Stage-parameter table ('default' = packaged).")] = "default",
+    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model (default: the model default, jk_t10).")] = None,
+    damage: Annotated[str | None, typer.Option(help="Damage sub-model (default tavares).")] = None,
+    ore_file: Annotated[list[Path] | None, typer.Option("--ore-file", help="Calibrated ore TOML (repeatable).")] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = True,
+) -> None:
+    """Predict every survey and report its K-S statistic per experiment and per ore (paper Figs. 11-13)."""
+    from rich.table import Table
+
+    from msmill.cli.output import check_writable
+    from msmill.errors import OutOfDomainWarning
+    from msmill.model.experiments import read_experiments
+    from msmill.model.validation import validate as run_validation
+
+    check_writable(out if out is not None else folder / "validation", "--out")  # before any work
+    t0 = time.perf_counter()
+    es = read_experiments(folder)
+    ores = _ore_files(ore_file)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)  # reported per survey in the table
+        v = run_validation(es, stage_parameters, ores=ores, breakage=breakage, damage=damage)
+    files = {"ks_by_experiment.csv": v.table.to_csv(index=False).encode(),
+             "ks_by_ore.csv": v.summary.to_csv(index=False).encode()}
+    if plots:
+        files.update(_validation_plots(v, es))
+    dest = out if out is not None else folder / "validation"
+    write_files(dest, files)
+    con = _console()
+    t = Table(title=f"K-S by ore ({len(v.table)} surveys, {folder})")
+    for col in ("ore", "n", "K-S mean", "median", "min", "max", "best", "worst", "outside domain"):
+        t.add_column(col)
+    for _, r in v.summary.iterrows():
+        t.add_row(r["ore"], str(r["n"]), f"{r['ks_mean']:.3f}", f"{r['ks_median']:.3f}", f"{r['ks_min']:.3f}",
+                  f"{r['ks_max']:.3f}", r["best_id"], r["worst_id"], str(r["n_outside_design_space"]))
+    con.print(t)
+    for _, r in v.table[v.table["outside_design_space"]].iterrows():
+        con.print(f"outside the design space: {r['id']}: {r['domain_notes'].split(' | ')[0]}")
+    _power_line(con, v.table)
+    con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def _ore_files(paths: list[Path] | None) -> dict:
+    from msmill.ore import Ore
+
+    out = {}
+    for p in paths or []:
+        o = Ore.from_toml(p)
+        out[o.name] = o
+    return out
+
+
+def _power_line(con, table) -> None:
+    from msmill.model.power import fit_no_load
+
+    m = table.dropna(subset=["measured_power_kw"])
+    if len(m) >= 3:
+        try:
+            icpt, slope, rmse = fit_no_load(m["impact_kw"], m["measured_power_kw"])
+        except MsmillInputError:
+            return
+        con.print(f"measured power vs predicted impact power ({len(m)} surveys): no-load {icpt:.3g} kW, "
+                  f"slope {slope:.3g}, rms {rmse:.2g} kW (measured = no-load + slope x impact power)")
+
+
+def _validation_plots(v, es) -> dict[str, bytes]:
+    from msmill.plots.model import png_bytes
+    from msmill.plots.validation import ks_swarm, overlay
+
+    files = {"ks_swarm.png": png_bytes(ks_swarm(v.table))}
+    feeds = {e.id: e.feed_psd for e in es.surveys}
+    for _, r in v.summary.iterrows():
+        for which in ("best", "worst"):
+            i = r[f"{which}_id"]
+            ks = float(v.table.loc[v.table["id"] == i, "ks"].iloc[0])
+            fig = overlay(v.measured[i], v.predicted[i], f"{r['ore']}, {which} prediction: {i} (K-S {ks:.3f})",
+                          feed=feeds[i])
+            files[f"overlay_{r['ore']}_{which}.png"] = png_bytes(fig)
+    return files
+
+
+def calibrate(
+    folder: Annotated[Path, typer.Argument(help="Folder of experiment TOML files (docs/validation.md).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default DIR/calibration).")] = None,
+    fit: Annotated[list[str] | None, typer.Option("--fit", help="Parameter to fit (repeatable): l_ref_mm "
+                                                  "(default), A_pct, b_t_kwh, gamma.")] = None,
+    objective: Annotated[str, typer.Option(help="ssq (weighted squares of % passing) or ks (mean K-S).")] = "ssq",
+    stage_parameters: Annotated[str, typer.Option(help="Stage-parameter table ('default' = packaged).")] = "default",
+    impact_tests: Annotated[bool, typer.Option("--impact-tests/--no-impact-tests",
+                                               help="Also fit the single-impact tests.")] = True,
+    bound: Annotated[list[str] | None, typer.Option("--bound", help="NAME=LOW:HIGH bounds of a fitted "
+                                                    "parameter (repeatable; defaults in docs/validation.md).")] = None,
+    breakage: Annotated[str | None, typer.Option(help="Breakage sub-model of the survey fits (default: the model default, jk_t10).")] = None,
+    damage: Annotated[str | None, typer.Option(help="Damage sub-model of the survey fits (default tavares).")] = None,
+) -> None:
+    """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
+    import tomli_w
+
+    from msmill.cli.output import check_writable
+    from msmill.errors import OutOfDomainWarning
+    from msmill.model.experiments import read_experiments
+    from msmill.model.fitting import calibrate_surveys, calibrated_ore
+    from msmill.model.validation import SurveyModel
+    from msmill.ore import get_ore
+
+    check_writable(out if out is not None else folder / "calibration", "--out")  # before any work
+    t0 = time.perf_counter()
+    es = read_experiments(folder)
+    con = _console()
+    files: dict[str, bytes] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        for ore_name in es.ores("survey"):
+            surveys = [e for e in es.surveys if e.ore == ore_name]
+            t1 = time.perf_counter()
+            model = SurveyModel(ore_name, surveys, stage_parameters, breakage=breakage, damage=damage)
+            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound))
+            new = calibrated_ore(get_ore(ore_name), cal)
+            files[f"{ore_name}_calibrated.toml"] = tomli_w.dumps(new.to_dict()).encode()
+            files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
+            _print_calibration(con, cal, time.perf_counter() - t1)
+        if impact_tests and es.impact_tests:
+            files.update(_impact_outputs(con, es))
+    if not files:
+        raise MsmillInputError("experiments", str(folder), "at least one survey or single-impact test")
+    dest = out if out is not None else folder / "calibration"
+    write_files(dest, files)
+    con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def _bounds(texts: list[str] | None) -> dict[str, tuple[float, float]]:
+    from msmill.model.fitting import SURVEY_FITTABLE
+
+    out = {}
+    for t in texts or []:
+        name, _, rng = t.partition("=")
+        try:
+            lo, hi = (float(x) for x in rng.split(":"))
+        except ValueError:
+            raise MsmillInputError("--bound", t, "NAME=LOW:HIGH with numbers") from None
+        if name not in SURVEY_FITTABLE or not 0 < lo < hi:
+            raise MsmillInputError("--bound", t, f"NAME one of {', '.join(SURVEY_FITTABLE)}, 0 < LOW < HIGH")
+        out[name] = (lo, hi)
+    return out
+
+
+def _print_calibration(con, cal, seconds: float) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{cal.ore}: {len(cal.table)} surveys, {cal.n_points} operating points, "
+                    f"objective {cal.objective} ({seconds:.1f} s)")
+    for col in ("parameter", "value", "s.e. (jackknife)", "s.e. (Jacobian)"):
+        t.add_column(col)
+    for k in cal.fitted:
+        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jacobian_std_errors[k]:.2g}")
+    con.print(t)
+    tb = cal.table
+    con.print(f"  mean K-S: {tb['ks_before'].mean():.3f} with the start parameters, {tb['ks_fit'].mean():.3f} "
+              f"fitted, {tb['ks_cv'].mean():.3f} leave-one-survey-out"
+              + (f"; spline interpolation K-S {cal.interpolation_ks:.1e}" if cal.fitted == ("l_ref_mm",) else ""))
+
+
+def _impact_outputs(con, es) -> dict[str, bytes]:
+    import pandas as pd
+
+    from msmill.model.fitting import compare_submodels, fit_impact_tests
+
+    files: dict[str, bytes] = {}
+    rows = []
+    for ore_name in es.ores("single_impact"):
+        tests = [t for t in es.impact_tests if t.ore == ore_name]
+        held = compare_submodels(tests, ore_name)
+        files[f"{ore_name}_impact_heldout.csv"] = held.to_csv(index=False).encode()
+        for name, g in held.groupby("submodel", sort=False):
+            f = fit_impact_tests(tests, ore_name, name)
+            rows.append({"ore": ore_name, "submodel": name, "ks_held_out_mean": g["ks_held_out"].mean(),
+                         "ks_fit_mean": sum(f.ks.values()) / len(f.ks), "rmse_log": f.rmse_log,
+                         **{f"{k}": v for k, v in f.params.items()},
+                         **{f"se_{k}": v for k, v in f.std_errors.items()}})
+    table = pd.DataFrame(rows)
+    files["impact_fits.csv"] = table.to_csv(index=False).encode()
+    for ore_name, g in table.groupby("ore", sort=False):
+        best = g.loc[g["ks_held_out_mean"].idxmin()]
+        parts = ", ".join(f"{r['submodel']} {r['ks_held_out_mean']:.3f}" for _, r in g.iterrows())
+        con.print(f"{ore_name} single-impact tests: held-out K-S (fit on the other speeds) {parts}: "
+                  f"{best['submodel']} fits better")
+    return files

@@ -1,0 +1,546 @@
+"""Fitting breakage parameters to whole product PSDs: single-impact tests and mill surveys.
+
+Single-impact tests (:func:`fit_impact_tests`)
+---------------------------------------------
+One impact per rock at speed ``v`` (``E = v**2 / 2``) on fresh rock: a feed
+class ``j`` of mass ``f_j`` leaves ``f_j (1 - P_b,j)`` unbroken and
+``f_j P_b,j`` as the breakage sub-model's fragments. The parameters are fitted
+by least squares to the *whole* product PSD: the residuals are
+``ln(m_pred + 0.001) - ln(m_meas + 0.001)`` of the % mass retained between
+consecutive sieves (pan and oversize included), i.e. relative errors of the
+sieve fractions, the usual error model of sieving, each test's residuals
+centred (a free scale per test: measured fractions are renormalised to 100 %,
+which shifts all of a test's log masses together). That separates ``P_b``
+(mass left in the feed class) from the fragment fineness (``t10 = A P_b``),
+which t10 values alone cannot. Standard errors from the Jacobian
+(``cov = s² (JᵀJ)⁻¹``), honest when sieve fractions have independent
+relative errors.
+
+:func:`compare_submodels` fits each sub-model on all speeds but one and
+predicts the held-out speed (leave-one-speed-out), reporting the held-out K-S.
+
+Mill surveys (:func:`calibrate_surveys`)
+----------------------------------------
+Fits ``L_ref`` of an ore (optionally ``A``, the Tavares ``gamma``; or ``A``
+and ``b`` with ``L_ref`` held: ``b`` and ``L_ref`` enter only as ``b/L_ref``)
+to measured products, minimising the mean K-S or the weighted sum of squares
+of % passing at the measured sieves. ``L_ref`` alone uses a cubic spline of
+every survey's predicted product over ``ln L_ref`` through
+``n_nodes`` exact solves per operating point; the optimum is then checked by
+one exact solve. Leave-one-survey-out refits give the cross-validated K-S and
+the jackknife standard error ``sqrt((n-1)/n sum (theta_i - mean)^2)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.errors import MsmillInputError
+from msmill.model import submodels as sm
+from msmill.model.breakage_swebrec import VogelSwebrecBreakage
+from msmill.model.mill import DEFAULT_MIN_SIZE_MM, breakage_parameters
+from msmill.model.submodels import specific_energy_kwh_t
+from msmill.model.validation import measured_ks
+from msmill.psd import PSD, SizeGrid, ks_statistic
+
+__all__ = [
+    "FITTABLE",
+    "ImpactFit",
+    "SurveyCalibration",
+    "build_breakage",
+    "calibrate_surveys",
+    "compare_submodels",
+    "fit_impact_tests",
+    "single_impact_product",
+]
+
+#: Fittable parameters of each breakage sub-model with their bounds (units in the names).
+FITTABLE: dict[str, dict[str, tuple[float, float]]] = {
+    "ab_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
+    "jk_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
+    "vogel_swebrec": {"A_pct": (1.0, 100.0), "k_t_kwh": (0.01, 100.0), "e_min_kwh_t": (0.0, 5.0),
+                      "swebrec_b": (0.3, 10.0)},
+}
+OBJECTIVES = ("ks", "ssq")
+
+
+def build_breakage(name: str, ore: sm.BreakageParameters, values: dict[str, float]) -> Any:
+    """The breakage sub-model ``name`` for ``ore`` with some parameters replaced by ``values``."""
+    if name == "ab_t10":
+        return sm.AbT10Breakage(dataclasses.replace(ore, **values))
+    if name == "jk_t10":
+        return sm.JkT10Breakage(dataclasses.replace(ore, **values))
+    if name == "vogel_swebrec":
+        base = VogelSwebrecBreakage.from_ore(ore)
+        return VogelSwebrecBreakage(dataclasses.replace(base.params, **values))
+    raise MsmillInputError("breakage", name, sm.did_you_mean(name, list(FITTABLE)))
+
+
+def current_values(model: Any) -> dict[str, float]:
+    """The fittable parameter values of a breakage sub-model object."""
+    src = model.params if isinstance(model, VogelSwebrecBreakage) else model.ore
+    return {k: float(getattr(src, k)) for k in FITTABLE[model.name]}
+
+
+def impact_grid(tests: Sequence[Any], min_mm: float = DEFAULT_MIN_SIZE_MM) -> SizeGrid:
+    """Model grid for single-impact tests: every feed and product sieve, extended down to ``min_mm``.
+
+    Using the measured sieves as class edges keeps a narrow feed fraction
+    (e.g. 13.2 x 16 mm) exactly in its class; rebinning it onto an unrelated
+    geometric grid would smear it over neighbouring classes.
+    """
+    sizes = np.unique(np.concatenate([np.concatenate([t.feed_psd.sizes_mm, t.product_psd.sizes_mm])
+                                      for t in tests]))
+    lo = float(sizes[0])
+    n_ext = max(math.ceil(math.log(lo / min_mm) / math.log(math.sqrt(2.0))), 1) if lo > min_mm else 1
+    below = lo / math.sqrt(2.0) ** np.arange(n_ext, 0, -1)
+    return SizeGrid(np.concatenate([below, sizes]))
+
+
+def single_impact_product(breakage: Any, grid: SizeGrid, feed_fractions: np.ndarray,
+                          speed_m_s: float) -> np.ndarray:
+    """Product mass fractions of one impact at ``speed_m_s`` on fresh rock (no damage)."""
+    e = float(specific_energy_kwh_t(speed_m_s))
+    mids = grid.mids_mm
+    pb = np.asarray(breakage.probability(np.full(mids.size, e), mids, np.zeros(mids.size)))
+    cols = _direct_columns(breakage, grid, pb)  # (parent, class)
+    f = np.asarray(feed_fractions, dtype=float)
+    return f * (1.0 - pb) + (f * pb) @ cols
+
+
+def _direct_columns(breakage: Any, grid: SizeGrid, pb: np.ndarray) -> np.ndarray:
+    """Appearance columns ``[parent, class]`` at one ``pb`` per parent, without the tabulation.
+
+    A fit changes ``A`` (or ``beta``) at every step, so the 1025-node tables
+    the mill solvers use would be rebuilt each time; here the columns are
+    computed exactly at the parents' own ``t10``.
+    """
+    from msmill import breakage as _bk
+
+    if hasattr(breakage, "direct_fragments"):
+        return breakage.direct_fragments(grid.edges_mm, pb)
+    if isinstance(breakage, sm.AbT10Breakage):
+        B = _bk.appearance_matrix(grid, breakage.ore.A_pct * pb, breakage.ore.tn)  # (class, parent)
+        return np.ascontiguousarray(B.T)
+    return breakage.fragments(grid.edges_mm, np.arange(grid.n_classes), pb)
+
+
+def _passing_at(grid: SizeGrid, fractions: np.ndarray, sizes_mm: np.ndarray) -> np.ndarray:
+    cum = np.concatenate([[0.0], np.cumsum(fractions) * 100.0])
+    return np.interp(np.log(sizes_mm), np.log(grid.edges_mm), cum, left=0.0, right=100.0)
+
+
+def _to_x(values: np.ndarray, bounds: list[tuple[float, float]]) -> np.ndarray:
+    """Internal coordinates: log for parameters bounded away from 0, linear otherwise."""
+    return np.array([math.log(v) if lo > 0 else v for v, (lo, _) in zip(values, bounds, strict=True)])
+
+
+def _from_x(x: np.ndarray, bounds: list[tuple[float, float]]) -> np.ndarray:
+    return np.array([math.exp(v) if lo > 0 else v for v, (lo, _) in zip(x, bounds, strict=True)])
+
+
+def _x_bounds(bounds: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.array([math.log(a) if a > 0 else a for a, _ in bounds])
+    hi = np.array([math.log(b) if a > 0 else b for a, b in bounds])
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class ImpactFit:
+    """Result of :func:`fit_impact_tests`.
+
+    Attributes
+    ----------
+    submodel : str
+        Breakage sub-model name.
+    params : dict[str, float]
+        All fittable parameters (fitted or held).
+    std_errors : dict[str, float]
+        One-sigma Jacobian standard errors of the fitted ones.
+    rmse_log : float
+        RMS residual of ``ln(retained % + 0.001)`` over all sieve fractions and tests
+        (about the relative error of a retained mass).
+    ks : dict[str, float]
+        In-sample K-S per test id.
+    breakage : object
+        The fitted sub-model.
+    """
+
+    submodel: str
+    params: dict[str, float]
+    std_errors: dict[str, float]
+    rmse_log: float
+    ks: dict[str, float]
+    breakage: Any = field(repr=False)
+
+
+#: Mass floor (%) of the log retained-mass residuals of single-impact fits.
+MASS_FLOOR_PCT = 0.001
+
+
+def _retained(grid: SizeGrid, fractions: np.ndarray, sieves_mm: np.ndarray) -> np.ndarray:
+    """% mass between consecutive sieves (pan below the first, oversize above the last)."""
+    p = _passing_at(grid, fractions, sieves_mm)
+    return np.diff(np.concatenate([[0.0], p, [100.0]]))
+
+
+def _impact_data(tests: Sequence[Any], grid: SizeGrid) -> list[tuple]:
+    out = []
+    for t in tests:
+        s = t.product_psd.sizes_mm
+        meas = np.diff(np.concatenate([[0.0], t.product_psd.passing_pct, [100.0]]))
+        out.append((t.feed_psd.rebin(grid).fractions, float(t.impact_speed_m_s), s,
+                    np.log(np.clip(meas, 0.0, None) + MASS_FLOOR_PCT), math.sqrt(t.weight)))
+    return out
+
+
+def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
+                     fit: Sequence[str] | None = None, start: dict[str, float] | None = None) -> ImpactFit:
+    """Fit a breakage sub-model's parameters to single-impact tests' whole product PSDs.
+
+    Parameters
+    ----------
+    tests : sequence of Experiment
+        ``kind = "single_impact"`` experiments (one ore).
+    ore : str or Ore or BreakageParameters
+        Ore supplying held parameters and start values.
+    submodel : {"ab_t10", "vogel_swebrec"}
+        Breakage sub-model.
+    fit : sequence of str, optional
+        Parameters to fit (default all of :data:`FITTABLE` ``[submodel]``).
+    start : dict, optional
+        Start values overriding the ore-derived ones.
+    """
+    from scipy.optimize import least_squares
+
+    if submodel not in FITTABLE:
+        raise MsmillInputError("breakage", submodel, sm.did_you_mean(submodel, list(FITTABLE)))
+    tests = list(tests)
+    if not tests or any(t.kind != "single_impact" for t in tests):
+        raise MsmillInputError("tests", len(tests), "one or more single-impact tests")
+    fit = tuple(fit or FITTABLE[submodel])
+    bad = [f for f in fit if f not in FITTABLE[submodel]]
+    if bad:
+        raise MsmillInputError("fit", bad, f"parameters of {submodel}: {', '.join(FITTABLE[submodel])}")
+    bp = breakage_parameters(ore)
+    values = current_values(build_breakage(submodel, bp, {}))
+    values.update(start or {})
+    bounds = [FITTABLE[submodel][f] for f in fit]
+    grid = impact_grid(tests)
+    data = _impact_data(tests, grid)
+
+    def model_for(x: np.ndarray) -> Any:
+        return build_breakage(submodel, bp, {**values, **dict(zip(fit, _from_x(x, bounds), strict=True))})
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        brk = model_for(x)
+        out = []
+        for f, v, s, lm, w in data:
+            r = np.log(_retained(grid, single_impact_product(brk, grid, f, v), s) + MASS_FLOOR_PCT) - lm
+            out.append(w * (r - r.mean()))  # free per-test scale: sieve masses are renormalised
+        return np.concatenate(out)
+
+    x0 = np.clip(_to_x(np.array([values[f] for f in fit]), bounds), *_x_bounds(bounds))
+    lo, hi = _x_bounds(bounds)
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    sol = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac")
+    brk = model_for(sol.x)
+    r = sol.fun
+    dof = max(r.size - len(fit) - len(data), 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov_x = np.linalg.inv(sol.jac.T @ sol.jac) * s2
+        se_x = np.sqrt(np.clip(np.diag(cov_x), 0.0, None))
+    except np.linalg.LinAlgError:
+        se_x = np.full(len(fit), np.inf)
+    params = current_values(brk)
+    vals = _from_x(sol.x, bounds)
+    se = {f: float(se_x[i] * (vals[i] if bounds[i][0] > 0 else 1.0)) for i, f in enumerate(fit)}
+    ks = {t.id: measured_ks(t.product_psd, PSD(grid, single_impact_product(brk, grid, d[0], d[1]),
+                                                  validate=False)) for t, d in zip(tests, data, strict=True)}
+    return ImpactFit(submodel, params, se, math.sqrt(float(r @ r) / r.size), ks, brk)
+
+
+def compare_submodels(tests: Sequence[Any], ore: Any,
+                      submodels: Sequence[str] = ("ab_t10", "vogel_swebrec")) -> pd.DataFrame:
+    """Held-out K-S of each sub-model: fit on all impact speeds but one, predict the held-out speed.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per (sub-model, held-out test): ``submodel, held_out_speed_m_s,
+        id, ks_held_out``. Needs tests at two or more speeds.
+    """
+    tests = list(tests)
+    speeds = sorted({float(t.impact_speed_m_s) for t in tests})
+    if len(speeds) < 2:
+        raise MsmillInputError("single-impact tests", f"{len(speeds)} speed(s)",
+                               "tests at two or more impact speeds (fit on some, predict the others)")
+    rows = []
+    for name in submodels:
+        for v in speeds:
+            train = [t for t in tests if float(t.impact_speed_m_s) != v]
+            held = [t for t in tests if float(t.impact_speed_m_s) == v]
+            f = fit_impact_tests(train, ore, name)
+            grid = impact_grid(tests)
+            for t in held:
+                pred = single_impact_product(f.breakage, grid, t.feed_psd.rebin(grid).fractions, v)
+                rows.append({"submodel": name, "held_out_speed_m_s": v, "id": t.id,
+                             "ks_held_out": measured_ks(t.product_psd, PSD(grid, pred, validate=False))})
+    return pd.DataFrame(rows)
+
+
+# ---------------------------------------------------------------- mill surveys
+#: Parameters :func:`calibrate_surveys` can fit, with bounds, and the ore field each sets.
+SURVEY_FITTABLE: dict[str, tuple[float, float]] = {
+    "l_ref_mm": (2.0, 500.0), "A_pct": (5.0, 100.0), "b_t_kwh": (0.02, 20.0), "gamma": (0.5, 50.0),
+}
+
+
+@dataclass(frozen=True)
+class SurveyCalibration:
+    """Result of :func:`calibrate_surveys` for one ore.
+
+    Attributes
+    ----------
+    ore : str
+    fitted : tuple of str
+        Fitted parameters (ore field names: ``l_ref_mm``, ``A_pct``, ``b_t_kwh``, ``gamma``).
+    params : dict[str, float]
+        Fitted values.
+    std_errors : dict[str, float]
+        Jackknife (leave-one-survey-out) standard errors.
+    jacobian_std_errors : dict[str, float]
+        ``L_ref`` fits with ``objective="ssq"``: ``sqrt(s² / JᵀJ)`` from the
+        sieve residuals (treats sieves as independent, so usually smaller); NaN otherwise.
+    objective : str
+        ``"ks"`` (mean K-S) or ``"ssq"`` (weighted sum of squares of % passing).
+    table : pandas.DataFrame
+        Per survey: ``id, ks_before, ks_fit, ks_cv`` (K-S with the start
+        parameters, with the fit, and held out: predicted with parameters
+        fitted without it) and the leave-one-out parameter values.
+    interpolation_ks : float
+        Largest K-S between the spline-interpolated and the exact products at
+        the optimum (``L_ref`` only; 0 otherwise).
+    seconds : float
+        Wall time of the calibration (s).
+    n_points : int
+        Distinct operating points.
+    """
+
+    ore: str
+    fitted: tuple[str, ...]
+    params: dict[str, float]
+    std_errors: dict[str, float]
+    jacobian_std_errors: dict[str, float]
+    objective: str
+    table: pd.DataFrame
+    interpolation_ks: float
+    seconds: float
+    n_points: int
+
+    def provenance(self) -> str:
+        """One-line provenance text for the calibrated ore file."""
+        fit = ", ".join(f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g}" for k in self.fitted)
+        return (f"msmill calibrate: {fit} (jackknife s.e.), objective {self.objective}, "
+                f"{len(self.table)} surveys, mean K-S {self.table['ks_fit'].mean():.3f} fitted, "
+                f"{self.table['ks_cv'].mean():.3f} leave-one-out")
+
+
+def _objective_fn(model: Any, objective: str) -> Callable[[np.ndarray, np.ndarray], float]:
+    """``f(products (n, N), idx) -> objective`` over the surveys ``idx``."""
+    sv = model.surveys
+    sieves = [(e.product_psd.sizes_mm[:-1], e.product_psd.passing_pct[:-1], e.weight) for e in sv]
+
+    def ks(prod: np.ndarray, idx: np.ndarray) -> float:
+        return float(np.mean([measured_ks(sv[i].product_psd, PSD(model.grid, prod[i], validate=False))
+                              for i in idx]))
+
+    def ssq(prod: np.ndarray, idx: np.ndarray) -> float:
+        tot = 0.0
+        for i in idx:
+            s, p, w = sieves[i]
+            r = _passing_at(model.grid, prod[i], s) - p
+            tot += w * float(r @ r)
+        return tot
+
+    return ks if objective == "ks" else ssq
+
+
+def _spline_products(model: Any, lref_nodes: np.ndarray) -> Callable[[float], np.ndarray]:
+    from scipy.interpolate import CubicSpline
+
+    stack = np.stack([model.products(model.with_ore(l_ref_mm=float(L))) for L in lref_nodes])
+    spl = CubicSpline(np.log(lref_nodes), stack, axis=0)
+
+    def at(L: float) -> np.ndarray:
+        p = np.clip(spl(math.log(L)), 0.0, None)
+        return p / p.sum(axis=-1, keepdims=True)
+
+    return at
+
+
+def _fit_1d(obj: Callable[[float], float], lo: float, hi: float) -> float:
+    from scipy.optimize import minimize_scalar
+
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), 161))
+    vals = np.array([obj(g) for g in grid])
+    k = int(np.argmin(vals))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    if a == b:
+        return float(a)
+    res = minimize_scalar(lambda u: obj(math.exp(u)), bounds=(math.log(a), math.log(b)), method="bounded",
+                          options={"xatol": 1e-5})
+    return float(math.exp(res.x)) if res.fun <= vals[k] else float(grid[k])
+
+
+def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective: str = "ssq",
+                      n_nodes: int = 9, bounds: dict[str, tuple[float, float]] | None = None,
+                      cross_validate: bool = True) -> SurveyCalibration:
+    """Fit ore parameters to the surveys of a :class:`~msmill.model.validation.SurveyModel`.
+
+    Parameters
+    ----------
+    model : SurveyModel
+        Surveys of one ore, with the stage parameters cached per operating point.
+    fit : sequence of str
+        From :data:`SURVEY_FITTABLE`; not ``b_t_kwh`` with ``l_ref_mm``.
+    objective : {"ssq", "ks"}
+        Weighted sum of squares of % passing at the measured sieves (default:
+        smooth, and its jackknife standard error is sound), or the mean K-S
+        (the paper's metric; non-smooth, so its jackknife error is unreliable).
+    n_nodes : int
+        Spline nodes over ``ln L_ref`` (``L_ref``-only fits).
+    bounds : dict, optional
+        Bounds overriding :data:`SURVEY_FITTABLE`.
+    cross_validate : bool
+        Leave-one-survey-out refits (K-S held out and jackknife standard errors).
+    """
+    t0 = time.perf_counter()
+    fit = tuple(dict.fromkeys(fit))
+    if not fit or any(f not in SURVEY_FITTABLE for f in fit):
+        raise MsmillInputError("fit", list(fit), f"a non-empty subset of {', '.join(SURVEY_FITTABLE)}")
+    if "b_t_kwh" in fit and "l_ref_mm" in fit:
+        raise MsmillInputError("fit", list(fit), "not both b and L_ref (they enter Eq. 11 only as b/L_ref)")
+    if objective not in OBJECTIVES:
+        raise MsmillInputError("objective", objective, sm.did_you_mean(objective, list(OBJECTIVES)))
+    bnd = {**SURVEY_FITTABLE, **(bounds or {})}
+    n = len(model.surveys)
+    if cross_validate and n < 3:
+        raise MsmillInputError("surveys", n, "at least 3 surveys of the ore for leave-one-out cross-validation")
+    f_obj = _objective_fn(model, objective)
+    start = model.products()
+    every = np.arange(n)
+    interp_ks = 0.0
+    if fit == ("l_ref_mm",):
+        lo, hi = bnd["l_ref_mm"]
+        at = _spline_products(model, np.exp(np.linspace(math.log(lo), math.log(hi), n_nodes)))
+
+        def solve(idx: np.ndarray) -> dict[str, float]:
+            return {"l_ref_mm": _fit_1d(lambda L: f_obj(at(L), idx), lo, hi)}
+
+        def predict(p: dict[str, float]) -> np.ndarray:
+            return at(p["l_ref_mm"])
+    else:
+        solve, predict = _direct_solver(model, fit, bnd, f_obj)
+    best = solve(every)
+    exact = model.products(model.with_ore(**best))
+    if fit == ("l_ref_mm",):
+        interp_ks = float(max(ks_statistic(PSD(model.grid, a, validate=False), PSD(model.grid, b, validate=False))
+                              for a, b in zip(exact, predict(best), strict=True)))
+    rows = [{"id": e.id, "ks_before": k0, "ks_fit": k1} for e, k0, k1 in
+            zip(model.surveys, model.ks(start), model.ks(exact), strict=True)]
+    se = {f: float("nan") for f in fit}
+    if cross_validate:
+        loo = []
+        for i in range(n):
+            p = solve(np.delete(every, i))
+            loo.append(p)
+            rows[i]["ks_cv"] = float(model.ks(predict(p))[i])
+            rows[i].update({f"loo_{k}": v for k, v in p.items()})
+        for f in fit:
+            th = np.array([p[f] for p in loo])
+            se[f] = float(math.sqrt((n - 1) / n * np.sum((th - th.mean()) ** 2)))
+    table = pd.DataFrame(rows)
+    if "ks_cv" not in table:
+        table["ks_cv"] = np.nan
+    jse = {f: float("nan") for f in fit}
+    if fit == ("l_ref_mm",) and objective == "ssq":
+        jse["l_ref_mm"] = _jacobian_se(model, predict, best["l_ref_mm"])
+    return SurveyCalibration(model.ore.name, fit, best, se, jse, objective, table, interp_ks,
+                             time.perf_counter() - t0, model.n_points)
+
+
+def _jacobian_se(model: Any, predict: Callable, l_ref_mm: float, h: float = 1e-3) -> float:
+    """``L_ref`` standard error ``L sqrt(s² / JᵀJ)`` with ``J = dr/d ln L`` of the sieve residuals."""
+    def resid(L: float) -> np.ndarray:
+        prod = predict({"l_ref_mm": L})
+        return np.concatenate([math.sqrt(e.weight) * (_passing_at(model.grid, prod[i], e.product_psd.sizes_mm[:-1])
+                                                       - e.product_psd.passing_pct[:-1])
+                               for i, e in enumerate(model.surveys)])
+
+    r = resid(l_ref_mm)
+    J = (resid(l_ref_mm * math.exp(h)) - resid(l_ref_mm * math.exp(-h))) / (2 * h)
+    s2 = float(r @ r) / max(r.size - 1, 1)
+    jtj = float(J @ J)
+    return l_ref_mm * math.sqrt(s2 / jtj) if jtj > 0 else float("inf")
+
+
+def _direct_solver(model: Any, fit: tuple[str, ...], bnd: dict, f_obj: Callable) -> tuple[Callable, Callable]:
+    """Nelder-Mead on the exact model (several parameters); each evaluation assembles every point."""
+    from scipy.optimize import minimize
+
+    bounds = [bnd[f] for f in fit]
+    lo, hi = _x_bounds(bounds)
+    cache: dict[tuple, np.ndarray] = {}
+
+    def predict(p: dict[str, float]) -> np.ndarray:
+        key = tuple(round(p[f], 10) for f in fit)
+        if key not in cache:
+            cache[key] = model.products(model.with_ore(**p))
+        return cache[key]
+
+    def as_params(x: np.ndarray) -> dict[str, float]:
+        return dict(zip(fit, _from_x(np.clip(x, lo, hi), bounds), strict=True))
+
+    state = {"x": np.clip(_to_x(np.array([float(getattr(model.ore, f)) for f in fit]), bounds), lo, hi),
+             "step": 0.1, "first": True}
+
+    def solve(idx: np.ndarray) -> dict[str, float]:
+        """First call from the ore's values; later (leave-one-out) calls warm-start from the first fit."""
+        x0 = state["x"]
+        simplex = np.vstack([x0, x0 + state["step"] * np.eye(len(fit))])
+        res = minimize(lambda x: f_obj(predict(as_params(x)), idx), x0, method="Nelder-Mead",
+                       options={"xatol": 1e-3, "fatol": 1e-8, "maxfev": 60 * len(fit),
+                                "initial_simplex": simplex})
+        if state["first"]:
+            state.update(x=np.clip(res.x, lo, hi), step=0.02, first=False)
+        return as_params(res.x)
+
+    return solve, predict
+
+
+def calibrated_ore(ore: Any, cal: SurveyCalibration) -> Any:
+    """Copy of an ``msmill.ore.Ore`` with the parameters of ``cal`` and its provenance."""
+    text = cal.provenance()
+    new = ore.with_l_ref(cal.params["l_ref_mm"], text) if "l_ref_mm" in cal.fitted else ore
+    upd: dict[str, Any] = {}
+    for field_name, ore_field in (("A_pct", "A_pct"), ("b_t_kwh", "b_t_per_kwh"), ("gamma", "gamma")):
+        if field_name in cal.fitted:
+            upd[ore_field] = cal.params[field_name]
+    if upd:
+        srcs = dict(new.sources)
+        for key, names in (("breakage", ("A_pct", "b_t_per_kwh")), ("damage", ("gamma",))):
+            if any(n in upd for n in names):
+                srcs[key] = text
+        upd["sources"] = srcs
+        new = new.model_copy(update=upd)
+    return new

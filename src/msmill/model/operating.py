@@ -1,0 +1,306 @@
+"""Sweeps over operating variables and an optimiser of the operating point.
+
+Variables (``VARIABLES``): ``speed_rpm`` (upper stages; the bottom stage keeps
+``bottom_speed_factor``), ``feed_tph``, ``gate_deg`` and ``feed_scale`` (all
+feed sizes multiplied by this factor: a coarser or finer feed of the same
+shape). Every point is one steady-state expected-value prediction; outputs:
+P80, throughput, specific energy (impact power plus the stated no-load term,
+per tonne; ``msmill.model.power``), hold-up, % passing at a size, whether the
+point is inside the design space, and whether it is feasible.
+
+Feasibility hook: ``feasible(op, result) -> bool`` (default: every point is
+feasible). A capacity limit (e.g. the largest feed rate the mill can pass at
+a speed and gate) plugs in here and applies to sweeps and the optimiser alike.
+
+Note: with a stage-parameter table measured at one operating point, the
+transport and impact statistics do not change with feed rate or gate, so the
+product does not either (the model is linear in the feed); sweeps over those
+variables become informative with a provider that depends on them (the
+surrogate). Off the table's point the provider warns.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.errors import MsmillInputError, OutOfDomainWarning
+from msmill.psd import PSD, SizeGrid
+
+__all__ = ["VARIABLES", "OptimumResult", "evaluate_point", "optimize", "optimize_settings",
+           "pareto_front", "sweep"]
+
+VARIABLES = ("speed_rpm", "feed_tph", "gate_deg", "feed_scale")
+GOALS = ("max_feed", "min_energy")
+Feasible = Callable[[Any, Any], bool]
+
+
+def _scaled_feed(feed: PSD, factor: float) -> PSD:
+    if factor == 1.0:
+        return feed
+    return PSD(SizeGrid(feed.grid.edges_mm * factor), feed.fractions, validate=False)
+
+
+def _check_vars(names: Any) -> None:
+    bad = [n for n in names if n not in VARIABLES]
+    if bad:
+        raise MsmillInputError("variable", bad[0], "one of " + ", ".join(VARIABLES))
+
+
+def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float],
+                   passing_size_mm: float | None = None, no_load_kw: float = 0.0,
+                   feasible: Feasible | None = None) -> dict[str, Any]:
+    """Predict at ``base_op`` with ``settings`` applied; one row of outputs (units in the keys)."""
+    from msmill.model.power import power_estimate
+
+    _check_vars(settings)
+    upd = {k: float(v) for k, v in settings.items() if k in ("speed_rpm", "feed_tph", "gate_deg")}
+    if "speed_rpm" in upd and base_op.stage_speeds_rpm is not None:
+        raise MsmillInputError("speed_rpm", upd["speed_rpm"], "a base operating point given by speed_rpm")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", OutOfDomainWarning)
+        op = base_op.model_validate({**base_op.model_dump(exclude_none=True), **upd})
+        f = _scaled_feed(feed, float(settings.get("feed_scale", 1.0)))
+        res = mill.run(f, op, timeseries=False)
+    pw = power_estimate(res, no_load_kw=no_load_kw)
+    row = {**{k: float(v) for k, v in settings.items()},
+           "p80_mm": res.p80_mm, "f80_mm": res.f80_mm, "throughput_tph": res.feed_tph,
+           "specific_energy_kwh_t": pw.specific_energy_kwh_t, "power_kw": pw.total_kw,
+           "holdup_t": float(res.stages["holdup_t"].sum()),
+           "inside_design_space": not any("design space" in str(w.message) for w in caught),
+           "feasible": bool(feasible(op, res)) if feasible is not None else True}
+    band = getattr(res, "p80_band_mm", None)  # uncertainty band (issue 13), when the result has one
+    if band is not None:
+        row["p80_low_mm"], row["p80_high_mm"] = float(band[0]), float(band[1])
+    if passing_size_mm is not None:
+        row[f"passing_{passing_size_mm:g}mm_pct"] = float(res.product_psd.passing_at(passing_size_mm))
+    return row
+
+
+def sweep(mill: Any, feed: PSD, base_op: Any, axes: dict[str, Any], **options: Any) -> pd.DataFrame:
+    """Predict on the full grid of one or two variables.
+
+    Parameters
+    ----------
+    mill : Mill
+        Model (give it a ``grid`` covering the coarsest scaled feed to share operators).
+    feed : PSD
+        Feed (scaled by ``feed_scale`` when swept).
+    base_op : OperatingPoint
+        The other settings.
+    axes : dict
+        ``{variable: values}`` for one or two of :data:`VARIABLES`.
+    **options
+        ``passing_size_mm``, ``no_load_kw``, ``feasible`` of :func:`evaluate_point`.
+    """
+    if not 1 <= len(axes) <= 2:
+        raise MsmillInputError("sweep variables", list(axes), "one or two of " + ", ".join(VARIABLES))
+    _check_vars(axes)
+    names = list(axes)
+    rows = [evaluate_point(mill, feed, base_op, dict(zip(names, vals, strict=True)), **options)
+            for vals in itertools.product(*[np.asarray(v, dtype=float) for v in axes.values()])]
+    return pd.DataFrame(rows)
+
+
+def pareto_front(table: pd.DataFrame, x: str = "specific_energy_kwh_t", y: str = "p80_mm") -> pd.DataFrame:
+    """Rows not dominated in (lower ``x``, lower ``y``)."""
+    t = table.sort_values([x, y]).reset_index(drop=True)
+    best = np.minimum.accumulate(t[y].to_numpy())
+    keep = np.concatenate([[True], t[y].to_numpy()[1:] < best[:-1]])
+    return t[keep]
+
+
+@dataclass(frozen=True)
+class OptimumResult:
+    """Result of :func:`optimize_settings`.
+
+    Attributes
+    ----------
+    settings : dict[str, float] or None
+        The best settings (None when no candidate meets the target).
+    row : dict or None
+        Outputs at the best settings.
+    candidates : pandas.DataFrame
+        Every evaluated point (grid and refinement) with ``meets_target``.
+    front : pandas.DataFrame
+        Pareto front of P80 against specific energy among feasible candidates.
+    goal : str
+    target : str
+        Human-readable target.
+    """
+
+    settings: dict[str, float] | None
+    row: dict[str, Any] | None
+    candidates: pd.DataFrame
+    front: pd.DataFrame
+    goal: str
+    target: str
+
+
+def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
+                      bounds: dict[str, tuple[float, float]], goal: str = "max_feed",
+                      target_p80_mm: float | None = None,
+                      target_passing: tuple[float, float] | None = None, n_grid: int = 7,
+                      refine_tol: float = 1e-3) -> OptimumResult:
+    """Best settings within ``bounds`` that reach the target, by grid search plus boundary refinement.
+
+    Parameters
+    ----------
+    evaluate : callable
+        ``settings -> row`` with ``p80_mm``, ``specific_energy_kwh_t``,
+        ``throughput_tph``, ``feasible`` (and ``passing_<s>mm_pct`` for a passing target).
+    bounds : dict
+        ``{variable: (low, high)}``.
+    goal : {"max_feed", "min_energy"}
+        Highest throughput, or lowest specific energy.
+    target_p80_mm : float, optional
+        P80 must not exceed this (mm).
+    target_passing : (size_mm, pct), optional
+        Passing at ``size_mm`` must be at least ``pct`` %.
+    n_grid : int
+        Grid points per variable.
+    refine_tol : float
+        Relative tolerance of the refinement.
+
+    Notes
+    -----
+    After the grid, the variable that drives the goal (``feed_tph`` for
+    ``max_feed``; ``speed_rpm`` for ``min_energy`` when swept) is refined by
+    bisection between the best feasible grid point and its failing grid
+    neighbour, for every combination of the other variables (for
+    ``max_feed`` only those that can still beat the best), assuming the target
+    is monotone along it between the two grid values.
+    """
+    if goal not in GOALS:
+        raise MsmillInputError("goal", goal, " or ".join(GOALS))
+    if (target_p80_mm is None) == (target_passing is None):
+        raise MsmillInputError("target", None, "exactly one of a target P80 or a target passing at a size")
+    _check_vars(bounds)
+    if goal == "max_feed" and "feed_tph" not in bounds:
+        raise MsmillInputError("bounds", list(bounds), "feed_tph among the variables for goal max_feed")
+    for k, (lo, hi) in bounds.items():
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise MsmillInputError(f"bounds.{k}", (lo, hi), "finite low <= high")
+    if target_p80_mm is not None:
+        target = f"P80 <= {target_p80_mm:g} mm"
+
+        def margin(r: dict) -> float:  # >= 0 meets the target
+            return target_p80_mm - r["p80_mm"]
+    else:
+        size, pct = target_passing
+        key = f"passing_{size:g}mm_pct"
+        target = f"passing {size:g} mm >= {pct:g} %"
+
+        def margin(r: dict) -> float:
+            return r[key] - pct
+
+    names = list(bounds)
+    axes = [np.linspace(lo, hi, n_grid) if hi > lo else np.array([lo]) for lo, hi in bounds.values()]
+    rows = []
+    for vals in itertools.product(*axes):
+        s = dict(zip(names, (float(v) for v in vals), strict=True))
+        rows.append({**evaluate(s), **s})
+    score = (lambda r: r["throughput_tph"]) if goal == "max_feed" else (lambda r: -r["specific_energy_kwh_t"])
+    ok = [r for r in rows if r["feasible"] and margin(r) >= 0]
+    best = max(ok, key=score) if ok else None
+    drive = "feed_tph" if goal == "max_feed" else ("speed_rpm" if "speed_rpm" in bounds else None)
+    if best is not None and drive is not None and bounds[drive][1] > bounds[drive][0]:
+        best = _refine_all(evaluate, ok, names, drive, axes[names.index(drive)], margin, rows, refine_tol,
+                           score, goal)
+    cand = pd.DataFrame(rows)
+    cand["meets_target"] = [bool(r["feasible"] and margin(r) >= 0) for r in rows]
+    feas = cand[cand["feasible"]]
+    front = pareto_front(feas) if len(feas) else feas
+    settings = {k: float(best[k]) for k in names} if best is not None else None
+    return OptimumResult(settings, best, cand, front, goal, target)
+
+
+def _refine_all(evaluate, ok, names, drive, axis, margin, rows, tol, score, goal) -> dict:
+    """Refine ``drive`` in every group of the other variables; best refined point.
+
+    For ``max_feed`` a group whose upper limit (its first failing grid value)
+    cannot beat the best so far is skipped.
+    """
+    others = [n for n in names if n != drive]
+    groups: dict[tuple, dict] = {}
+    for r in ok:  # best feasible grid point per combination of the other variables
+        key = tuple(r[n] for n in others)
+        if key not in groups or score(r) > score(groups[key]):
+            groups[key] = r
+    step = axis[1] - axis[0] if axis.size > 1 else 0.0
+    direction = 1.0 if drive == "feed_tph" else -1.0  # more feed / less speed is better
+    lo, hi = float(axis[0]), float(axis[-1])
+
+    def limit(r: dict) -> float:
+        return min(max(r[drive] + direction * step, lo), hi)
+
+    order = sorted(groups.values(), key=lambda r: direction * limit(r), reverse=True)
+    best = max(ok, key=score)
+    for r in order:
+        if goal == "max_feed" and limit(r) <= best[drive]:
+            break
+        cand = _refine(evaluate, r, names, drive, limit(r), margin, rows, tol, score)
+        if score(cand) > score(best):
+            best = cand
+    return best
+
+
+def _refine(evaluate, best, names, drive, b, margin, rows, tol, score) -> dict:
+    """Bisect ``drive`` between ``best`` (meets the target) and ``b`` (the next grid value)."""
+    a = best[drive]
+    if b == a:
+        return best
+    good = best
+    for _ in range(40):
+        if abs(b - a) <= tol * max(abs(a), 1e-12):
+            break
+        mid = float(0.5 * (a + b))
+        s = {k: best[k] for k in names}
+        s[drive] = mid
+        r = {**evaluate(s), **s}
+        rows.append(r)
+        if r["feasible"] and margin(r) >= 0:
+            a, good = mid, (r if score(r) >= score(good) else good)
+        else:
+            b = mid
+    return good
+
+
+def optimize(mill: Any, feed: PSD, base_op: Any, bounds: dict[str, tuple[float, float]],
+             goal: str = "max_feed", target_p80_mm: float | None = None,
+             target_passing: tuple[float, float] | None = None, n_grid: int = 7, no_load_kw: float = 0.0,
+             feasible: Feasible | None = None) -> OptimumResult:
+    """:func:`optimize_settings` on the mill model (each evaluation one steady-state prediction)."""
+    size = target_passing[0] if target_passing is not None else None
+
+    def evaluate(s: dict[str, float]) -> dict[str, Any]:
+        return evaluate_point(mill, feed, base_op, s, passing_size_mm=size, no_load_kw=no_load_kw,
+                              feasible=feasible)
+
+    return optimize_settings(evaluate, bounds, goal, target_p80_mm, target_passing, n_grid)
+
+
+def optimum_sensitivity(make_mill: Callable[[float], Any], l_ref_mm: float, l_ref_se_mm: float,
+                        feed: PSD, base_op: Any, bounds: dict[str, tuple[float, float]],
+                        **options: Any) -> pd.DataFrame:
+    """The optimum at ``L_ref - se``, ``L_ref`` and ``L_ref + se`` (uncertainty of the result).
+
+    ``make_mill(l_ref_mm)`` builds the mill for one reference size; ``options``
+    go to :func:`optimize`. Returns one row per case with the best settings and
+    outputs (NaN where the target cannot be met).
+    """
+    if not (l_ref_se_mm > 0 and l_ref_mm - l_ref_se_mm > 0):
+        raise MsmillInputError("l_ref_se_mm", l_ref_se_mm, f"a standard error in (0, {l_ref_mm:g}) mm")
+    rows = []
+    for case, L in (("L_ref - s.e.", l_ref_mm - l_ref_se_mm), ("L_ref", l_ref_mm),
+                    ("L_ref + s.e.", l_ref_mm + l_ref_se_mm)):
+        res = optimize(make_mill(L), feed, base_op, bounds, **options)
+        rows.append({"case": case, "l_ref_mm": L, **(res.row or {})})
+    return pd.DataFrame(rows)

@@ -1,0 +1,86 @@
+"""validate: K-S ~ 0 on model-made surveys, larger with the wrong ore; calibrate recovers L_ref.
+
+All surveys here are SYNTHETIC, made by the model itself (msmill.model.synthetic).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from msmill.errors import OutOfDomainWarning
+from msmill.model.fitting import calibrate_surveys
+from msmill.model.synthetic import model_surveys
+from msmill.model.validation import SurveyModel, measured_ks, validate
+from msmill.psd import PSD
+
+FEEDS = {"coarse": {"size_mm": [2.36, 4.75, 9.5, 13.2, 19.0, 26.5, 31.5],
+                    "passing_pct": [2.0, 6.0, 18.0, 32.0, 58.0, 88.0, 100.0]},
+         "fine": {"size_mm": [1.18, 2.36, 4.75, 9.5, 13.2, 19.0, 26.5],
+                  "passing_pct": [3.0, 7.0, 16.0, 42.0, 63.0, 90.0, 100.0]}}
+POINTS = [(30.0, 1500.0, 40.0), (30.0, 1700.0, 60.0)]
+
+
+def specs(tag="s"):
+    return [(f"{tag}{j}-{fk}", FEEDS[fk], tph, {"speed_rpm": rpm, "gate_deg": gate})
+            for j, (tph, rpm, gate) in enumerate(POINTS) for fk in FEEDS]
+
+
+@pytest.fixture(scope="module")
+def clean_surveys():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        return model_surveys("UG2", specs(), {"l_ref_mm": 20.0}, 0.0, np.random.default_rng(0))
+
+
+def test_measured_ks_is_zero_for_identical_and_ignores_the_pan():
+    a = PSD.from_passing([0.1, 1.0, 10.0], [5.0, 40.0, 100.0])
+    assert measured_ks(a, a) == 0.0
+    b = PSD.from_passing([0.1, 1.0, 10.0], [5.0, 60.0, 100.0])
+    assert measured_ks(a, b) == pytest.approx(0.2)
+
+
+def test_validate_near_zero_on_model_made_surveys_and_larger_for_the_wrong_ore(clean_surveys):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        good = validate(clean_surveys, ores={"UG2": SurveyModel("UG2", clean_surveys).with_ore(l_ref_mm=20.0)})
+        wrong = validate(clean_surveys, ores={"UG2": "Platreef"})
+    # floor from reading two piecewise-linear curves on different sieves (docs/validation.md)
+    assert good.table["ks"].max() < 0.012
+    assert wrong.table["ks"].min() > 0.1
+    assert list(good.summary["n"]) == [4]
+    assert set(good.summary["best_id"]) <= set(good.table["id"])
+
+
+def test_calibrate_recovers_l_ref_from_noisy_surveys_within_its_standard_error():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        surveys = model_surveys("UG2", specs("n"), {"l_ref_mm": 20.0}, 0.05, np.random.default_rng(3))
+        cal = calibrate_surveys(SurveyModel("UG2", surveys))  # starts from the default 29 mm
+    L, se = cal.params["l_ref_mm"], cal.std_errors["l_ref_mm"]
+    assert 0 < se < 0.05 * 20.0
+    assert abs(L - 20.0) < 3 * se, (L, se)
+    assert cal.interpolation_ks < 1e-3
+    assert cal.table["ks_fit"].mean() < cal.table["ks_before"].mean() / 3
+    assert (cal.table["ks_cv"] >= cal.table["ks_fit"] - 1e-3).all()
+
+
+def test_calibrate_refuses_b_with_l_ref(clean_surveys):
+    from msmill.errors import MsmillInputError
+
+    with pytest.raises(MsmillInputError, match="b/L_ref"):
+        calibrate_surveys(SurveyModel("UG2", clean_surveys), fit=("l_ref_mm", "b_t_kwh"))
+
+
+def test_calibrate_several_parameters_on_exact_solves():
+    # one operating point, noise-free: A (start 71.8 %) from products made with A = 60 %
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        sv = model_surveys("UG2", specs()[:2], {"A_pct": 60.0, "l_ref_mm": 20.0}, 0.0, np.random.default_rng(1))
+        model = SurveyModel("UG2", sv)
+        model.ore = model.with_ore(l_ref_mm=20.0)
+        cal = calibrate_surveys(model, fit=("A_pct",), cross_validate=False)
+    assert cal.params["A_pct"] == pytest.approx(60.0, rel=0.02)
+    assert cal.table["ks_fit"].max() < 0.012

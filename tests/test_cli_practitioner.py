@@ -1,0 +1,65 @@
+"""CLI of the practitioner workflow on the shipped SYNTHETIC example experiments."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pandas as pd
+
+from msmill.cli.main import run
+from msmill.ore import Ore
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples" / "experiments"
+
+
+def test_validate_examples_writes_tables_and_figures(tmp_path, capsys):
+    assert run(["validate", str(EXAMPLES), "--out", str(tmp_path)]) == 0
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {"ks_by_experiment.csv", "ks_by_ore.csv", "ks_swarm.png", "overlay_UG2_best.png",
+            "overlay_Platreef_worst.png"} <= names
+    t = pd.read_csv(tmp_path / "ks_by_experiment.csv")
+    assert len(t) == 15 and t["ks"].between(0, 1).all()
+    assert t.loc[t["id"] == "ug2-p5-coarse", "outside_design_space"].item()
+    assert "no-load" in capsys.readouterr().out
+
+
+def test_calibrate_small_set_writes_calibrated_ore(tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in [*sorted(EXAMPLES.glob("ug2-p[12]-*.toml")), *sorted(EXAMPLES.glob("ug2-lab-13x16-*.toml"))]:
+        shutil.copy(p, data / p.name)
+    out = tmp_path / "out"
+    assert run(["calibrate", str(data), "--out", str(out)]) == 0
+    ore = Ore.from_toml(out / "UG2_calibrated.toml")
+    assert not ore.l_ref_is_default
+    assert abs(ore.l_ref_mm - 20.0) < 2.0  # the synthetic truth (examples/experiments/PROVENANCE.json)
+    assert "msmill calibrate" in ore.sources["l_ref"]
+    text = capsys.readouterr().out
+    assert "fits better" in text and "leave-one-survey-out" in text
+    assert (out / "impact_fits.csv").is_file()
+
+
+def test_calibrate_bad_fit_name_exits_2(tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in sorted(EXAMPLES.glob("ug2-p1-*.toml")):
+        shutil.copy(p, data / p.name)
+    assert run(["calibrate", str(data), "--fit", "colour"]) == 2
+    assert capsys.readouterr().err.startswith("error: fit")
+
+
+def test_sweep_and_optimize(tmp_path, capsys):
+    run_file = ROOT / "examples" / "ug2.toml"
+    assert run(["sweep", str(run_file), "--var", "speed_rpm=1300:1700:3", "--out", str(tmp_path / "s")]) == 0
+    t = pd.read_csv(tmp_path / "s" / "sweep.csv")
+    assert t["p80_mm"].is_monotonic_decreasing and t["specific_energy_kwh_t"].is_monotonic_increasing
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--goal", "min_energy",
+                "--target-p80-mm", "16", "--n-grid", "4", "--l-ref-se-mm", "3", "--out", str(tmp_path / "o")]) == 0
+    assert "best (min_energy" in capsys.readouterr().out
+    assert (tmp_path / "o" / "pareto.png").is_file()
+    sens = pd.read_csv(tmp_path / "o" / "optimum_sensitivity.csv")
+    # a smaller L_ref breaks more easily, so the target is reached at a lower speed
+    assert sens["speed_rpm"].is_monotonic_increasing and sens["speed_rpm"].nunique() == 3
+    assert run(["sweep", str(run_file), "--var", "colour=1:2"]) == 2

@@ -1,0 +1,73 @@
+"""``msmill report``: one self-contained HTML file that renders with its plots in headless Chromium."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msmill.cli.main import run
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: ``.ci/run`` installs chromium and sets this, so a missing browser fails there instead of skipping
+REQUIRED = os.environ.get("MSMILL_REQUIRE_BROWSER") == "1"
+
+
+def _screenshot(html_path: Path, png: Path, profile: Path) -> None:
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={profile}", "--window-size=1100,1800", "--hide-scrollbars",
+           f"--screenshot={png}", html_path.as_uri()]
+    subprocess.run(cmd, capture_output=True, timeout=120, check=False)
+
+
+#: matplotlib's default C0 (blue), C1 (orange), C2 (green): the plots' lines and bars
+PLOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44]], dtype=float)
+
+
+def _coloured_pixels(png: Path) -> tuple[int, float]:
+    """Pixels in the plots' colours (text and tables are grey or brown), and the overall spread."""
+    from PIL import Image
+
+    a = np.asarray(Image.open(png).convert("RGB"), dtype=float)
+    d = np.linalg.norm(a[..., None, :] - PLOT_COLOURS, axis=-1).min(axis=-1)
+    return int((d < 40).sum()), float(a.std())
+
+
+@pytest.fixture(scope="module")
+def report_file(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("report") / "ug2.html"
+    assert run(["report", str(ROOT / "examples" / "ug2.toml"), "--out", str(out)]) == 0
+    return out
+
+
+def test_report_is_self_contained(report_file):
+    doc = report_file.read_text(encoding="utf-8")
+    assert doc.count("data:image/png;base64,") == 3
+    assert not re.search(r"""(src|href)=["']?(https?:|//|file:)""", doc)  # nothing fetched from outside
+    for heading in ("Headline", "Approach to steady state", "Per stage", "Power and wear", "Provenance"):
+        assert heading in doc
+    assert "flinger" in doc and "no-load" in doc
+
+
+@pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium not installed (.ci/run installs it)")
+def test_report_renders_in_headless_chromium_with_its_plots(report_file, tmp_path):
+    assert CHROMIUM is not None, "MSMILL_REQUIRE_BROWSER=1 but chromium is missing"
+    shot = tmp_path / "shot.png"
+    _screenshot(report_file, shot, tmp_path / "profile")
+    assert shot.is_file() and shot.stat().st_size > 10_000
+    coloured, spread = _coloured_pixels(shot)
+    assert spread > 10  # not a blank page
+    assert coloured > 3000, coloured  # the plots' coloured lines and bars are drawn
+    # control: the same page with the images removed has (almost) no coloured pixels
+    bare = tmp_path / "bare.html"
+    bare.write_text(re.sub(r'src="data:image/png;base64,[^"]+"', 'src=""', report_file.read_text()), encoding="utf-8")
+    shot2 = tmp_path / "bare.png"
+    _screenshot(bare, shot2, tmp_path / "profile2")
+    assert _coloured_pixels(shot2)[0] < coloured / 10
