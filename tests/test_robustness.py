@@ -204,8 +204,8 @@ def test_shipped_example_prints_no_warning(tmp_path, capsys):
         assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     assert "warning" not in cap.err
-    assert "note: 16 of 20 size classes" in cap.out  # the clamped sizes: a summary line
-    assert "characteristic times" in cap.out
+    # the sizes outside the shipped surrogate's trained 6-30 mm: a summary line
+    assert "16 of 20 size classes outside the trained 6-30 mm" in " ".join(cap.out.split())
 
 
 def test_summary_notes_are_not_reissued_by_the_mill():
@@ -216,13 +216,13 @@ def test_summary_notes_are_not_reissued_by_the_mill():
     feed = PSD.from_passing([4.0, 8.0, 16.0, 32.0], [10.0, 30.0, 70.0, 100.0])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = Mill("UG2", "default").run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
+        res = Mill("UG2", "table").run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
     assert not [w for w in caught if issubclass(w.category, SummaryNote)]
     assert any("clamped" in n for n in res.notes)
 
 
 def test_note_lists_are_not_eaten_as_markup(tmp_path, capsys):
-    f = write_run(tmp_path, {"speed_rpm": "speed_rpm = 1600.0", "plots": "plots = false"})
+    f = write_run(tmp_path, {"speed_rpm": "speed_rpm = 1600.0", "plots": "plots = false", "file": 'file = "table"'})
     assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     assert "[1600.0, 1600.0, 1600.0, 1600.0, 3200.0] rpm" in " ".join(cap.out.split())

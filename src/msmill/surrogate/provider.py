@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msmill.errors import OutOfDomainWarning
+from msmill.errors import OutOfDomainWarning, SummaryNote
 from msmill.providers_base import CountArrays, MixtureArrays, StageParameters
 from msmill.surrogate.space import INPUTS
 from msmill.surrogate.stage_model import StageSurrogate
@@ -87,8 +87,9 @@ class SurrogateProvider:
                 parts.append(f"down to {sizes.min():.3g} mm, {lo / sizes.min():.3g}x below the smallest")
             if sizes.max() > hi:
                 parts.append(f"up to {sizes.max():.3g} mm, {sizes.max() / hi:.3g}x above the largest")
-            msgs.append(f"{int(out.sum())} of {sizes.size} size classes outside the trained {lo:g}-{hi:g} mm "
-                        f"({'; '.join(parts)})")
+            # every feed has fines below the trained sizes: a summary note, not a warning
+            warnings.warn(f"{self.source}: extrapolating: {int(out.sum())} of {sizes.size} size classes outside "
+                          f"the trained {lo:g}-{hi:g} mm ({'; '.join(parts)})", SummaryNote, stacklevel=3)
         for k in (1, 3):
             if ex[0, 0, k] > 1e-9:
                 lo, hi = m.domain_[k]
@@ -156,6 +157,7 @@ class SurrogateProvider:
         """``n_samples`` draws of the stage parameters from the GP posterior (jointly over sizes)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", OutOfDomainWarning)  # already said by stage_parameters
+            warnings.simplefilter("ignore", SummaryNote)
             X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
         rng = np.random.default_rng(seed)
         Z = self.surrogate.sample_targets(X, n_samples, rng=rng)
