@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--speed-rpm", type=float, default=1500.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
     ap.add_argument("--measure-s", type=float, default=0.5)
-    ap.add_argument("--max-time-s", type=float, default=4.0)
+    ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
     ap.add_argument("--restat", action="store_true",
@@ -81,7 +81,7 @@ def main() -> None:
 def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
     """The machine, operating point and run settings the table is built at."""
     op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
-    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s)
 
 
 def _restat(args) -> None:

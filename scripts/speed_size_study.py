@@ -32,11 +32,11 @@ def main() -> None:
     ap.add_argument("--feed-tph", type=float, default=30.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
     ap.add_argument("--measure-s", type=float, default=0.5)
-    ap.add_argument("--max-time-s", type=float, default=4.0)
+    ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=Path("runs/speed_size_study"))
     args = ap.parse_args()
     machine = Machine.default()
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    settings = RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s)
     rows, lines = [], []
     lines.append("| speed (rpm) | size (mm) | t_ss (s) | tau (s) | stage | kick | refeed | pass | p_hit | "
                  "v_prim (m/s) | KL v_prim | lambda | KL lambda | KL v_sec | n_prim | n_sec |")

@@ -91,6 +91,11 @@ def test_t10_limits():
     assert t10[0] == 0.0
     assert np.all(np.diff(t10) > 0)
     assert t10[-1] == pytest.approx(UG2_A)
+    # Eq. 12 by hand: E = 0.1 kWh/t, L = L_ref = 30 mm -> P_b = 1 - exp(-0.167) = 0.1538,
+    # t10 = 71.8 * 0.1538 = 11.04 %
+    assert t10[2] == pytest.approx(71.8 * (1 - math.exp(-1.67 * 0.1)), rel=1e-12)
+    assert t10[2] == pytest.approx(11.04, abs=0.01)
+    assert br.t10_pct(0.25, 60.0) == pytest.approx(15.0)
     with pytest.raises(MsmillInputError, match=r"^pb"):
         br.t10_pct(1.5, UG2_A)
     with pytest.raises(MsmillInputError, match=r"^A"):
@@ -251,3 +256,61 @@ def test_appearance_speed():
         br.appearance_matrix(grid, t10)
     per_call = (time.perf_counter() - start) / 10
     assert per_call < 0.05  # measured ~2 ms; generous bound for shared CI machines
+
+
+def _pchip_column(grid: SizeGrid, j: int, t10: float, tn: br.TnConstants) -> np.ndarray:
+    """Column ``j`` of the appearance matrix built independently with scipy's PchipInterpolator.
+
+    Knots ``(x/n, t_n)`` for n = 75, 50, 25, 10, 4, 2, 1 with ``t_n = min(k t10^s, 100)``
+    (made non-decreasing with size), PCHIP of ln(passing) against ln(size), a
+    power-law tail below x/75 with the secant slope of the (x/75, x/50) segment,
+    100 % at and above the parent size, class 0 taking everything finer.
+    """
+    from scipy.interpolate import PchipInterpolator
+
+    x = grid.mids_mm[j]
+    knots_n = [75, 50, 25, 10, 4, 2, 1]
+    consts = dict(zip(br.TN_SIZES, zip(tn.k, tn.s, strict=True), strict=True))
+    p = [100.0 if n == 1 else t10 if n == 10 else min(consts[n][0] * t10 ** consts[n][1], 100.0)
+         for n in knots_n]
+    p = np.minimum.accumulate(np.asarray(p)[::-1])[::-1]
+    u_k = np.log(x / np.asarray(knots_n, dtype=float))
+    curve = PchipInterpolator(u_k, np.log(p))
+    slope = (math.log(p[1]) - math.log(p[0])) / (u_k[1] - u_k[0])
+    u = np.log(grid.edges_mm)
+    lnp = np.where(u < u_k[0], math.log(p[0]) + slope * (u - u_k[0]), curve(np.clip(u, u_k[0], u_k[-1])))
+    cum = np.where(u >= math.log(x), 100.0, np.exp(np.minimum(lnp, math.log(100.0))))
+    cum[0] = 0.0
+    cum[-1] = 100.0
+    col = np.diff(cum) / 100.0
+    col[0] = cum[1] / 100.0
+    return col
+
+
+@pytest.mark.parametrize("t10", [5.0, 30.0, 60.0])
+@pytest.mark.parametrize("table", ["A", "B"])
+def test_appearance_columns_equal_an_independent_pchip_curve(t10, table):
+    grid = SizeGrid.geometric(0.038, 45.0)
+    tn = br.default_tn_constants(table)
+    B = br.appearance_matrix(grid, t10, tn)
+    for j in (grid.n_classes - 1, grid.n_classes // 2, 3):
+        np.testing.assert_allclose(B[:, j], _pchip_column(grid, j, t10, tn), rtol=0, atol=1e-12)
+
+
+def test_tn_cap_second_check():
+    """t_n above 100 % is capped, in both t_n functions and in the appearance curve."""
+    tn = br.TnConstants.from_mapping({2: (19.6, 0.425), 4: (3.75, 0.803), 25: (0.469, 1.027),
+                                      50: (0.323, 0.982), 75: (0.273, 0.936)})
+    # t10 = 60: t2 = 19.6 * 60^0.425 = 111 %, t4 = 3.75 * 60^0.803 = 101 % -> both 100 %
+    assert 19.6 * 60**0.425 > 100 and 3.75 * 60**0.803 > 100
+    got = tn.tn_pct(60.0)
+    np.testing.assert_array_equal(got[:2], [100.0, 100.0])
+    assert got[2] == pytest.approx(0.469 * 60**1.027)
+    assert br.tn_pct(60.0, 3.75, 0.803) == 100.0
+    # the appearance column then has nothing coarser than parent/4 (and sums to one)
+    grid = SizeGrid.geometric(0.01, 100.0, ratio=1.05)
+    j = grid.n_classes - 1
+    B = br.appearance_matrix(grid, 60.0, tn)
+    coarse = grid.edges_mm[:-1] >= grid.mids_mm[j] / 4 * 1.0001
+    assert B[coarse, j].sum() == pytest.approx(0.0, abs=1e-12)
+    assert B[:, j].sum() == pytest.approx(1.0, abs=1e-12)

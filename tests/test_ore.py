@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 
 from msmill import ore as ore_mod
@@ -78,9 +76,10 @@ def test_default_l_ref_is_flagged():
 def test_default_l_ref_is_geometric_mean_of_jk_fractions():
     # sqrt(63*53)=57.78, sqrt(45*37.5)=41.08, sqrt(31.5*26.5)=28.89, sqrt(22.4*19)=20.63,
     # sqrt(16*13.2)=14.53; geometric mean of these = 29.01 -> 29.0 mm
-    assert DEFAULT_L_REF_MM == 29.0
-    mids = [57.784, 41.079, 28.892, 20.630, 14.533]
-    assert math.exp(sum(map(math.log, mids)) / 5) == pytest.approx(29.01, abs=0.01)
+    assert ore_mod.JK_DROP_WEIGHT_FRACTIONS_MM == (
+        (63.0, 53.0), (45.0, 37.5), (31.5, 26.5), (22.4, 19.0), (16.0, 13.2))
+    assert DEFAULT_L_REF_MM == 29.0  # by hand as above (arithmetic means would give 32.6)
+    assert get_ore("UG2").l_ref_mm == 29.0
 
 
 def test_from_toml_and_register(tmp_path):

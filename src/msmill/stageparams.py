@@ -458,6 +458,26 @@ class RunStatistics(_JsonDocument):
     )
     inlet_holdup_kg: float | None = Field(default=None, ge=0, description="mean mass in the inlet zone")
     provenance: dict[str, Any] = Field(default_factory=dict)
+    # operating envelope (issue 20): how the run ended and what the mill passed; None = not recorded
+    outcome: Literal["steady", "not_steady", "choked"] | None = Field(
+        default=None, description="steady-state outcome of the run (msmill.steadystate); None: not recorded")
+    throughput_tph: float | None = Field(
+        default=None, ge=0, description="measured product rate in the window, full-mill equivalent, t/h")
+    # adaptive measurement window (issue 12): largest sampling error reached per statistic family
+    # (msmill.dem.mill.run.sampling_errors_reached); None: some stage had no sample of that family
+    sampling_error_reached: dict[str, float | None] = Field(default_factory=dict)
+
+    def require_steady(self, allow_not_steady: bool = False, source: str = "statistics") -> RunStatistics:
+        """Return self if the run reached steady state; else raise (unless ``allow_not_steady``).
+
+        Statistics from a filling or choked mill are wrong training data: ingest
+        and the stage-parameter table refuse them. ``outcome`` None (files from
+        before outcomes were recorded) passes.
+        """
+        if self.outcome in (None, "steady") or allow_not_steady:
+            return self
+        raise MsmillInputError(f"{source}.outcome", self.outcome,
+                               "'steady' (a not-steady or choked run; allow it explicitly to use it)")
 
     @model_validator(mode="before")
     @classmethod
@@ -520,6 +540,7 @@ class StageParameterTable(_JsonDocument):
     kind: Literal["stage_parameter_table"] = "stage_parameter_table"
     runs: list[RunStatistics] = Field(min_length=1)
     provenance: dict[str, Any] = Field(default_factory=dict)
+    allow_not_steady: bool = False  # accept runs whose outcome is not "steady" (issue 20)
 
     @model_validator(mode="before")
     @classmethod
@@ -528,6 +549,10 @@ class StageParameterTable(_JsonDocument):
 
     @model_validator(mode="after")
     def _check(self) -> StageParameterTable:
+        for r in self.runs:
+            if r.outcome not in (None, "steady") and not self.allow_not_steady:
+                raise ValueError(f"run at {r.design.size_mm:g} mm is {r.outcome}: not-steady statistics are "
+                                 "refused (set allow_not_steady to use them)")
         sizes = [r.design.size_mm for r in self.runs]
         if sizes != sorted(sizes) or len(set(sizes)) != len(sizes):
             raise ValueError(f"runs must have distinct rock sizes in ascending order (got {sizes})")

@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from msmill.dem.mill.stats import (
+    characteristic_time,
     compute_statistics,
     detect_steady_state,
     identify_impacts,
@@ -92,8 +93,7 @@ def test_known_counts_hit_probability_and_streams():
     assert s1.pass_through == pytest.approx(5 / 54)
     assert s2.kickback == 0.0
     assert s2.pass_through == pytest.approx(5 / 19)
-    for s in (s1, s2):
-        assert s.kickback + s.refeed + s.pass_through == pytest.approx(1.0)
+    assert s1.refeed == pytest.approx(44 / 54)
     assert st.characteristic_time_s == pytest.approx(0.05)
     assert st.mass_out_rate_kg_s == pytest.approx(1.0 / 0.2)
 
@@ -145,3 +145,76 @@ def test_destinations_refine_the_streams_and_tag_the_inlet_zone():
     # D sits in the inlet zone from 0.12 s: its 4 tags (0.12-0.15 s) are all still there 0.05 s later
     assert st.inlet_destinations == pytest.approx([1.0, 0.0, 0.0, 0.0])
     assert st.inlet_holdup_kg == pytest.approx(2700 * 4 / 3 * np.pi * R**3 * 9 / 21)
+
+
+# rocks spread over the six horizontal regions (0.1 m each along the 0.6 m casing)
+Y_OF_ROCK = {1: 0.05, 2: 0.05, 3: 0.25, 4: 0.45, 5: 0.55}  # A, B: region 0; C: 2; D: 4; E: 5
+
+
+def _run_full():
+    snaps = _snaps()
+    snaps["y_m"] = snaps["particle_id"].map(Y_OF_ROCK)
+    removed = pd.DataFrame({"particle_id": [5], "time_s": [0.13], "radius_m": [R], "mass_kg": [1.0],
+                            "tag": ["outlet"]})
+    ts = pd.DataFrame({"time_s": TIMES, "n_particles": 5, "mass_kg": 2.0})
+    design = DesignPoint(size_mm=10, feed_tph=30, speed_rpm=1500, gate_deg=40, stage_speeds_rpm=[1500, 3000])
+    return compute_statistics(M2, design, _events(), removed, ts, snaps, window_s=(0.0, 0.2), mode="full",
+                              characteristic_time_s=0.05, size_edges_m=np.array([0.0, 0.004, 0.01]),
+                              rock_density_kg_m3=3000.0)
+
+
+def test_raw_transport_counts_and_masses_by_hand():
+    """Un-normalised quantities: tag counts and tagged masses against a hand count.
+
+    Lag 5 snapshots, 16 tag times (0.00-0.15 s). Stage 1: A and B at every tag
+    (32), C before 0.10 s (10), D before 0.12 s (12): 54 tags. Stage 2: E before
+    0.13 s (13) and C from 0.10 s (6): 19 tags.
+    """
+    st = _run_full()
+    s1, s2 = st.run.stages
+    assert (s1.n_transport_samples, s2.n_transport_samples) == (54, 19)
+    m_rock = 3000.0 * 4.0 / 3.0 * np.pi * R**3
+    by = st.streams_by_size.set_index("stage_from")
+    assert list(by["size_class"]) == [1, 1]  # r = 5 mm falls in the (4, 10) mm radius class
+    np.testing.assert_allclose(by.loc[[1, 2], "mass_kg"], [54 * m_rock, 19 * m_rock], rtol=1e-12)
+    # kickback: D tagged at 0.07-0.11 s (5); pass-through: C at 0.05-0.09 s (5), E at 0.08-0.12 s (5)
+    np.testing.assert_allclose(by.loc[1, ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float),
+                               [5 / 54, 44 / 54, 5 / 54], rtol=1e-12)
+    np.testing.assert_allclose(by.loc[2, ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float),
+                               [0.0, 14 / 19, 5 / 19], rtol=1e-12)
+
+
+def test_region_weights_and_streams_by_hand():
+    """Region weights: rock-snapshots per region (21 snapshots, 0.00-0.20 s); region streams: tags."""
+    s1, s2 = _run_full().run.stages
+    # stage 1: A, B 21 + 21 (region 0), C 10 (region 2), D 12 (region 4) of 64
+    np.testing.assert_allclose(s1.region_weights, np.array([42, 0, 10, 0, 12, 0]) / 64, rtol=1e-12)
+    # stage 2: C 11 (region 2, from 0.10 s), E 13 (region 5, before 0.13 s) of 24
+    np.testing.assert_allclose(s2.region_weights, np.array([0, 0, 11, 0, 0, 13]) / 24, rtol=1e-12)
+    avg1 = [s1.kickback, s1.refeed, s1.pass_through]
+    avg2 = [s2.kickback, s2.refeed, s2.pass_through]
+    want1 = [[0, 1, 0], avg1, [0, 0.5, 0.5], avg1, [5 / 12, 7 / 12, 0], avg1]
+    want2 = [avg2, avg2, [0, 1, 0], avg2, avg2, [0, 8 / 13, 5 / 13]]
+    np.testing.assert_allclose(s1.region_streams, want1, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(s2.region_streams, want2, rtol=1e-12, atol=1e-15)
+
+
+def test_characteristic_time_hand_table():
+    """tau = stage spacing / mean speed of rocks inside the stages (others excluded)."""
+    assert M2.stage_spacing_m == pytest.approx(0.45)
+    rows = [  # time, pid, z (m), (vx, vy, vz) m/s
+        (0.0, 1, 1.05, (3.0, 4.0, 0.0)),     # stage 1, 5 m/s
+        (0.0, 2, 0.60, (0.0, 0.0, -10.0)),   # stage 2, 10 m/s
+        (0.0, 3, 1.50, (50.0, 0.0, 0.0)),    # inlet zone: not counted
+        (0.0, 4, -0.05, (0.0, 60.0, 0.0)),   # below the outlet: not counted
+        (0.01, 1, 1.00, (6.0, 0.0, 8.0)),    # stage 1, 10 m/s
+        (0.01, 2, 0.55, (0.0, 0.0, -15.0)),  # stage 2, 15 m/s
+    ]
+    snaps = pd.DataFrame([(t, p, z, *v) for t, p, z, v in rows],
+                         columns=["time_s", "particle_id", "z_m", "vx_m_s", "vy_m_s", "vz_m_s"])
+    tau, speed = characteristic_time(M2, snaps)
+    assert speed == pytest.approx(10.0)  # (5 + 10 + 10 + 15) / 4
+    assert tau == pytest.approx(0.045)
+    # rounded to whole snapshot intervals: 0.045 / 0.02 = 2.25 -> 2 intervals; never below 1
+    assert characteristic_time(M2, snaps, 0.02)[0] == pytest.approx(0.04)
+    assert characteristic_time(M2, snaps, 0.1)[0] == pytest.approx(0.1)

@@ -128,3 +128,29 @@ def test_bad_table_file_error_names_the_table_field(folder, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: table.json.runs.0.stages.1"), err
     assert len(err.splitlines()) == 1
+
+
+def test_predict_warns_above_capacity_from_envelope(folder, capsys):
+    import warnings
+
+    from msmill.capacity import AboveCapacityWarning, EnvelopeData, EnvelopePoint
+
+    # SYNTHETIC envelope: at every size the mill passes 15 t/h and chokes at 25-40 t/h, passing 20 t/h
+    pts = [EnvelopePoint(s, f, 1500.0, 40.0, "steady") for s in (10, 20, 30, 40) for f in (10.0, 15.0)]
+    pts += [EnvelopePoint(s, f, 1500.0, 40.0, "choked", 20.0) for s in (10, 20, 30, 40) for f in (25.0, 40.0)]
+    EnvelopeData(pts, {"note": "SYNTHETIC"}).to_json(folder / "envelope.json")
+    p = write(folder, GOOD)
+    capsys.readouterr()
+    assert run(["predict", str(p), "--envelope", str(folder / "envelope.json")]) == 0
+    err = capsys.readouterr().err  # the CLI prints each warning once as a 'warning:' line
+    assert "warning:" in err and "above the predicted capacity" in err
+    low = write(folder, GOOD.replace("rate_tph = 30.0", "rate_tph = 12.0"), "low.toml")
+    assert run(["predict", str(low), "--envelope", str(folder / "envelope.json")]) == 0
+    assert "above the predicted capacity" not in capsys.readouterr().err
+    with pytest.warns(AboveCapacityWarning, match="above the predicted capacity"):  # the library warns
+        from msmill.capacity import CapacityModel, warn_if_above_capacity
+
+        warn_if_above_capacity(CapacityModel.fit(pts), 20.0, 30.0, 1500.0, 40.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", AboveCapacityWarning)
+        warn_if_above_capacity(CapacityModel.fit(pts), 20.0, 12.0, 1500.0, 40.0)

@@ -165,3 +165,12 @@ def test_implausible_velocities_warn(run_stats):
     prov = RunProvider(run_stats.model_copy(update={"stages": [s0, *run_stats.stages[1:]]}))
     with pytest.warns(OutOfDomainWarning, match="beyond 300 m/s"):
         prov.stage_parameters(np.array([10.0]))
+
+
+def test_count_mixture_mean_follows_lambda_inside_and_outside_the_table() -> None:
+    """The solvers use the count mixture: its mean must be the (inter/extra-polated) secondary lambda."""
+    from msmill.model.providers import default_table_path, load_provider
+
+    p = load_provider(default_table_path()).stage_parameters(np.array([1.0, 3.0, 7.0, 12.0, 25.0, 80.0]))
+    assert p.secondary_count is not None and p.extrapolated.any()
+    np.testing.assert_allclose(p.secondary_count.mean(), p.secondary_lambda, rtol=1e-9)

@@ -20,7 +20,7 @@ from msmill.surrogate.store.hashing import canonical_statistics
 
 # two stages, slow shafts, 30 mm rock, short windows (as tests/dem/test_mill_scene.py): seconds per run
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})
-SETTINGS = {"max_time_s": 0.6, "chunk_s": 0.1, "steady_window_s": 0.1, "rel_tol": 0.5, "trend_tol": 5.0,
+SETTINGS = {"max_time_s": 0.6, "chunk_s": 0.1, "steady_window_s": 0.1, "rel_tol": 0.5, "trend_tol": 5.0, "balance_tol": 5.0,
             "measure_s": 0.3, "snapshot_every_s": 0.005, "seed": 0}
 
 
@@ -101,3 +101,25 @@ def test_cli_import_then_ingest_is_one_run(executed, tmp_path, capsys):
     assert cli(["db", "export", str(tmp_path / "x"), "--db", db]) == 0
     [doc] = (tmp_path / "x").iterdir()
     assert json.loads(doc.read_text())["statistics"] == canonical_statistics(st.statistics(rec.id))
+
+
+def test_runs_saved_before_outcomes_are_assessed_by_todays_criterion(executed, tmp_path):
+    """A run folder without a recorded outcome gets msmill.steadystate's verdict on its own time series."""
+    import shutil
+    import tomllib
+
+    import tomli_w
+
+    _, folder = executed
+    old = tmp_path / "old"
+    shutil.copytree(folder, old)
+    settings = tomllib.loads((old / "run.toml").read_text(encoding="utf-8"))
+    settings["result"].pop("outcome")
+    settings["result"].pop("feed_scale")
+    (old / "run.toml").write_text(tomli_w.dumps(settings), encoding="utf-8")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        st = stats_from_dir(old).run
+    # 0.6 s from an empty mill with the default criterion's 0.65 s windows: never steady
+    assert st.outcome == "not_steady"
+    assert st.throughput_tph == pytest.approx(stats_from_dir(folder).run.throughput_tph, rel=1e-9)

@@ -9,6 +9,9 @@ import typer
 
 from msmill.errors import MsmillInputError
 
+EXIT_NOT_STEADY = 3  # the run ended at its time limit without steady state
+EXIT_CHOKED = 4  # the mill did not pass the feed rate (product persistently below feed)
+
 app = typer.Typer(help="DEM of the multi-shaft mill: run to steady state, per-stage statistics.",
                   no_args_is_help=True)
 
@@ -23,11 +26,16 @@ def run_cmd(
     bottom_factor: Annotated[float, typer.Option("--bottom-factor", help="Bottom / upper stage speed.")] = 2.0,
     gate_deg: Annotated[float, typer.Option("--gate-deg", help="Gate angle below horizontal (deg).")] = 40.0,
     slice_: Annotated[bool, typer.Option("--slice", help="Periodic slice one flinger row long (cheap).")] = False,
-    max_time_s: Annotated[float, typer.Option("--max-time-s", help="Give up waiting for steady state (s).")] = 4.0,
+    max_time_s: Annotated[float | None, typer.Option(
+        "--max-time-s", help="Give up waiting for steady state (s); default scales with the residence time.")] = None,
     measure_s: Annotated[float, typer.Option("--measure-s", help="Measurement window after steady state (s).")] = 0.5,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the feed source.")] = 0,
     vtk: Annotated[bool, typer.Option("--vtk", help="Also write the final particles as VTU.")] = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    adaptive: Annotated[bool, typer.Option(
+        "--adaptive", help="Measure until the sampling errors reach the run settings' targets.")] = False,
+    warm_start: Annotated[Path | None, typer.Option(
+        "--warm-start", help="Start from the hold-up of this finished run (same gate and slice).")] = None,
 ) -> None:
     """Run the mill DEM to steady state, record a window, write events, statistics and plots."""
     from msmill.cli.output import atomic_output, check_writable
@@ -45,23 +53,28 @@ def run_cmd(
                  "gate_deg": "--gate-deg"}
         field = "/".join(names.get(f, f) for f in exc.field.split("/"))
         raise MsmillInputError(field, exc.value, exc.allowed) from None
-    settings = RunSettings(max_time_s=max_time_s, measure_s=measure_s, seed=seed)
+    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
     mode = "slice" if slice_ else "full"
+    start = None
+    if warm_start is not None:
+        from msmill.dem.mill.warmstart import WarmStart
+
+        start = WarmStart.from_dir(warm_start)
     if no_progress:
-        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings)
+        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, start=start)
     else:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
                       TimeElapsedColumn()) as bar:
-            task = bar.add_task("DEM", total=max_time_s + measure_s, info="")
+            task = bar.add_task("DEM", total=settings.time_limit_s(size_mm) + measure_s, info="")
 
             def cb(t: float, n: int, phase: str) -> None:
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
 
-            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb)
+            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb, start=start)
     from msmill.plots.dem import plot_run
 
     inputs = [] if str(machine_toml) == "default" else [machine_toml]
@@ -75,7 +88,14 @@ def run_cmd(
     typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "
                f"{result.window_s[0]:.2f}-{result.window_s[1]:.2f} s; wall {result.wall_s:.1f} s; dt {result.extra['dt_s']:.3g} s")
     if st is not None:
-        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s; written to {out}")
+        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s "
+                   f"({100 * st.mass_out_rate_kg_s / result.scene.feed_kg_s:.0f} % of feed); written to {out}")
+    if result.outcome != "steady":
+        # statistics are written but marked; ingest refuses them unless explicitly allowed
+        msg = result.verdict.message if result.verdict else result.outcome
+        typer.echo(f"error: {result.outcome} after {result.window_s[1]:.2f} s (limit "
+                   f"{result.extra['time_limit_s']:.2f} s): {msg}; statistics marked '{result.outcome}'", err=True)
+        raise typer.Exit(code=EXIT_CHOKED if result.outcome == "choked" else EXIT_NOT_STEADY)
 
 
 @app.command("stats")
@@ -110,6 +130,33 @@ def stats_cmd(
                    + (f" counts {s.secondary_count_selection.chosen} (KL {s.secondary_count_selection.kl:.3f})"
                       if s.secondary_count_selection else ""))
     typer.echo(f"written {target}")
+
+
+@app.command("envelope")
+def envelope_cmd(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Directories written by 'msmill dem run'.")],
+    out: Annotated[Path, typer.Option("--out", help="Envelope JSON (for 'msmill predict --envelope').")],
+) -> None:
+    """Collect the outcome (steady / choked / not steady) and throughput of runs into an envelope file."""
+    from datetime import UTC, datetime
+
+    from msmill._version import __version__
+    from msmill.capacity import EnvelopeData, EnvelopePoint
+    from msmill.stageparams import RunStatistics
+
+    points = []
+    for d in run_dirs:
+        if not (d / "statistics.json").is_file():
+            raise MsmillInputError("run_dir", str(d), "a directory written by 'msmill dem run' (statistics.json)")
+        points.append(EnvelopePoint.from_statistics(RunStatistics.from_json(d / "statistics.json")))
+    prov = {"generator": "msmill dem envelope", "msmill_version": __version__, "runs": [str(d) for d in run_dirs],
+            "date_utc": datetime.now(UTC).isoformat(timespec="seconds")}
+    EnvelopeData(points, prov).to_json(out)
+    for d, p in zip(run_dirs, points, strict=True):
+        tp = "-" if p.throughput_tph is None else f"{p.throughput_tph:.1f} t/h"
+        typer.echo(f"{d}: {p.outcome}; feed {p.feed_tph:g} t/h; throughput {tp}")
+    typer.echo(f"written {out}")
+
 
 
 @app.command("import")

@@ -18,6 +18,9 @@ def predict(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: [output] dir).")] = None,
     plots: Annotated[bool | None, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = None,
     solver: Annotated[str | None, typer.Option(help="Override [model] solver.")] = None,
+    envelope: Annotated[Path | None, typer.Option(
+        "--envelope", help="DEM envelope points (JSON, 'msmill dem envelope'): warn above the predicted capacity.")
+    ] = None,
 ) -> None:
     """Predict the product PSD, hold-up and impact energy of a mill run file."""
     from msmill.cli.output import atomic_output, check_writable
@@ -30,6 +33,12 @@ def predict(
     folder = check_writable(out if out is not None else rf.path(rf.output.dir),
                             "--out" if out is not None else f"{rf.name}.output.dir")
     mill, feed, op = rf.build()
+    if envelope is not None:
+        from msmill.capacity import CapacityModel, EnvelopeData, warn_if_above_capacity
+
+        # capacity at the feed's F80: the coarse end of the feed sets the load the mill must pass
+        cap_model = CapacityModel.fit(EnvelopeData.from_json(envelope).points)
+        warn_if_above_capacity(cap_model, feed.p80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
     result = mill.run(feed, op)
 
     # render everything in memory first, then commit the set atomically with a manifest

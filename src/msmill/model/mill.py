@@ -449,7 +449,7 @@ class Mill:
             ma = (c[k:] - c[:-k]) / k
             half = k // 2
             rate = np.concatenate([np.zeros(half), ma, np.full(rate.size - ma.size - half, ma[-1])])
-        t_ss = time_to_steady_state(t, rate, op.feed_tph) if prod.size else float("nan")
+        t_ss = time_to_steady_state(t, rate, op.feed_tph, holdup_t=held) if prod.size else float("nan")
         n_st = stage_mass.shape[0]
         hold = stage_mass.sum(axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):

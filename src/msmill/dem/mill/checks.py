@@ -41,14 +41,14 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
 
     Field names are those of ``msmill dem run`` (``--max-time-s``, ``--size-mm`` ...).
     """
-    number(settings.max_time_s, "--max-time-s", unit="s", gt=0)
+    number(settings.max_time_s, "--max-time-s", unit="s", ge=0)  # 0: scaled with the residence time
     number(settings.measure_s, "--measure-s", unit="s", gt=0)
     number(settings.chunk_s, "settings.chunk_s", unit="s", gt=0)
     if settings.dt_s is not None:
         number(settings.dt_s, "settings.dt_s", unit="s", gt=0)
     integer(settings.seed, "--seed", ge=0, le=2**32 - 1)
     t_fall = fall_time_s(machine)
-    if settings.max_time_s < t_fall:
+    if 0 < settings.max_time_s < t_fall:
         raise MsmillInputError("--max-time-s", settings.max_time_s,
                                f"at least {t_fall:.2f} s (the free-fall time from the roof to the outlet; "
                                "a shorter run has no rock through the stages to measure)")
@@ -94,7 +94,10 @@ def check_run_budget(scene: Any, settings: Any) -> None:
     Both are estimated from the scene before the first step: steps from
     :func:`estimated_dt_s`, rocks fed from the feed rate and the smallest rock's mass.
     """
-    duration = settings.max_time_s + settings.measure_s
+    measure = max(settings.measure_s, settings.max_measure_s if getattr(settings, "adaptive", False) else 0.0)
+    limit = (settings.time_limit_s(float(min(scene.sizes_mm))) if hasattr(settings, "time_limit_s")
+             else settings.max_time_s)
+    duration = limit + measure
     steps = duration / estimated_dt_s(scene, settings)
     r_min_m = float(min(scene.sizes_mm)) / 2000.0
     cap, what = LIMITS["dem_steps"]

@@ -136,9 +136,14 @@ def import_tables(
     source = dict(meta.get("source", {}))
     prov = {"generator": "msmill.dem.mill.external", "msmill_version": __version__,
             "engine": str(source.get("engine", "external")), "source": source}
-    return compute_statistics(machine, design, _events(events), removed, ts, pos, window,
-                              mode=d.get("mode", "slice"), rock_density_kg_m3=density,
-                              steady_state_time_s=steady, settings=settings, provenance=prov)
+    ms = compute_statistics(machine, design, _events(events), removed, ts, pos, window,
+                            mode=d.get("mode", "slice"), rock_density_kg_m3=density,
+                            steady_state_time_s=steady, settings=settings, provenance=prov)
+    from msmill.dem.mill.run import mark_statistics
+
+    # outcome and feed scale if the export recorded them ([run] table), sampling errors reached always
+    run_meta = meta.get("run", {})
+    return mark_statistics(ms, run_meta.get("outcome"), run_meta.get("feed_scale"))
 
 
 def import_folder(folder: str | Path, settings: StatsSettings | None = None) -> tuple[MillStatistics, Machine]:
@@ -184,7 +189,8 @@ def write_external(run_dir: str | Path, out_dir: str | Path, fmt: str = "csv", e
     meta = {"design": s["design"], "rock": {"density_kg_m3": s["rock"]["density_kg_m3"]},
             "window": {"start_s": res["window_start_s"], "end_s": res["window_end_s"],
                        "steady_state_time_s": res["steady_state_time_s"]},
-            "source": {"engine": engine, "converted_from": str(run_dir)}}
+            "source": {"engine": engine, "converted_from": str(run_dir)},
+            "run": {k: res[k] for k in ("outcome", "feed_scale") if k in res}}
     (out / "import.toml").write_text(tomli_w.dumps(meta), encoding="utf-8")
     raw["machine"].to_toml(out / "machine.toml")
     return out

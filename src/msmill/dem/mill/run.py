@@ -2,36 +2,39 @@
 
 Procedure (documented in ``docs/mill-dem.md``):
 
-1. The empty mill is fed from t = 0. The engine runs in chunks of
-   ``chunk_s``; after every chunk :func:`msmill.dem.mill.stats.detect_steady_state`
-   tests the number of particles in the mill (two consecutive windows of
-   ``steady_window_s`` whose means differ by less than ``rel_tol`` and whose
-   joint linear trend is below ``trend_tol``). The onset of steady state
-   (start of the first passing pair of windows) is reported as
-   ``steady_state_time_s``; the time it was detected is
+1. The empty mill (or a warm start, :mod:`msmill.dem.mill.warmstart`) is fed
+   from t = 0. The engine runs in chunks of ``chunk_s``; after every chunk
+   :func:`msmill.steadystate.first_steady` tests the hold-up and the product
+   mass out (mass balance and no hold-up trend over two windows of
+   ``steady_window_s``). The onset (start of the first passing pair of
+   windows) is ``steady_state_time_s``; the time it was detected is
    ``steady_state_detected_s``.
 2. From the detection time the run continues for ``measure_s`` (the
-   measurement window); snapshots every ``snapshot_every_s`` throughout.
+   measurement window), or with ``adaptive`` until the sampling errors meet
+   their targets (between ``min_measure_s`` and ``max_measure_s``);
+   snapshots every ``snapshot_every_s`` throughout.
 3. The statistics (:func:`msmill.dem.mill.stats.compute_statistics`) use the
-   measurement window only.
+   measurement window only; they carry the run's ``outcome``.
 
 The time step is the engine's default rule with ``safety = 0.2`` of the Hertz
 contact time at the highest expected impact speed. A larger safety (0.3) was
 tried and rejected: rock hit by fast rotating flinger plates then left faster
 than ``(1 + e)`` times the plate speed (energy gain, then run-away speeds).
 
-If no steady state is found by ``max_time_s`` the last ``measure_s`` is used
-as the window and ``steady_state_time_s`` is None (the run is flagged in its
-provenance).
+If no steady state is found by the time limit (:meth:`RunSettings.time_limit_s`)
+the last ``measure_s`` is used as the window, ``steady_state_time_s`` is None
+and the outcome is ``choked`` or ``not_steady`` (:func:`msmill.steadystate.assess`).
 """
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -41,36 +44,104 @@ import tomli_w
 
 from msmill._version import __version__
 from msmill.dem.mill.checks import check_run_budget, check_run_inputs
-from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene
+from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene, scene_extent
 from msmill.dem.mill.stats import (
     MillStatistics,
     StatsSettings,
     compute_statistics,
-    detect_steady_state,
     snapshots_frame,
 )
+from msmill.dem.mill.warmstart import WarmStart, place_warm_start
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
-from msmill.stageparams import DesignPoint
+from msmill.stageparams import DesignPoint, StageParameterTable
+from msmill.steadystate import (
+    SteadyStateCriterion,
+    SteadyStateVerdict,
+    assess,
+    expected_residence_time_s,
+    first_steady,
+)
 
-__all__ = ["MillRun", "RunSettings", "design_point", "load_raw", "run_mill", "save_run", "stats_from_dir"]
+__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics", "run_mill",
+           "sampling_errors_reached",
+           "save_run", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
 class RunSettings:
-    """Settings of a run to steady state plus measurement window (times in s)."""
+    """Settings of a run to steady state plus measurement window (times in s).
 
-    max_time_s: float = 4.0
+    Steady state is :mod:`msmill.steadystate`'s criterion on the hold-up and
+    the product mass out: two windows of ``steady_window_s``, product rate
+    over them within ``balance_tol`` of the feed, hold-up slope below ``trend_tol`` of
+    the feed rate, window means of the hold-up within ``rel_tol``.
+    ``max_time_s`` 0 (default) scales the limit with the expected
+    residence time ``t_res`` of the rock (the default stage table's transport
+    chain at the nearest rock size): ``max(min_time_s, 2 steady_window_s +
+    residence_factor t_res)``, at most ``max_time_cap_s``.
+    """
+
+    max_time_s: float = 0.0
     chunk_s: float = 0.1
-    steady_window_s: float = 0.4
+    steady_window_s: float = 0.65
     rel_tol: float = 0.05
-    trend_tol: float = 0.05
+    trend_tol: float = 0.10
+    balance_tol: float = 0.10
     measure_s: float = 0.5
     snapshot_every_s: float = 0.005
     max_overlap_fraction: float = 0.05
     safety: float = 0.2
     dt_s: float | None = None
     seed: int = 0
+    min_time_s: float = 4.0
+    residence_factor: float = 6.0
+    max_time_cap_s: float = 20.0
+    # adaptive measurement window (issue 12): measure from min_measure_s until every target is met,
+    # checking every check_every_s, at most max_measure_s; off: a fixed window of measure_s
+    adaptive: bool = False
+    min_measure_s: float = 0.3
+    max_measure_s: float = 1.5
+    check_every_s: float = 0.2
+    target_streams_se: float = 0.02
+    target_hit_probability_se: float = 0.02
+    target_velocity_rel_se: float = 0.03
+    target_count_mean_rel_se: float = 0.08
+
+    def targets(self) -> dict[str, float]:
+        """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
+        return {"streams": self.target_streams_se, "hit_probability": self.target_hit_probability_se,
+                "velocity_mean_rel": self.target_velocity_rel_se, "velocity_spread_rel": self.target_velocity_rel_se,
+                "count_mean_rel": self.target_count_mean_rel_se}
+
+    def criterion(self) -> SteadyStateCriterion:
+        """The steady-state criterion these settings describe."""
+        return SteadyStateCriterion(window_s=self.steady_window_s, balance_tol=self.balance_tol,
+                                    trend_tol=self.trend_tol, holdup_tol=self.rel_tol)
+
+    def time_limit_s(self, size_mm: float) -> float:
+        """Mill time after which a run that is not steady gives up (s)."""
+        if self.max_time_s > 0:
+            return float(self.max_time_s)
+        t_res = expected_residence_s(size_mm)
+        limit = max(self.min_time_s, 2 * self.steady_window_s + self.residence_factor * t_res)
+        return float(min(limit, self.max_time_cap_s))
+
+
+def expected_residence_s(size_mm: float) -> float:
+    """Expected residence time (s) of rock of ``size_mm``: transport chain of the nearest default-table run."""
+    table = _default_table()
+    sizes = table.sizes_mm
+    r = table.runs[int(np.argmin(np.abs(np.log(sizes / size_mm))))]
+    st = r.stages
+    return expected_residence_time_s(np.array([x.kickback for x in st]), np.array([x.refeed for x in st]),
+                                     np.array([x.pass_through for x in st]), r.characteristic_time_s)
+
+
+@functools.cache
+def _default_table() -> StageParameterTable:
+    path = resources.files("msmill") / "data" / "stage_parameters" / "default.json"
+    return StageParameterTable.from_json(str(path))
 
 
 @dataclass
@@ -89,6 +160,8 @@ class MillRun:
     wall_s: float
     stats: MillStatistics | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    outcome: str = "steady"
+    verdict: SteadyStateVerdict | None = None
 
 
 def design_point(machine: Machine, op: OperatingPoint, size_mm: float) -> DesignPoint:
@@ -118,6 +191,7 @@ def run_mill(
     settings: RunSettings | None = None,
     stats_settings: StatsSettings | None = None,
     progress: Callable[[float, int, str], None] | None = None,
+    start: WarmStart | None = None,
 ) -> MillRun:
     """Build the scene, run to steady state plus a measurement window, compute statistics.
 
@@ -130,6 +204,9 @@ def run_mill(
     progress : callable, optional
         Called after every chunk with ``(time_s, n_particles, phase)``, phase
         ``"transient"`` or ``"measure"``.
+    start : WarmStart, optional
+        Start from this finished run's hold-up (:mod:`msmill.dem.mill.warmstart`)
+        instead of an empty mill.
     """
     rs = settings or RunSettings()
     check_run_inputs(machine, rs, size_mm, feed_psd)  # before any work: times, sizes (dem/mill/checks.py)
@@ -141,6 +218,9 @@ def run_mill(
     sim = scene.sim
     kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
+    crit = rs.criterion()
+    limit = rs.time_limit_s(scene.size_mm)
+    warm = place_warm_start(scene, start, seed=rs.seed) if start is not None else None
     found = None
 
     def remaining(t_end: float) -> float:
@@ -148,37 +228,119 @@ def run_mill(
         left = t_end - sim.time_s
         return left if left > 0.5 * (sim.dt_s or 0.0) + 1e-12 else 0.0
 
-    while remaining(rs.max_time_s) > 0:
-        sim.run(min(rs.chunk_s, remaining(rs.max_time_s)), **kw)
-        ts = sim.timeseries()
+    while remaining(limit) > 0:
+        sim.run(min(rs.chunk_s, remaining(limit)), **kw)
         if progress:
             progress(sim.time_s, int(sim.n_particles), "transient")
-        found = detect_steady_state(ts["time_s"].to_numpy(), ts["n_particles"].to_numpy(), rs.steady_window_s,
-                                    rs.rel_tol, rs.trend_tol)
+        found = _first_steady(sim.timeseries(), scene.feed_kg_s, crit)
         if found is not None:
             break
+    verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
     t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
+    extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm, "outcome": verdict.outcome}
+
+    def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
+        return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra, ss)
+
+    # convergence checks skip the mixture fits (single Gaussians): the sampling errors do not depend on them
+    quick = replace(stats_settings or StatsSettings(), min_fit_samples=2**62)
     if found is not None:
-        t_stop = sim.time_s + rs.measure_s
+        t_stop = sim.time_s + (rs.max_measure_s if rs.adaptive else rs.measure_s)
+        t_check = sim.time_s + rs.min_measure_s
         while remaining(t_stop) > 0:
             sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
                 progress(sim.time_s, int(sim.n_particles), "measure")
-    wall = time.perf_counter() - wall0
+            if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check and remaining(t_stop) > 0:
+                t_check = sim.time_s + rs.check_every_s
+                if _converged(finish(quick), rs):
+                    break
+    run = finish()
+    run.wall_s = time.perf_counter() - wall0
+    return run
+
+
+def _finish(scene: MillScene, rs: RunSettings, found: tuple[float, float] | None, verdict: SteadyStateVerdict,
+            window_s: tuple[float, float], wall_s: float, extra: dict[str, Any],
+            stats_settings: StatsSettings | None) -> MillRun:
+    """The run as it stands: raw tables, outcome and statistics of the window so far."""
+    sim = scene.sim
     snaps = snapshots_frame(sim.snapshots())
     snaps = snaps.drop_duplicates(subset=["time_s", "particle_id"]).reset_index(drop=True)
     snaps["snap"] = pd.factorize(snaps["time_s"], sort=True)[0]
     run = MillRun(
         scene=scene, settings=rs, events=sim.events(), removed=sim.removed(), timeseries=sim.timeseries(),
         snapshots=snaps, steady_state_time_s=found[0] if found else None,
-        steady_state_detected_s=found[1] if found else None, window_s=(float(t_start), float(sim.time_s)),
-        wall_s=wall,
+        steady_state_detected_s=found[1] if found else None, window_s=(float(window_s[0]), float(window_s[1])),
+        wall_s=wall_s, outcome=verdict.outcome, verdict=verdict,
     )
-    run.extra["git_commit"] = commit0
+    run.extra.update(extra)
     run.extra["dt_s"] = float(sim.dt_s)
     run.extra["n_particles_end"] = int(sim.n_particles)
     run.stats = _compute(run, stats_settings)
     return run
+
+
+def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
+    """Largest sampling error over the stages, per family of statistics the surrogate regresses.
+
+    ``streams``, ``hit_probability``: absolute standard errors (batch means);
+    ``velocity_mean_rel``, ``velocity_spread_rel``: standard error of the
+    mean and of the standard deviation (``s / sqrt(2 (n - 1))``) of the primary
+    and secondary impact velocities over their mean; ``count_mean_rel``: of
+    the secondary count mean ``lambda`` over ``lambda``. A family without
+    samples in some stage is ``inf`` there.
+    """
+    out = {"streams": 0.0, "hit_probability": 0.0, "velocity_mean_rel": 0.0, "velocity_spread_rel": 0.0,
+           "count_mean_rel": 0.0}
+    inf = float("inf")
+    for st in ms.run.stages:
+        se = st.sampling_error
+        out["streams"] = max(out["streams"], *(se.get(k, inf) for k in ("kickback", "refeed", "pass_through")))
+        out["hit_probability"] = max(out["hit_probability"], se.get("primary_hit_probability", inf))
+        lam = st.secondary_lambda
+        out["count_mean_rel"] = max(out["count_mean_rel"], se.get("secondary_lambda", inf) / lam if lam > 0 else inf)
+        for key in ("primary_velocity_m_s", "secondary_velocity_m_s"):
+            v = np.asarray(ms.samples.get(st.stage, {}).get(key, np.zeros(0)), dtype=float)
+            if v.size < 3 or v.mean() <= 0:
+                out["velocity_mean_rel"] = out["velocity_spread_rel"] = inf
+                continue
+            sd = float(v.std(ddof=1))
+            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], sd / np.sqrt(v.size) / float(v.mean()))
+            out["velocity_spread_rel"] = max(out["velocity_spread_rel"],
+                                             sd / np.sqrt(2 * (v.size - 1)) / float(v.mean()))
+    return out
+
+
+def _converged(run: MillRun, rs: RunSettings) -> bool:
+    reached = run.stats.run.sampling_error_reached if run.stats else {}
+    inf = float("inf")  # a family without samples has not converged (unless its target is inf)
+    return bool(reached) and all((inf if reached.get(k) is None else reached[k]) <= t for k, t in rs.targets().items())
+
+
+def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
+    return first_steady(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(),
+                        feed_kg_s, crit)
+
+
+def _verdict(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> SteadyStateVerdict:
+    return assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(), feed_kg_s,
+                  crit)
+
+
+def mark_statistics(ms: MillStatistics, outcome: str | None, feed_scale: float | None) -> MillStatistics:
+    """Set the run-protocol fields of the statistics (in place; returns ``ms``).
+
+    ``outcome`` (None: not recorded), ``throughput_tph`` (measured product rate
+    in the window, full-mill t/h; None without ``feed_scale``) and
+    ``sampling_error_reached`` (:func:`sampling_errors_reached`, non-finite as None).
+    """
+    st = ms.run
+    rate = st.mass_out_rate_kg_s
+    tph = None if rate is None or not feed_scale else rate / feed_scale * 3.6
+    reached = {k: (v if np.isfinite(v) else None) for k, v in sampling_errors_reached(ms).items()}
+    ms.run = st.model_copy(update={"outcome": outcome, "throughput_tph": tph, "sampling_error_reached": reached})
+    return ms
 
 
 def _provenance(run: MillRun) -> dict[str, Any]:
@@ -195,6 +357,12 @@ def _provenance(run: MillRun) -> dict[str, Any]:
         "steady_state_detected_s": run.steady_state_detected_s,
         "steady_state_reached": run.steady_state_time_s is not None,
         "end_time_s": run.window_s[1],
+        "outcome": run.outcome,
+        "time_limit_s": run.extra.get("time_limit_s"),
+        "steady_state_criterion": asdict(run.settings.criterion()),
+        "verdict": asdict(run.verdict) if run.verdict is not None else None,
+        "warm_start": run.extra.get("warm_start"),
+        "adaptive_targets": run.settings.targets() if run.settings.adaptive else None,
     }
 
 
@@ -204,12 +372,13 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
     if sc.sizes_mm.size > 1:
         mids = np.sqrt(sc.sizes_mm[1:] * sc.sizes_mm[:-1]) / 2000
         edges = np.concatenate([[0.0], mids, [np.inf]])
-    return compute_statistics(
+    ms = compute_statistics(
         sc.machine, design_point(sc.machine, sc.op, sc.size_mm), run.events, run.removed, run.timeseries,
         run.snapshots, run.window_s, mode=sc.mode, rock_density_kg_m3=sc.rock.density_kg_m3,
         steady_state_time_s=run.steady_state_time_s, settings=stats_settings, size_edges_m=edges,
         provenance=_provenance(run),
     )
+    return mark_statistics(ms, run.outcome, float(sc.info.get("feed_scale", 1.0)))
 
 
 # --------------------------------------------------------------------------- saving
@@ -240,7 +409,8 @@ def save_run(run: MillRun, out_dir: str | Path, vtk: bool = False) -> Path:
                    "steady_state_detected_s": run.steady_state_detected_s
                    if run.steady_state_detected_s is not None else -1.0,
                    "window_start_s": run.window_s[0], "window_end_s": run.window_s[1], "wall_s": run.wall_s,
-                   "dt_s": run.extra.get("dt_s", 0.0)},
+                   "dt_s": run.extra.get("dt_s", 0.0), "outcome": run.outcome,
+                   "feed_scale": float(sc.info.get("feed_scale", 1.0))},
     }
     (out / "run.toml").write_text(tomli_w.dumps(_toml_safe(settings)), encoding="utf-8")
     if run.stats is not None:
@@ -301,9 +471,17 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
             "source_dir": str(run_dir), "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}
     design = DesignPoint(size_mm=d["size_mm"], feed_tph=op.feed_tph, speed_rpm=d["speed_rpm"], gate_deg=op.gate_deg,
                          stage_speeds_rpm=op.stage_speeds(m.n_stages))
-    return compute_statistics(
+    ms = compute_statistics(
         m, design, raw["events"], raw["removed"], raw["timeseries"], raw["snapshots"],
         (res["window_start_s"], res["window_end_s"]), mode=d["mode"],
         rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady, settings=stats_settings,
         size_edges_m=edges, provenance=prov,
     )
+    feed_scale = res.get("feed_scale")
+    outcome = res.get("outcome")
+    if outcome is None:  # saved before outcomes existed: today's criterion on the saved time series
+        feed_scale = scene_extent(m, sizes, d["mode"])[3]
+        ts = raw["timeseries"]
+        outcome = assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(),
+                         op.feed_tph * 1000.0 / 3600.0 * feed_scale, RunSettings().criterion()).outcome
+    return mark_statistics(ms, outcome, feed_scale)

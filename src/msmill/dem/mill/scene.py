@@ -162,6 +162,24 @@ def _sloped_plate(sim: Any, hinge_xz: tuple[float, float], tip_xz: tuple[float, 
                        tag=tag, group=group)
 
 
+def scene_extent(machine: Machine, sizes_mm: np.ndarray, mode: str) -> tuple[float, float, list[int], float]:
+    """Extent of the scene along the rotor axis: ``(y0_m, y1_m, flinger rows, feed scale)``.
+
+    A periodic slice holds as many flinger rows as the engine needs (>= 3
+    neighbour cells of ``2 r_max + skin`` along the periodic axis); the feed
+    scale is the slice's share of the casing length (1 for the full mill).
+    """
+    sizes = np.asarray(sizes_mm, dtype=float)
+    if mode != "slice":
+        return 0.0, machine.casing_length_m, list(range(machine.flinger_rows)), 1.0
+    skin = SKIN_RADII * float(sizes.min()) / 2000
+    need = 3 * (2 * float(sizes.max()) / 2000 + skin) * 1.001
+    n_rows = min(machine.flinger_rows, max(1, math.ceil(need / machine.row_pitch_m)))
+    y0 = machine.row_y_m(0) - machine.row_pitch_m / 2
+    y1 = y0 + n_rows * machine.row_pitch_m
+    return y0, y1, list(range(n_rows)), (y1 - y0) / machine.casing_length_m
+
+
 def build_scene(
     machine: Machine,
     op: OperatingPoint,
@@ -236,18 +254,7 @@ def build_scene(
     # skin / 2, every ~7 steps at the engine default r_min / 2; 1.5 r_min made 10 mm slice runs ~1.5x
     # faster (fewer rebuilds; the extra list entries cost little at mill solid fractions)
     skin = SKIN_RADII * float(sizes.min()) / 2000
-    if mode == "slice":
-        # the engine needs >= 3 neighbour cells (2 r_max + skin) along a periodic axis
-        need = 3 * (2 * float(sizes.max()) / 2000 + skin) * 1.001
-        n_rows = min(machine.flinger_rows, max(1, math.ceil(need / machine.row_pitch_m)))
-        y0 = machine.row_y_m(0) - machine.row_pitch_m / 2
-        y1 = y0 + n_rows * machine.row_pitch_m
-        rows = list(range(n_rows))
-        scale = (y1 - y0) / machine.casing_length_m
-    else:
-        y0, y1 = 0.0, machine.casing_length_m
-        rows = list(range(machine.flinger_rows))
-        scale = 1.0
+    y0, y1, rows, scale = scene_extent(machine, sizes, mode)
     ext = 0.05 if mode == "slice" else 0.0  # liners, hubs, gates overhang a periodic slice
     roof = machine.roof_z_m
     chute_h = 0.4

@@ -1,0 +1,132 @@
+"""Benchmark: cost of a DEM training run, cold fixed-window against warm adaptive (issue 12).
+
+At each rock size (slice, 30 t/h, 1500 rpm upper stages, bottom at twice,
+gates 40 deg) two runs of the same point are timed, alternating which goes
+first from size to size:
+
+* **old**: today's training run: empty mill, steady state by
+  :mod:`msmill.steadystate`, a fixed 0.5 s measurement window;
+* **new**: warm start (:mod:`msmill.dem.mill.warmstart`) from the finished
+  *seed* run of a nearby point (35 t/h, 1600 rpm, same size and gate; cold,
+  0.3 s window, its cost reported apart: in a campaign every finished run seeds
+  its neighbours), then the adaptive window (``RunSettings.adaptive``).
+
+Both use the same steady-state criterion, so the comparison is of the start
+and the window only. For every stage and statistic the surrogate regresses
+(streams, hit probability, lambda, mean primary and secondary velocity) the
+difference old - new is divided by its sampling error
+``sqrt(se_old^2 + se_new^2)`` (batch means, ``StageStatistics.sampling_error``).
+With n such comparisons of two samples of one law about ``0.046 n`` exceed 2
+sigma by chance; the count beyond 2 sigma is printed beside the maximum.
+
+Run: ``NUMBA_NUM_THREADS=1 python benchmarks/training_run_cost.py [--sizes-mm 20 10]``.
+Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from msmill.dem.mill.run import RunSettings, run_mill
+from msmill.dem.mill.warmstart import WarmStart
+from msmill.machine import Machine, OperatingPoint
+
+KEYS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda")
+
+
+def _values(stage) -> dict[str, tuple[float, float | None]]:
+    se = stage.sampling_error
+    out = {k: (float(getattr(stage, k)), se.get(k)) for k in KEYS}
+    out["primary_velocity_mean_m_s"] = (stage.primary_velocity.mean(), se.get("primary_velocity_mean_m_s"))
+    out["secondary_velocity_mean_m_s"] = (stage.secondary_velocity.mean(), se.get("secondary_velocity_mean_m_s"))
+    return out
+
+
+def deviations(a, b) -> list[tuple[float, str]]:
+    """``|a - b| / sqrt(se_a^2 + se_b^2)`` for every stage and statistic with both errors."""
+    devs = []
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        va, vb = _values(sa), _values(sb)
+        for k, (x, ex) in va.items():
+            y, ey = vb[k]
+            if ex and ey:
+                devs.append((abs(x - y) / float(np.hypot(ex, ey)), f"stage {sa.stage} {k}"))
+    return devs
+
+
+def timed(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes-mm", type=float, nargs="+", default=[20.0, 10.0, 6.0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None, help="write each run's statistics JSON here")
+    ap.add_argument("--cold-adaptive", action="store_true",
+                    help="also run a cold start with the adaptive window and compare it with the warm one")
+    args = ap.parse_args()
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+    warnings.simplefilter("ignore")  # transient overlap warnings are not the point here
+    m = Machine.default()
+    point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
+    near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
+    ratios, worst = [], (0.0, "")
+    n_dev = n_over = 0
+    for i, size in enumerate(args.sizes_mm):
+        seed_run, seed_wall = timed(partial(run_mill, m, near, size_mm=size, settings=RunSettings(
+            measure_s=0.3, seed=args.seed + 1)))
+        start = WarmStart.from_run(seed_run)
+        print(f"{size:g} mm seed (35 t/h, 1600 rpm): {seed_run.outcome}, t_ss {seed_run.steady_state_time_s}, "
+              f"end {seed_run.window_s[1]:.2f} s, wall {seed_wall:.1f} s")
+        del seed_run
+
+        old = partial(run_mill, m, point, size_mm=size, settings=RunSettings(measure_s=0.5, seed=args.seed))
+        new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(adaptive=True, seed=args.seed),
+                      start=start)
+
+        order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
+        if args.cold_adaptive:  # same window rule as "new", cold start: isolates the start's effect
+            order += (("cold_adaptive", partial(run_mill, m, point, size_mm=size,
+                                                settings=RunSettings(adaptive=True, seed=args.seed))),)
+        res = {}
+        for name, fn in order:
+            run, wall = timed(fn)
+            st = run.stats.run
+            res[name] = (st, wall)
+            if args.out:
+                st.to_json(args.out / f"{size:g}mm_{name}.json")
+            ws = run.extra.get("warm_start") or {}
+            print(f"{size:g} mm {name}: {run.outcome}, t_ss {run.steady_state_time_s}, window "
+                  f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall:.1f} s, "
+                  f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, "
+                  f"warm placed {ws.get('placed_fraction', 0):.2f}, errors reached "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items()))
+        devs = deviations(res["old"][0], res["new"][0])
+        d_max = max(devs)
+        n_dev += len(devs)
+        n_over += sum(d > 2 for d, _ in devs)
+        worst = max(worst, d_max)
+        if "cold_adaptive" in res:
+            dc = deviations(res["cold_adaptive"][0], res["new"][0])
+            print(f"{size:g} mm cold adaptive vs warm adaptive: max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
+                  f"{sum(d > 2 for d, _ in dc)} of {len(dc)} beyond 2 sigma")
+        ratio = res["new"][1] / res["old"][1]
+        ratios.append(ratio)
+        print(f"{size:g} mm: cost ratio {ratio:.3f}; max deviation {d_max[0]:.2f} sigma ({d_max[1]}); "
+              f"{sum(d > 2 for d, _ in devs)} of {len(devs)} beyond 2 sigma")
+    print(f"beyond 2 sigma: {n_over} of {n_dev} (about {0.046 * n_dev:.1f} expected by chance); worst: {worst[1]}")
+    print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

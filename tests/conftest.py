@@ -1,0 +1,41 @@
+"""Per-test time limits (pytest-timeout, configured in pyproject.toml).
+
+A broken solver or integrator should fail in seconds rather than march for
+minutes. Tests without an explicit ``@pytest.mark.timeout`` get:
+
+- ``slow``-marked tests: :data:`SLOW_TIMEOUT_S`;
+- the pure-numpy physics tests (core modules and ``tests/model``):
+  :data:`FAST_TIMEOUT_S`;
+- everything else (DEM, whose first test pays the cold numba compile;
+  surrogate, store, campaign, browser tests): the ini default ``timeout`` of
+  pyproject.toml.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+FAST_TIMEOUT_S = 60
+SLOW_TIMEOUT_S = 900
+_HERE = Path(__file__).parent
+_FAST_DIRS = (_HERE / "model",)
+_FAST_FILES = {"test_breakage.py", "test_damage.py", "test_psd.py", "test_distributions.py",
+               "test_ore.py", "test_calibration.py", "test_machine.py", "test_stageparams.py"}
+
+
+def _is_fast(path: Path) -> bool:
+    if any(d in path.parents for d in _FAST_DIRS):
+        return True
+    return path.parent == _HERE and path.name in _FAST_FILES
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("timeout") is not None:
+            continue
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S))
+        elif _is_fast(Path(str(item.fspath))):
+            item.add_marker(pytest.mark.timeout(FAST_TIMEOUT_S))

@@ -1,0 +1,36 @@
+"""Adaptive measurement window: stops at the minimum when targets are met, runs to the maximum when not."""
+
+import math
+import warnings
+
+import pytest
+
+from msmill.dem.mill.run import RunSettings, run_mill
+from msmill.errors import OutOfDomainWarning
+from msmill.machine import Machine, OperatingPoint
+from msmill.stageparams import RunStatistics
+
+MACHINE = Machine.default().model_copy(update={"n_stages": 2})
+BASE = dict(max_time_s=0.55, chunk_s=0.05, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
+            snapshot_every_s=0.005, adaptive=True, min_measure_s=0.1, max_measure_s=0.25, check_every_s=0.05)
+
+
+def _run(**targets):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        op = OperatingPoint(feed_tph=60, speed_rpm=700, bottom_speed_factor=1.0, gate_deg=40)
+        return run_mill(MACHINE, op, size_mm=20.0, mode="slice", settings=RunSettings(**BASE, **targets))
+
+
+@pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
+def test_window_length_follows_the_targets(target, length_s):
+    run = _run(target_streams_se=target, target_hit_probability_se=target, target_velocity_rel_se=target,
+               target_count_mean_rel_se=target)
+    assert run.outcome == "steady"
+    t0, t1 = run.window_s
+    assert t1 - t0 == pytest.approx(length_s, abs=0.011)  # whole chunks and steps
+    reached = run.stats.run.sampling_error_reached
+    assert set(reached) == set(RunSettings().targets())
+    assert all(v is None or v > 1e-9 for v in reached.values())  # a real, positive figure or no sample
+    assert RunStatistics.from_json(run.stats.run.to_json()).sampling_error_reached == reached
+    assert run.stats.run.provenance["adaptive_targets"]["streams"] == target
