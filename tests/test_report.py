@@ -42,8 +42,13 @@ def _coloured_pixels(png: Path) -> tuple[int, float]:
 
 @pytest.fixture(scope="module")
 def report_file(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("report") / "ug2.html"
-    assert run(["report", str(ROOT / "examples" / "ug2.toml"), "--out", str(out)]) == 0
+    folder = tmp_path_factory.mktemp("report")
+    out = folder / "ug2.html"
+    src = (ROOT / "examples" / "ug2.toml").read_text(encoding="utf-8")  # on the single-point table
+    (folder / "ug2.toml").write_text(src.replace('file = "default"', 'file = "table"', 1), encoding="utf-8")
+    for csv in (ROOT / "examples").glob("*.csv"):
+        (folder / csv.name).write_text(csv.read_text(encoding="utf-8"), encoding="utf-8")
+    assert run(["report", str(folder / "ug2.toml"), "--out", str(out)]) == 0
     return out
 
 

@@ -204,8 +204,7 @@ def test_shipped_example_prints_no_warning(tmp_path, capsys):
         assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     assert "warning" not in cap.err
-    assert "extrapolated stage statistics (%)" in cap.out  # sizes outside the table: a summary line
-    assert "characteristic times" in cap.out
+    assert "extrapolated stage statistics (%)" in cap.out  # sizes outside the trained ones: a summary line
 
 
 def test_summary_notes_are_not_reissued_by_the_mill():
@@ -216,14 +215,14 @@ def test_summary_notes_are_not_reissued_by_the_mill():
     feed = PSD.from_passing([4.0, 8.0, 16.0, 32.0], [10.0, 30.0, 70.0, 100.0])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = Mill("UG2", "default").run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
+        res = Mill("UG2", "table").run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40))
     assert not [w for w in caught if issubclass(w.category, SummaryNote)]
     assert any("characteristic times" in n for n in res.notes)  # a provider's summary note reaches the result
     assert res.extrapolated_feed_pct > 0  # the 4 mm class lies below the table's 6 mm
 
 
 def test_note_lists_are_not_eaten_as_markup(tmp_path, capsys):
-    f = write_run(tmp_path, {"speed_rpm": "speed_rpm = 1600.0", "plots": "plots = false"})
+    f = write_run(tmp_path, {"speed_rpm": "speed_rpm = 1600.0", "plots": "plots = false", "file": 'file = "table"'})
     assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     assert "[1600.0, 1600.0, 1600.0, 1600.0, 3200.0] rpm" in " ".join(cap.out.split())

@@ -180,7 +180,7 @@ def test_solvers_agree_on_the_shipped_table():
     from msmill.model.providers import load_provider
     from msmill.model.runfile import RunFile
 
-    table = load_provider("default").table
+    table = load_provider("table").table
     assert any(s.secondary_count.n_components > 1 for r in table.runs for s in r.stages)
     rf = RunFile.from_toml(Path(__file__).parents[2] / "examples" / "ug2.toml")
     mill, feed, op = rf.build()

@@ -124,7 +124,7 @@ def test_optimizer_on_the_mill_meets_the_target_at_the_lowest_speed():
     from msmill.machine import OperatingPoint
 
     op = OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40)
-    mill = Mill("UG2", "default", grid=GRID)
+    mill = Mill("UG2", "table", grid=GRID)  # the single-point table (speed-scaled velocities)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         # a target the speed range can reach: the product at 1650 rpm (P80 falls as speed rises)

@@ -74,6 +74,8 @@ def test_page_what_if(server: str, tmp_path: Path) -> None:
         page.locator("#feed_rate").fill("50")  # more feed: more rock held in the mill
         holdup2 = _changes(page, "#holdup", holdup)
         assert float(holdup2) > float(holdup)
+        p80 = page.locator("#p80").inner_text()  # the feed rate moves P80 too (shipped surrogate)
+        product = page.locator("#product_line").get_attribute("d")
 
         page.locator("#speed").fill("1850")  # faster rotors: finer product, new curve
         p80_fast = _changes(page, "#p80", p80)

@@ -35,7 +35,7 @@ def load_runs(sources: list[str]) -> list:
 
     runs = []
     for src in sources:
-        p = default_table_path() if src == DEFAULT_TABLE else Path(src)
+        p = default_table_path() if src in (DEFAULT_TABLE, "table") else Path(src)
         if not p.is_file():
             raise MsmillInputError("sources", src, "existing table or run-statistics files (or 'default')")
         if p.suffix.lower() in (".toml", ".csv"):

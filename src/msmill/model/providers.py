@@ -59,6 +59,7 @@ __all__ = [
     "StageParameterProvider",
     "TableProvider",
     "load_provider",
+    "named_parameter_path",
     "read_simple_table",
 ]
 
@@ -359,20 +360,60 @@ def default_table_path(field: str = "stage_parameters") -> Path:
     return p
 
 
+#: name of the packaged single-point DEM table (``"default"`` is the shipped surrogate when installed)
+TABLE_NAME = "table"
+
+
+def default_surrogate_path() -> Path | None:
+    """Path of the shipped default surrogate (``msmill/data/surrogates/default.json``), None when absent."""
+    from importlib import resources
+
+    p = Path(str(resources.files("msmill").joinpath("data/surrogates/default.json")))
+    return p if p.is_file() else None
+
+
+def named_parameter_path(name: str, field: str = "stage_parameters") -> Path | None:
+    """The packaged file a name stands for, None for other values.
+
+    ``"default"``: the shipped surrogate trained on the DEM campaign, or, when
+    it is not installed, the single-point table with a ``UserWarning`` saying
+    so; ``"table"``: the single-point DEM table
+    (``msmill/data/stage_parameters/default.json``).
+    """
+    import warnings
+
+    if name == TABLE_NAME:
+        return default_table_path(field)
+    if name != DEFAULT_TABLE:
+        return None
+    p = default_surrogate_path()
+    if p is None:
+        table = default_table_path(field)  # raises first when the table is missing too
+        warnings.warn("the shipped default surrogate (msmill/data/surrogates/default.json) is not installed: "
+                      "using the single-point DEM table ('table') instead", UserWarning, stacklevel=3)
+        return table
+    return p
+
+
 def load_provider(path: str | Path) -> Any:
     """Open a parameter file: a table (JSON / TOML / CSV), one run's statistics (JSON) or a surrogate (JSON).
 
-    ``"default"`` names the packaged DEM-derived table.
+    ``"default"`` names the shipped surrogate (the packaged table when it is
+    missing) and ``"table"`` the packaged single-point DEM table
+    (:func:`named_parameter_path`).
     """
     import json
 
-    p = default_table_path() if str(path) == DEFAULT_TABLE else Path(path)
+    p = named_parameter_path(str(path)) or Path(path)
     from msmill.surrogate.persist import is_surrogate_file
 
     if is_surrogate_file(p):  # a trained GP surrogate (msmill surrogate fit)
         from msmill.surrogate.provider import SurrogateProvider
 
-        return SurrogateProvider.from_file(p)
+        prov = SurrogateProvider.from_file(p)
+        if p == default_surrogate_path():
+            prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
+        return prov
     if p.suffix.lower() == ".json" and p.exists():
         try:
             kind = json.loads(read_text(p, "stage_parameters", "JSON file")).get("kind")

@@ -26,7 +26,7 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
     file = "my_mill.toml"        # optional; default Machine.default()
 
     [stage_parameters]
-    file = "default"             # the packaged DEM-derived table, or a path (a surrogate JSON too)
+    file = "default"             # the shipped surrogate ("table": the single-point DEM table), or a path
 
     [model]                      # sub-models and solver (msmill.model.Mill)
     solver = "expected_value"
@@ -65,7 +65,7 @@ from pydantic import (
 
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.mill import MIN_MC_STEPS
-from msmill.model.providers import DEFAULT_TABLE, default_table_path
+from msmill.model.providers import DEFAULT_TABLE, named_parameter_path
 from msmill.validate import InputModel, InputWarning, limit, read_toml
 
 
@@ -297,8 +297,9 @@ class RunFile(_Section):
     def stage_parameter_path(self) -> Path:
         """The stage-parameter file (the packaged default table for ``"default"``)."""
         v = self.stage_parameters.file
-        if v == DEFAULT_TABLE:
-            return default_table_path(f"{self.name}.stage_parameters.file")
+        named = named_parameter_path(v, f"{self.name}.stage_parameters.file")
+        if named is not None:
+            return named
         p = self.path(v)
         if not p.is_file():
             raise MsmillInputError(f"{self.name}.stage_parameters.file", v, "an existing table or run-statistics file")

@@ -71,7 +71,13 @@ def to_dict(model: StageSurrogate, provenance: dict[str, Any] | None = None) -> 
         "gp": {"kernel": "C*Matern(ARD,nu=1.5) + C*Matern(ARD,nu=2.5) + White",
                "hyperparameters": gp.hyperparameters()},
         "provenance": prov,
+        **_correction_doc(model),
     }
+
+
+def _correction_doc(model: StageSurrogate) -> dict[str, Any]:
+    bias = getattr(model, "slice_to_full_", None)
+    return {"slice_to_full": bias.to_dict()} if bias is not None else {}
 
 
 def save(model: StageSurrogate, path: str | Path, provenance: dict[str, Any] | None = None) -> Path:
@@ -103,6 +109,10 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate") -> StageSurrogate:
     model = StageSurrogate(space)
     model._set(ts, gp)
     model.provenance_ = dict(doc.get("provenance", {}))
+    if doc.get("slice_to_full") is not None:
+        from msmill.surrogate.fidelity import SliceToFullBias
+
+        model.slice_to_full_ = SliceToFullBias.from_dict(doc["slice_to_full"], layout.n_targets)
     return model
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msmill.errors import OutOfDomainWarning
+from msmill.errors import OutOfDomainWarning, SummaryNote
 from msmill.providers_base import CountArrays, MixtureArrays, StageParameters
 from msmill.surrogate.space import INPUTS
 from msmill.surrogate.stage_model import StageSurrogate
@@ -45,6 +45,10 @@ class SurrogateProvider:
 
     def __init__(self, surrogate: StageSurrogate, source: str = "GP surrogate") -> None:
         self.surrogate = surrogate
+        #: slice-to-full-mill correction (:class:`msmill.surrogate.fidelity.SliceToFullBias`) or None
+        self.correction = getattr(surrogate, "slice_to_full_", None)
+        if self.correction is not None and self.correction.n_pairs:
+            source = f"{source} (slice-to-full corrected, {self.correction.n_pairs} pairs)"
         self.source = source
 
     @classmethod
@@ -83,8 +87,9 @@ class SurrogateProvider:
                 parts.append(f"down to {sizes.min():.3g} mm, {lo / sizes.min():.3g}x below the smallest")
             if sizes.max() > hi:
                 parts.append(f"up to {sizes.max():.3g} mm, {sizes.max() / hi:.3g}x above the largest")
-            msgs.append(f"{int(out.sum())} of {sizes.size} size classes outside the trained {lo:g}-{hi:g} mm "
-                        f"({'; '.join(parts)})")
+            # every feed has fines below the trained sizes: a summary note, not a warning
+            warnings.warn(f"{self.source}: extrapolating: {int(out.sum())} of {sizes.size} size classes outside "
+                          f"the trained {lo:g}-{hi:g} mm ({'; '.join(parts)})", SummaryNote, stacklevel=3)
         for k in (1, 3):
             if ex[0, 0, k] > 1e-9:
                 lo, hi = m.domain_[k]
@@ -140,17 +145,24 @@ class SurrogateProvider:
         )
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
-        """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point."""
+        """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point (slice-to-full corrected)."""
         X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
-        return self._params(self.surrogate.predict_targets(X), sizes_mm, X)
+        Y = self.surrogate.predict_targets(X)
+        if self.correction is not None:
+            Y = self.correction.apply(Y)
+        return self._params(Y, sizes_mm, X)
 
     def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
                                 gate_deg=None, seed: int | None = 0) -> list[StageParameters]:
         """``n_samples`` draws of the stage parameters from the GP posterior (jointly over sizes)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", OutOfDomainWarning)  # already said by stage_parameters
+            warnings.simplefilter("ignore", SummaryNote)
             X = self._inputs(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg)
-        Z = self.surrogate.sample_targets(X, n_samples, rng=seed)
+        rng = np.random.default_rng(seed)
+        Z = self.surrogate.sample_targets(X, n_samples, rng=rng)
+        if self.correction is not None:
+            Z = self.correction.sample(Z, rng)
         return [self._params(z, sizes_mm, X) for z in Z]
 
     def __repr__(self) -> str:

@@ -83,7 +83,7 @@ def _strip_attachments(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, 
 def _no_server_paths(body: dict[str, Any]) -> None:
     for section, key in (("machine", "file"), ("stage_parameters", "file"), ("ore", "file")):
         sec = body.get(section)
-        if isinstance(sec, dict) and key in sec and sec[key] not in (None, "default"):
+        if isinstance(sec, dict) and key in sec and sec[key] not in (None, "default", "table"):
             raise MsmillInputError(f"request.{section}.{key}", sec[key],
                                    "'default' (upload a file as an attachment instead of naming a server path)")
 

@@ -1,0 +1,132 @@
+"""Train the shipped default surrogate from the campaign export in git.
+
+Reads the run documents of ``src/msmill/data/campaigns/default/`` (written by
+``scripts/campaign_export.py``), fits the Gaussian-process surrogate
+(``msmill.surrogate.stage_model.StageSurrogate``) to the steady periodic-slice
+runs, estimates the slice-to-full-mill correction
+(``msmill.surrogate.fidelity.SliceToFullBias``) from the steady full-mill runs
+paired with a slice run at the same design point, scores it by leave-one-out
+and writes ``src/msmill/data/surrogates/default.json`` with provenance
+(command, commit, versions, date, the runs used, LOO metrics, domain).
+
+    python scripts/build_default_surrogate.py [--export DIR] [--out FILE] [--loo refit|closed]
+
+``msmill predict`` and ``Mill(ore, "default")`` use the file when it is installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPORT = ROOT / "src/msmill/data/campaigns/default"
+OUT = ROOT / "src/msmill/data/surrogates/default.json"
+
+
+def git_state(root: Path = ROOT) -> dict[str, object]:
+    """Commit of the repository and whether the export folder has uncommitted changes."""
+    def run(*a: str) -> str:
+        try:
+            return subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True, check=True).stdout
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+    return {"git_commit": run("rev-parse", "HEAD").strip() or "unknown",
+            "export_uncommitted": bool(run("status", "--porcelain", "--", str(EXPORT)).strip())}
+
+
+def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
+          groups: tuple[str, ...] | None = ("count",)):
+    """Fit, correct and score; returns ``(model, report, provenance)``."""
+    from msmill.surrogate.accuracy import loo_scores
+    from msmill.surrogate.campaign_export import read_export, split_runs
+    from msmill.surrogate.fidelity import SliceToFullBias, match_pairs
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    runs = read_export(export)
+    slices, fulls = split_runs(runs)
+    if len(slices) < 2:
+        sys.exit(f"{export}: {len(slices)} steady slice runs; at least 2 are needed")
+    model = StageSurrogate(n_restarts=n_restarts).fit([r.statistics for r in slices])
+    pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls]) if correct else []
+    if pairs:
+        model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs, groups=groups)
+        full = SliceToFullBias.fit(model.training_.layout, pairs)
+        lay = model.training_.layout
+        measured = {g: {"mean_abs_offset": float(np.mean([np.abs(full.offset[lay.slices(s)[g]]).mean()
+                                                          for s in range(1, lay.n_stages + 1)])),
+                        "mean_sd": float(np.mean([np.sqrt(full.var[lay.slices(s)[g]]).mean()
+                                                  for s in range(1, lay.n_stages + 1)]))}
+                    for g, _ in lay.groups()}
+    else:
+        measured = {}
+    report = loo_scores(model, refit=loo == "refit")
+    dom = model.domain_
+    prov = {
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        **git_state(),
+        "inputs": {"export": str(export.relative_to(ROOT) if export.is_relative_to(ROOT) else export),
+                   "n_documents": len(runs), "n_steady_slice": len(slices), "n_steady_full": len(fulls),
+                   "n_pairs": len(pairs),
+                   "excluded": sorted(r.path.name for r in runs if r.outcome != "steady")},
+        "runs": [{"file": r.path.name, "content_hash": r.content_hash, "size_mm": r.statistics.design.size_mm,
+                  "feed_tph": r.statistics.design.feed_tph, "speed_rpm": r.statistics.design.speed_rpm,
+                  "gate_deg": r.statistics.design.gate_deg, "wall_s": r.wall_s} for r in slices],
+        "loo": {"method": report.method, **report.summary(),
+                "per_stage": report.per_stage.reset_index().to_dict(orient="list")},
+        "domain": {k: [float(v) for v in dom[i]] for i, k in
+                   enumerate(("size_mm", "feed_tph", "speed_rpm", "gate_deg"))},
+        "slice_to_full": (model.slice_to_full_.lambda_factors(model.training_.layout) if pairs else
+                          "no correction (--no-slice-to-full)" if not correct else
+                          "no paired full-mill runs: no correction"),
+        "slice_to_full_groups_applied": list(groups) if groups else "all",
+        "slice_to_full_measured_target_space": measured,
+    }
+    return model, report, prov
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line entry point."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--export", type=Path, default=EXPORT, help="campaign export folder")
+    ap.add_argument("--out", type=Path, default=OUT, help="surrogate JSON to write")
+    ap.add_argument("--loo", choices=("refit", "closed"), default="refit",
+                    help="leave-one-out: refit every GP (honest) or closed form (fast)")
+    ap.add_argument("--restarts", type=int, default=2, help="optimiser restarts per target")
+    ap.add_argument("--correct-groups", default="count",
+                    help="target groups the slice-to-full correction is applied to, comma-separated, or 'all' "
+                         "(default: count, the secondary impacts the slice is known to under-count)")
+    ap.add_argument("--no-slice-to-full", action="store_true",
+                    help="ship the slice prediction without the slice-to-full-mill correction")
+    a = ap.parse_args(argv)
+    from msmill.surrogate.persist import save
+
+    t0 = time.process_time()
+    groups = None if a.correct_groups == "all" else tuple(a.correct_groups.split(","))
+    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full, groups)
+    prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    prov["cpu_s"] = round(time.process_time() - t0, 1)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    save(model, a.out, provenance=prov)
+    s = report.summary()
+    print(f"wrote {a.out} ({a.out.stat().st_size / 1e3:.0f} kB): {s['n_runs']} runs, {report.method}")
+    print(report.per_stage.round(4).to_string())
+    for k, (lo, hi) in prov["domain"].items():
+        print(f"domain {k}: {lo:g}-{hi:g}")
+    if isinstance(prov["slice_to_full"], list):
+        print("slice-to-full lambda factor per stage: " + ", ".join(
+            f"{d['lambda_factor']:.2f}+-{d['lambda_factor_sd']:.2f}" for d in prov["slice_to_full"]))
+    print(f"runs={s['n_runs']} loo_kl_velocity_mean={s['mean_kl_velocity']:.4f} "
+          f"loo_kl_count_mean={s['mean_kl_count']:.4f} stream_mae={s['stream_mae']:.4f} "
+          f"hit_prob_mae={s['hit_probability_mae']:.4f} cpu_s={prov['cpu_s']} "
+          f"size_mm={np.min(model.training_.X[:, 0]):g}-{np.max(model.training_.X[:, 0]):g}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""Campaign export in git: a campaign continues on a fresh store from the export folder alone;
+the shipped default surrogate and the named parameter sources ("default", "table")."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import pytest
+
+from msmill.machine import Machine
+from msmill.stageparams import DesignPoint
+from msmill.surrogate.campaign_export import (
+    CAMPAIGNS_FILE,
+    default_export_dir,
+    export_campaign,
+    read_export,
+    restore_campaigns,
+    split_runs,
+)
+from msmill.surrogate.store import Store
+from msmill.surrogate.store.transfer import ingest_paths
+
+MACHINE = Machine.default()
+
+
+def _point(size_mm: float, feed_tph: float = 30.0) -> DesignPoint:
+    return DesignPoint(size_mm=size_mm, feed_tph=feed_tph, speed_rpm=1500.0, gate_deg=40.0,
+                       stage_speeds_rpm=[1500.0] * 4 + [3000.0])
+
+
+@pytest.fixture
+def exported(tmp_path, table_runs):
+    """A store with 3 done runs (one full-mill) and a campaign with 2 pending points, exported."""
+    st = Store(f"sqlite:///{tmp_path / 'a.sqlite'}")
+    for run in table_runs[:2]:
+        st.record_run(run, MACHINE, wall_s=100.0)
+    full = table_runs[2].model_copy(update={"mode": "full"})  # synthetic full-mill twin
+    st.record_run(full, MACHINE, wall_s=900.0)
+    st.create_campaign("c", MACHINE, run_settings={"max_time_s": 2.0}, max_attempts=4,
+                       options={"size_range_mm": [6.0, 30.0], "raw_dir": "/somewhere/raw"})
+    st.add_points("c", [table_runs[0].design, _point(17.0, 45.0)])
+    runs, cpath = export_campaign(st, tmp_path / "export")
+    st.close()
+    return tmp_path / "export", runs, cpath
+
+
+def test_export_holds_runs_and_campaign_definitions(exported):
+    folder, runs, cpath = exported
+    assert len(runs) == 3 and cpath.name == CAMPAIGNS_FILE
+    doc = json.loads(cpath.read_text())
+    (c,) = doc["campaigns"]
+    assert c["options"]["size_range_mm"] == [6.0, 30.0] and c["max_attempts"] == 4 and len(c["pending"]) == 2
+    got = read_export(folder)
+    slices, fulls = split_runs(got)
+    assert len(slices) == 2 and len(fulls) == 1 and {r.wall_s for r in slices} == {100.0}
+    for p in runs:  # no raw data in git: statistics and references only
+        assert p.stat().st_size < 40_000
+
+
+def test_a_fresh_store_continues_from_the_export_alone(exported, tmp_path):
+    folder, _, _ = exported
+    st = Store(f"sqlite:///{tmp_path / 'b.sqlite'}")
+    res = ingest_paths(st, [folder])
+    assert [r.status for r in res] == ["added"] * 3
+    lines = restore_campaigns(st, folder, raw_dir=None)
+    assert lines == ["campaign c: re-created, 1 pending runs planned"]
+    info = st.campaign("c")
+    assert info.run_settings == {"max_time_s": 2.0} and "raw_dir" not in info.options
+    planned = st.runs(campaign="c", status="planned")
+    # the pending point already done (ingested) is not planned again; the new one is
+    assert [(r.design.size_mm, r.design.feed_tph) for r in planned] == [(17.0, 45.0)]
+    assert restore_campaigns(st, folder) == ["campaign c: already in the store"]
+    assert [r.status for r in ingest_paths(st, [folder])] == ["exists"] * 3
+    st.close()
+
+
+def test_packaged_export_ingests_from_the_installed_package(tmp_path):
+    folder = default_export_dir()
+    assert folder.is_dir(), "the campaign export is shipped in msmill/data/campaigns/default"
+    st = Store(f"sqlite:///{tmp_path / 'c.sqlite'}")
+    res = ingest_paths(st, [folder], allow_not_steady=True)
+    assert res and all(r.status == "added" for r in res)
+    assert len(st.runs(status="done")) == len(read_export(folder))
+    st.close()
+
+
+def test_default_is_the_shipped_surrogate_and_table_stays_by_name():
+    from msmill.model.providers import TableProvider, default_surrogate_path, load_provider
+    from msmill.surrogate.provider import SurrogateProvider
+
+    assert default_surrogate_path() is not None
+    prov = load_provider("default")
+    assert isinstance(prov, SurrogateProvider) and prov.source.startswith("shipped default surrogate")
+    p = prov.surrogate.provenance_
+    for key in ("git_commit", "loo", "domain", "runs", "package_versions", "command"):
+        assert key in p
+    assert p["loo"]["n_runs"] == prov.surrogate.training_.n_runs == len(p["runs"])
+    assert isinstance(load_provider("table"), TableProvider)
+
+
+def test_missing_shipped_surrogate_falls_back_to_the_table_with_a_note(monkeypatch):
+    from msmill.model import providers
+
+    monkeypatch.setattr(providers, "default_surrogate_path", lambda: None)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        prov = providers.load_provider("default")
+    assert isinstance(prov, providers.TableProvider)
+    assert any("shipped default surrogate" in str(x.message) and "'table'" in str(x.message) for x in w)
