@@ -79,11 +79,11 @@ def surveys(rng: np.random.Generator) -> list:
             def power(e, res):
                 return power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
         how = (f"msmill {__version__} expected-value model, default sub-models (jk_t10 breakage) with L_ref = "
-               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, packaged DEM stage table"
+               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, the packaged single-point DEM stage table (\"table\")"
                + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
                   if power is not None else ""))
         out += model_surveys(ore_name, specs, {"l_ref_mm": TRUE_L_REF_MM[ore_name]}, SIGMA, rng, how=how,
-                             power=power)
+                             power=power, stage_parameters="table")
     return out
 
 
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
             "msmill_version": __version__, "git_commit": commit,
             "date_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "seed": args.seed,
             "noise_sigma": SIGMA, "true_l_ref_mm": TRUE_L_REF_MM, "synthetic_no_load_kw": NO_LOAD_KW,
-            "platreef_lab_vogel_swebrec_true": SWEBREC_TRUE, "stage_parameters": "default (packaged DEM table)",
+            "platreef_lab_vogel_swebrec_true": SWEBREC_TRUE, "stage_parameters": "table (the packaged single-point DEM stage table)",
             "files": sorted(f"{e.id}.toml" for e in exps)}
     tmp = args.out / "PROVENANCE.json.tmp"
     tmp.write_text(json.dumps(prov, indent=2) + "\n", encoding="utf-8")
