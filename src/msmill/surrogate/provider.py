@@ -142,6 +142,7 @@ class SurrogateProvider:
             design_feed_tph=float(X[0, 0, 1]), design_gate_deg=float(X[0, 0, 3]),
             region_weights=rw, region_streams=rs, source=self.source,
             velocities_at_requested_speeds=True, secondary_count=counts,
+            extrapolated=m.domain_excess(X)[0, :, 0] > 1e-9,  # sizes outside the trained ones
         )
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
