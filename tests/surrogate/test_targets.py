@@ -172,3 +172,20 @@ def test_provider_passes_count_distributions(fitted) -> None:
     np.testing.assert_allclose(c.mean(), sp.secondary_lambda, rtol=1e-9)
     var = (c.weights * (c.means + c.means**2)).sum(-1) - c.mean() ** 2
     assert np.all(var > 1.05 * c.mean())  # over-dispersed, as the DEM counts are
+
+
+def test_destinations_are_regressed_and_reach_the_dem_matrix_transport(fitted, table_runs) -> None:
+    """Runs with one-lag destinations: the surrogate predicts the transition matrix the model's transport uses."""
+    from msmill.surrogate.provider import SurrogateProvider
+
+    assert fitted.training_.layout.with_destinations
+    r = table_runs[2]
+    sp = SurrogateProvider(fitted).stage_parameters(np.array([r.design.size_mm]), r.design.stage_speeds_rpm,
+                                                    r.design.feed_tph, r.design.gate_deg)
+    T = sp.transition
+    assert T.shape == (r.n_stages + 1, 1, r.n_stages + 2)
+    np.testing.assert_allclose(T.sum(axis=-1), 1.0, rtol=1e-12)
+    want = np.array([r.inlet_destinations] + [s.destinations for s in r.stages])
+    se = 3 * np.sqrt(want * (1 - want) / r.stages[0].n_transport_samples) + 0.05  # at a training run
+    assert np.all(np.abs(T[:, 0] - want) <= se)
+    assert sp.transition_lag_s[0] == pytest.approx(r.characteristic_time_s, rel=0.1)

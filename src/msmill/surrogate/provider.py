@@ -25,7 +25,7 @@ from msmill.errors import OutOfDomainWarning, SummaryNote
 from msmill.providers_base import CountArrays, MixtureArrays, StageParameters
 from msmill.surrogate.space import INPUTS
 from msmill.surrogate.stage_model import StageSurrogate
-from msmill.surrogate.targets import count_arrays_from_summary
+from msmill.surrogate.targets import count_arrays_from_summary, decode_inlet_destinations
 
 _UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
 
@@ -126,6 +126,10 @@ class SurrogateProvider:
                                                stack([p.count_var_ratio for p in preds]),
                                                stack([p.count_p_zero for p in preds]))
             counts = CountArrays(cw, cm)
+        tr = None
+        if preds[0].destinations is not None:  # the dem_matrix transport: inlet zone row, then every stage's
+            inlet = decode_inlet_destinations(Y[0], m.training_.layout)  # run-level: stage 1's points
+            tr = stack([inlet] + [p.destinations for p in preds])  # (S + 1, N, S + 2)
         rw = rs = None
         if preds[0].region_weights is not None:
             rw = stack([p.region_weights for p in preds])
@@ -143,6 +147,8 @@ class SurrogateProvider:
             region_weights=rw, region_streams=rs, source=self.source,
             velocities_at_requested_speeds=True, secondary_count=counts,
             extrapolated=m.domain_excess(X)[0, :, 0] > 1e-9,  # sizes outside the trained ones
+            # each size's matrix was measured at its run's characteristic time: the predicted one per size
+            transition=tr, transition_lag_s=None if tr is None else np.exp(Y[0, :, -1]),
         )
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:

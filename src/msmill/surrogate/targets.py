@@ -297,11 +297,16 @@ class TargetLayout:
         Count targets include ``ln(var/mean)`` and ``logit(p_zero)``.
     with_regions : bool
         Region weights and region streams are targets.
+    with_destinations : bool
+        One-lag destinations (the DEM transition matrix of the
+        ``dem_matrix`` transport: every stage's row and the inlet zone's, as
+        additive log-ratios of their ``n + 2`` fractions) are targets.
     """
 
     n_stages: int
     with_dispersion: bool = False
     with_regions: bool = False
+    with_destinations: bool = False
     names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -309,8 +314,16 @@ class TargetLayout:
         for s in range(1, self.n_stages + 1):
             for group, n in self.groups():
                 names += [f"s{s}.{group}.{i}" for i in range(n)]
+        if self.with_destinations:
+            names += [f"run.inlet_destinations.{i}" for i in range(self.n_stages + 1)]
         names.append("run.log_time.0")
         object.__setattr__(self, "names", tuple(names))
+
+    @property
+    def inlet_slice(self) -> slice:
+        """Position of the inlet zone's destinations (run-level) in a target row."""
+        start = self.n_stages * self.n_per_stage
+        return slice(start, start + (self.n_stages + 1 if self.with_destinations else 0))
 
     def groups(self) -> list[tuple[str, int]]:
         """Per-stage target groups and their lengths."""
@@ -318,6 +331,8 @@ class TargetLayout:
              ("count", 3 if self.with_dispersion else 1)]
         if self.with_regions:
             g += [("region_weights", N_REGIONS - 1), ("region_streams", 2 * N_REGIONS)]
+        if self.with_destinations:
+            g += [("destinations", self.n_stages + 1)]
         return g
 
     @property
@@ -346,14 +361,28 @@ class TargetLayout:
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
         return {"n_stages": self.n_stages, "with_dispersion": self.with_dispersion,
-                "with_regions": self.with_regions, "levels": [float(p) for p in LEVELS]}
+                "with_regions": self.with_regions, "with_destinations": self.with_destinations,
+                "levels": [float(p) for p in LEVELS]}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TargetLayout:
         """Inverse of :meth:`to_dict` (checks the quantile levels match this version)."""
         if not np.allclose(d.get("levels", LEVELS), LEVELS):
             raise MsmillInputError("surrogate.targets.levels", d.get("levels"), f"{list(LEVELS)}")
-        return cls(int(d["n_stages"]), bool(d["with_dispersion"]), bool(d["with_regions"]))
+        return cls(int(d["n_stages"]), bool(d["with_dispersion"]), bool(d["with_regions"]),
+                   bool(d.get("with_destinations", False)))
+
+
+def _composition_targets(parts: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Additive log-ratios of a composition measured from ``n`` tags, with their (delta-method) variance.
+
+    ``var(ln p_i) ~ (1 - p_i) / (n p_i)``; a log-ratio adds the divisor's; parts at
+    zero count as ``ZERO_FRACTION``.
+    """
+    p = np.maximum(np.asarray(parts, dtype=float), ZERO_FRACTION)
+    p = p / p.sum()
+    v = (1.0 - p) / (max(int(n), 1) * p)
+    return alr(p), v[:-1] + v[-1]
 
 
 def _mixture_targets(g: GaussianMixture, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -397,6 +426,12 @@ def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np
         if layout.with_regions:
             y[sl["region_weights"]] = alr(np.asarray(st.region_weights))
             y[sl["region_streams"]] = alr(np.asarray(st.region_streams)).ravel()
+        if layout.with_destinations:
+            y[sl["destinations"]], nv[sl["destinations"]] = _composition_targets(st.destinations,
+                                                                                  st.n_transport_samples)
+    if layout.with_destinations:
+        n_inlet = max(int(run.stages[0].n_transport_samples), 1)  # the inlet zone's tags are not counted apart
+        y[layout.inlet_slice], nv[layout.inlet_slice] = _composition_targets(run.inlet_destinations, n_inlet)
     y[-1] = np.log(run.characteristic_time_s)
     return y, nv
 
@@ -429,6 +464,7 @@ class StagePrediction:
     count_p_zero: np.ndarray | None = None
     region_weights: np.ndarray | None = None
     region_streams: np.ndarray | None = None
+    destinations: np.ndarray | None = None
 
     def count_distribution(self, i: int) -> Any:
         """The rebuilt count distribution at point ``i`` (needs the dispersion targets)."""
@@ -436,6 +472,13 @@ class StagePrediction:
             return build_count_distribution(np.array([1.0]), np.array([self.secondary_lambda[i]]))
         w, m = count_from_summary(self.secondary_lambda[i], self.count_var_ratio[i], self.count_p_zero[i])
         return build_count_distribution(w, m)
+
+
+def decode_inlet_destinations(y: np.ndarray, layout: TargetLayout) -> np.ndarray | None:
+    """The inlet zone's one-lag destinations (P, n + 2) from target rows ``y`` (P, n_targets), if regressed."""
+    if not layout.with_destinations:
+        return None
+    return alr_inverse(np.atleast_2d(np.asarray(y, dtype=float))[:, layout.inlet_slice])
 
 
 def decode_stage(y: np.ndarray, layout: TargetLayout, stage: int) -> StagePrediction:
@@ -452,6 +495,8 @@ def decode_stage(y: np.ndarray, layout: TargetLayout, stage: int) -> StagePredic
     if layout.with_regions:
         kw["region_weights"] = alr_inverse(y[:, sl["region_weights"]])
         kw["region_streams"] = alr_inverse(y[:, sl["region_streams"]].reshape(-1, N_REGIONS, 2))
+    if layout.with_destinations:
+        kw["destinations"] = alr_inverse(y[:, sl["destinations"]])
     return StagePrediction(
         streams=alr_inverse(y[:, sl["streams"]]),
         hit_probability=special.expit(y[:, sl["hit"]][:, 0]),
@@ -515,7 +560,9 @@ class TrainingSet:
             n_st.pop(),
             with_dispersion=all(getattr(s, "secondary_count", None) is not None for r in runs for s in r.stages),
             with_regions=all(s.region_weights is not None and s.region_streams is not None
-                             for r in runs for s in r.stages))
+                             for r in runs for s in r.stages),
+            with_destinations=all(r.inlet_destinations is not None and all(s.destinations is not None
+                                                                             for s in r.stages) for r in runs))
         rows = [encode_run(r, layout) for r in runs]
         X = np.array([[r.design.size_mm, r.design.feed_tph, r.design.speed_rpm, r.design.gate_deg] for r in runs])
         ids = tuple(str(r.provenance.get("run_id") or _design_label(r)) for r in runs)
