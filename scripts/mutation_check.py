@@ -7,7 +7,7 @@ Run on demand (not in CI; CPU-heavy, about 15-25 min on one free core)::
     python scripts/mutation_check.py --list                  # the list, no runs
 
 Each mutant is ``(name, file, original snippet, mutated snippet, tests)``: the
-script copies ``src/``, ``tests/`` and ``pyproject.toml`` of the checkout it
+script copies ``src/``, ``tests/``, ``examples/``, ``scripts/`` and ``pyproject.toml`` of the checkout it
 lives in (including uncommitted edits) into a scratch directory, checks that
 the unmutated tests pass there (the baseline), then for every mutant replaces
 the snippet (which must occur exactly once: a stale definition is reported, not
@@ -43,8 +43,8 @@ NUMBA_FILES = ("src/msmill/dem/kernels.py", "src/msmill/dem/contact.py")
 BREAKAGE = ["tests/test_breakage.py", "tests/test_damage.py", "tests/model/test_damage_submodels.py"]
 MODEL = ["tests/model/test_physics.py", "tests/model/test_mass_balance.py",
          "tests/model/test_poisson_series.py", "tests/model/test_damage_submodels.py",
-         "tests/model/test_velocity_quadrature.py"]
-PSD = ["tests/test_psd.py", "tests/test_distributions.py"]
+         "tests/model/test_velocity_quadrature.py", "tests/model/test_count_solvers.py"]
+PSD = ["tests/test_psd.py", "tests/test_distributions.py", "tests/test_count_families.py"]
 STATS = ["tests/dem/test_mill_stats.py"]
 CONTACT = ["tests/dem/test_chung_ooi.py"]
 
@@ -116,13 +116,15 @@ MUTANTS: list[Mutant] = [
     m("kl-divergence-reversed-log", "src/msmill/distributions.py",
       "np.log(p[m] / np.maximum(q[m], 1e-300))", "np.log(np.maximum(q[m], 1e-300) / p[m])", PSD),
     m("poisson-fit-median", "src/msmill/distributions.py",
-      "lam = float(k.mean())", "lam = float(np.median(k))", PSD + STATS),
+      "        lam = self.mean_count_\n", "        lam = float(np.median(self.support_))\n", PSD + STATS),
     # ---- expected-value solver
     m("ev-poisson-exponent-drops-identity", EV,
-      "A = lam[:, None, None] * (sec.survive - np.eye(nd)[None])",
-      "A = lam[:, None, None] * sec.survive", MODEL),
+      "Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])",
+      "Z[:, :nd, :nd] = lam_ic * survive[i]", MODEL),
     m("ev-poisson-phi-drops-lambda", EV,
-      "phi = X[:, nd:, :nd] * lam[:, None, None]", "phi = X[:, nd:, :nd]", MODEL),
+      "full[1, active] = wic * lam_ic * X[:, nd:, :nd]", "full[1, active] = wic * X[:, nd:, :nd]", MODEL),
+    m("ev-count-series-phi-uses-pmf", EV,
+      "phi += qk[:, j, None, None] * power", "phi += pk[:, j, None, None] * power", MODEL),
     m("ev-quadrature-drops-sqrt2", EV,
       "v = mix.means_m_s[..., None] + np.sqrt(2.0) * mix.sigmas_m_s[..., None] * x",
       "v = mix.means_m_s[..., None] + mix.sigmas_m_s[..., None] * x", MODEL),
@@ -164,7 +166,7 @@ MUTANTS: list[Mutant] = [
 
 
 def _copy_checkout(dst: Path) -> None:
-    for part in ("src", "tests"):
+    for part in ("src", "tests", "examples", "scripts"):  # tests read the examples and some scripts
         shutil.copytree(ROOT / part, dst / part, ignore=shutil.ignore_patterns(
             "__pycache__", "*.nbi", "*.nbc", ".hypothesis", ".pytest_cache"))
     shutil.copy2(ROOT / "pyproject.toml", dst / "pyproject.toml")

@@ -297,3 +297,13 @@ def test_any_statistics_round_trip_and_hash_ignores_provenance(tmp_path_factory,
     [row] = store.stage_table(stage=MACHINE.n_stages).query(f"run_id == {run_id}").to_dict("records")
     assert row["pass_through"] == stats.stages[-1].pass_through and row["size_mm"] == stats.design.size_mm
     store.close()
+
+
+def test_outcome_comes_from_the_run_protocol_field() -> None:
+    """A choked run's statistics (RunStatistics.outcome) are recorded as choked, whatever its steady-state time."""
+    from msmill.surrogate.store.hashing import outcome_of
+
+    st = make_stats(20.0)
+    assert outcome_of(st) == "steady"
+    assert outcome_of(st.model_copy(update={"outcome": "choked"})) == "choked"
+    assert outcome_of(st.model_copy(update={"outcome": "not_steady"})) == "not_steady"

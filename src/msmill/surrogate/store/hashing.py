@@ -66,10 +66,11 @@ def statistics_hash(stats: RunStatistics | dict[str, Any], machine_sha: str) -> 
 
 
 def outcome_of(stats: RunStatistics) -> str:
-    """Outcome of a finished run: ``provenance["outcome"]`` if the run protocol set one, else steady/not_steady."""
-    out = stats.provenance.get("outcome")
-    if out in OUTCOMES:
-        return str(out)
+    """Outcome of a finished run: the statistics' ``outcome`` (set by the run protocol, issue 20), else
+    ``provenance["outcome"]``, else steady/not_steady by whether a steady-state time was found."""
+    for out in (getattr(stats, "outcome", None), stats.provenance.get("outcome")):
+        if out in OUTCOMES:
+            return str(out)
     return "steady" if stats.steady_state_time_s is not None else "not_steady"
 
 
