@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Rebuild the shipped campaign export, default surrogate, accuracy figures and results page from saved
+# DEM run folders (the raw events stay outside git). This is how the 2026-12-01 artefacts were made:
+#
+#   RUNS=/work/demruns RESTAT=0 bash scripts/rebuild_default_campaign.sh   (RESTAT=0: the folders' statistics
+#   were already recomputed by this code: msmill dem stats per folder; the campaign runner's own)
+#
+# RUNS holds: batch0/pt_* (scripts/design_batch.py, Sobol batch), stage_table_v3/size_*mm (the stage
+# table's runs), full/size_*mm (full-mill runs paired with slice runs), campaign_raw/run* (folders the
+# campaign runner saved with --raw-dir). Every folder's statistics are recomputed with this checkout's
+# code first (`msmill dem stats`), so outcomes follow today's steady-state criterion; not-steady and
+# choked runs are stored with their outcome (the surrogate trains on steady slice runs only).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+RUNS="${RUNS:?set RUNS to the folder of saved run folders}"
+STORE="${STORE:-$RUNS/final.sqlite}"
+export MSMILL_DB="sqlite:///$STORE"
+rm -f "$STORE"
+folders=("$RUNS"/batch0/pt_* "$RUNS"/stage_table_v3/size_*mm "$RUNS"/full/size_*mm "$RUNS"/campaign_raw/run*)
+if [ "${RESTAT:-1}" = 1 ]; then
+    for d in "${folders[@]}"; do python -m msmill dem stats "$d" >/dev/null; done
+fi
+python -m msmill db ingest --allow-not-steady "${folders[@]}"
+python -m msmill campaign create default --size-range-mm 6 30 --set adaptive=true
+rm -f src/msmill/data/campaigns/default/run-*.json
+python scripts/campaign_export.py --out src/msmill/data/campaigns/default
+python scripts/build_default_surrogate.py --loo closed --restarts 1
+python benchmarks/surrogate_accuracy.py --loo closed
+python scripts/campaign_results.py
