@@ -65,6 +65,7 @@ data range).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any
 
 import numpy as np
@@ -118,7 +119,7 @@ def _check_histogram(histogram: Any) -> np.ndarray:
     return h.astype(np.int64)
 
 
-class _CountKLFit:
+class _CountKLFit(ABC):
     """Shared machinery of the count-family fits (see the module docstring).
 
     Attributes (after :meth:`fit`)
@@ -165,20 +166,21 @@ class _CountKLFit:
         self.bic_ = -2.0 * self.log_likelihood_ + self.n_params * np.log(self.n_samples_)
         return self
 
-    def _learn(self) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _learn(self) -> None:
+        """Set the family's parameters from ``histogram_`` / ``empirical_pmf_``."""
 
     def _nll(self, q: np.ndarray) -> float:
         """Cross-entropy ``-sum P ln Q`` (KL up to a constant)."""
         return float(-np.dot(self.empirical_pmf_, np.log(np.maximum(q, 1e-300))))
 
+    @abstractmethod
     def pmf(self, k: Any) -> np.ndarray:
         """Probability of each count in ``k`` under the fitted family (native parameters)."""
-        raise NotImplementedError  # pragma: no cover
 
+    @abstractmethod
     def to_count_distribution(self) -> CountDistribution:
         """The fit as a :class:`msmill.stageparams.CountDistribution`."""
-        raise NotImplementedError  # pragma: no cover
 
     @property
     def params_(self) -> dict[str, float]:

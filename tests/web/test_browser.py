@@ -9,11 +9,7 @@ there instead of skipping).
 from __future__ import annotations
 
 import os
-import re
 import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,31 +24,16 @@ if CHROMIUM is None or not __import__("importlib").util.find_spec("playwright"):
 
 from playwright.sync_api import expect, sync_playwright  # noqa: E402
 
+from msmill.web.process import serve_in_subprocess  # noqa: E402
+
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
 @pytest.fixture(scope="module")
 def server():
-    proc = subprocess.Popen([sys.executable, "-m", "msmill", "serve", "--port", "0"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    line = proc.stdout.readline()
-    m = re.search(r"http://[\d.]+:\d+/", line)
-    if not m:
-        proc.kill()
-        raise RuntimeError(f"msmill serve did not start: {line!r}")
-    url = m.group(0)
-    import urllib.request
-
-    for _ in range(100):
-        try:
-            urllib.request.urlopen(url + "health", timeout=1)
-            break
-        except OSError:
-            time.sleep(0.2)
-    yield url
-    proc.terminate()
-    proc.wait(timeout=10)
+    with serve_in_subprocess() as url:
+        yield url
 
 
 def _changes(page, selector: str, old: str, timeout_ms: int = 15_000) -> str:

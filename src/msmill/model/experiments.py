@@ -92,24 +92,25 @@ class MeasuredSection(_Section):
     power_kw: float | None = Field(default=None, gt=0)
 
 
-class _SurveyFile(_Section):
-    kind: Literal["survey"]
+class _ExperimentFile(_Section):
+    """Fields every experiment file has."""
+
     id: str = Field(min_length=1)
     ore: str = Field(min_length=1)
     source: str = Field(min_length=1)
     weight: float = Field(default=1.0, gt=0)
+
+
+class _SurveyFile(_ExperimentFile):
+    kind: Literal["survey"]
     feed: FeedRateSection
     operating: OperatingSection
     product: PassingSection
     measured: MeasuredSection = Field(default_factory=MeasuredSection)
 
 
-class _ImpactFile(_Section):
+class _ImpactFile(_ExperimentFile):
     kind: Literal["single_impact"]
-    id: str = Field(min_length=1)
-    ore: str = Field(min_length=1)
-    source: str = Field(min_length=1)
-    weight: float = Field(default=1.0, gt=0)
     impact_speed_m_s: float = Field(gt=0)
     feed: PassingSection
     product: PassingSection

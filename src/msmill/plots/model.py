@@ -22,6 +22,17 @@ def _figure(width_in: float = 6.4, height_in: float = 4.2) -> Any:
     return fig
 
 
+def style_psd_axes(ax: Any, title: str) -> None:
+    """Log size axis, cumulative % passing 0-100, grid, legend; ``title`` drawn as plain text (user text)."""
+    ax.set_xscale("log")
+    ax.set_xlabel("size (mm)")
+    ax.set_ylabel("cumulative passing (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left")
+    ax.set_title(title, parse_math=False)  # no mathtext: a '$' in a title is text
+
+
 def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
     """Feed and product cumulative % passing against size (log axis).
 
@@ -51,13 +62,7 @@ def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
         ax.fill_between(band.index.to_numpy(), band["product_passing_pct_p05"], band["product_passing_pct_p95"],
                         alpha=0.3, label=f"product 5-95 % band (P80 {lo:.3g}-{hi:.3g} mm, "
                                          f"{result.band_samples} samples)")
-    ax.set_xscale("log")
-    ax.set_xlabel("size (mm)")
-    ax.set_ylabel("cumulative passing (%)")
-    ax.set_ylim(0, 100)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left")
-    ax.set_title(title or f"reduction ratio F80/P80 = {result.reduction_ratio:.2f}", parse_math=False)  # user text: no mathtext
+    style_psd_axes(ax, title or f"reduction ratio F80/P80 = {result.reduction_ratio:.2f}")
     return ax
 
 

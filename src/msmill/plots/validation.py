@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from msmill.plots.model import _figure
+from msmill.plots.model import _figure, style_psd_axes
 
 __all__ = ["ks_swarm", "overlay", "pareto_plot", "sweep_plot"]
 
@@ -72,13 +72,7 @@ def overlay(measured: Any, predicted: Any, title: str, feed: Any = None, band: A
     ax.plot(*_curve(predicted), "-", color="C1", label="predicted")
     x, y = _curve(measured)
     ax.plot(x[1:], y[1:], "o", ms=4, color="C0", label="measured")
-    ax.set_xscale("log")
-    ax.set_xlabel("size (mm)")
-    ax.set_ylabel("cumulative passing (%)")
-    ax.set_ylim(0, 100)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left")
-    ax.set_title(title)
+    style_psd_axes(ax, title)
     return fig
 
 
