@@ -94,10 +94,8 @@ def check_run_budget(scene: Any, settings: Any) -> None:
     Both are estimated from the scene before the first step: steps from
     :func:`estimated_dt_s`, rocks fed from the feed rate and the smallest rock's mass.
     """
-    measure = max(settings.measure_s, settings.max_measure_s if getattr(settings, "adaptive", False) else 0.0)
-    limit = (settings.time_limit_s(float(min(scene.sizes_mm))) if hasattr(settings, "time_limit_s")
-             else settings.max_time_s)
-    duration = limit + measure
+    measure = max(settings.measure_s, settings.max_measure_s if settings.adaptive else 0.0)
+    duration = settings.time_limit_s(float(min(scene.sizes_mm))) + measure
     steps = duration / estimated_dt_s(scene, settings)
     r_min_m = float(min(scene.sizes_mm)) / 2000.0
     cap, what = LIMITS["dem_steps"]
