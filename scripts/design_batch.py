@@ -11,6 +11,8 @@ killed and restarted at any time. Points run cheapest first (large rock, low
 feed). One line of JSON per finished point goes to ``OUT/batch.jsonl``.
 
 Run: ``NUMBA_NUM_THREADS=1 python scripts/design_batch.py --out runs/batch0 --n 16 --size-mm 12 30``
+(``--feed-tph``, ``--speed-rpm``, ``--gate-deg`` narrow the box, e.g. the capacity batch
+``--size-mm 14 30 --feed-tph 30 60 --gate-deg 0 30``).
 """
 
 from __future__ import annotations
@@ -36,11 +38,12 @@ SPEED_RPM = (1200.0, 1900.0)
 GATE_DEG = (0.0, 80.0)
 
 
-def design(n: int, size_mm: tuple[float, float], seed: int) -> np.ndarray:
-    """Rows ``(size_mm, feed_tph, speed_rpm, gate_deg)`` of a scrambled Sobol design."""
+def design(n: int, size_mm: tuple[float, float], seed: int, feed_tph: tuple[float, float] = FEED_TPH,
+           speed_rpm: tuple[float, float] = SPEED_RPM, gate_deg: tuple[float, float] = GATE_DEG) -> np.ndarray:
+    """Rows ``(size_mm, feed_tph, speed_rpm, gate_deg)`` of a scrambled Sobol design over a box."""
     u = qmc.Sobol(d=4, scramble=True, seed=seed).random(n)
-    lo = np.array([math.log(size_mm[0]), FEED_TPH[0], SPEED_RPM[0], GATE_DEG[0]])
-    hi = np.array([math.log(size_mm[1]), FEED_TPH[1], SPEED_RPM[1], GATE_DEG[1]])
+    lo = np.array([math.log(size_mm[0]), feed_tph[0], speed_rpm[0], gate_deg[0]])
+    hi = np.array([math.log(size_mm[1]), feed_tph[1], speed_rpm[1], gate_deg[1]])
     x = qmc.scale(u, lo, hi)
     x[:, 0] = np.exp(x[:, 0])
     return np.round(x, 3)
@@ -51,16 +54,22 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--n", type=int, default=16)
     ap.add_argument("--size-mm", type=float, nargs=2, default=[12.0, 30.0])
+    ap.add_argument("--feed-tph", type=float, nargs=2, default=list(FEED_TPH))
+    ap.add_argument("--speed-rpm", type=float, nargs=2, default=list(SPEED_RPM))
+    ap.add_argument("--gate-deg", type=float, nargs=2, default=list(GATE_DEG),
+                    help="a sub-box, e.g. high feed and narrow gates to find where the mill chokes (issue 20)")
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--max-time-s", type=float, default=9.0)
     ap.add_argument("--measure-s", type=float, default=1.0)
     args = ap.parse_args()
-    pts = design(args.n, tuple(args.size_mm), args.seed)
+    box = {"size_mm": tuple(args.size_mm), "feed_tph": tuple(args.feed_tph), "speed_rpm": tuple(args.speed_rpm),
+           "gate_deg": tuple(args.gate_deg)}
+    pts = design(args.n, box["size_mm"], args.seed, box["feed_tph"], box["speed_rpm"], box["gate_deg"])
     args.out.mkdir(parents=True, exist_ok=True)
     meta = {"command": shlex.join([sys.executable, *sys.argv]), "msmill_version": __version__,
             "git_commit": git_commit(), "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "design": "scrambled Sobol", "seed": args.seed,
-            "bounds": {"size_mm": args.size_mm, "feed_tph": FEED_TPH, "speed_rpm": SPEED_RPM, "gate_deg": GATE_DEG},
+            "bounds": box,
             "points": pts.tolist()}
     (args.out / "design.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     machine = Machine.default()
