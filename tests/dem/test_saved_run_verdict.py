@@ -62,3 +62,19 @@ def test_a_series_at_another_feed_rate_is_not_steady(tmp_path):
     d, _ = _saved(tmp_path, scale_recorded=0.5, scale_series=0.25)
     v = saved_run_verdict(d)
     assert v.onset_s is None and v.outcome == "choked"
+
+
+def test_model_and_dem_onsets_agree_on_the_same_filling(tmp_path):
+    """The model's time_to_steady_state (t, t/h, its own steps) and a saved DEM run (kg, 1 ms) judge alike."""
+    from msmill.model.result import time_to_steady_state
+
+    d, _ = _saved(tmp_path, scale_recorded=1.0, scale_series=1.0)
+    dem = saved_run_verdict(d).onset_s
+    dt_s = 0.03
+    t = np.arange(1, int(6.0 / dt_s) + 1) * dt_s
+    holdup_t = FEED_TPH / 3600.0 * RESIDENCE_S * (1.0 - np.exp(-t / RESIDENCE_S))
+    product_tph = FEED_TPH * (1.0 - np.exp(-(t - dt_s / 2) / RESIDENCE_S))  # mean rate over each step
+    model = time_to_steady_state(t, product_tph, FEED_TPH, holdup_t=holdup_t)
+    assert dem is not None and np.isfinite(model)
+    # the criterion's grid step (W / 20) and the model's step bound the difference
+    assert abs(model - dem) <= RunSettings().steady_window_s / 20 + dt_s
