@@ -2,27 +2,51 @@
 
 Run::
 
-    python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix]
+    python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix] [--runs-dir DIR]
+                                          [--campaign DIR|none] [--scatter N]
 
 For every run of the stage-parameter table (default: the packaged
-``msmill/data/stage_parameters/default.json``) the mill model is run with
-rock that never breaks (``breakage="none"``, ``damage="none"``), one size
-class around the run's rock size, at the run's operating point, with that
-run's statistics only (``RunProvider``). Compared with the run's own figures:
+``msmill/data/stage_parameters/default.json``), and for every steady run of
+the campaign export (default: the packaged ``msmill/data/campaigns/default``),
+the mill model is run with rock that never breaks (``breakage="none"``,
+``damage="none"``), one size class around the run's rock size, at the run's
+operating point, with that run's statistics only (``RunProvider``). Compared
+with the run's own figures:
 
 * **mean residence time**: model = steady-state hold-up (inlet zone included)
   / feed rate; DEM = mean mass in the mill / mass out rate over the
   measurement window (Little's law, ``RunStatistics.residence_time_s``);
-* **time to steady state**: the DEM's own criterion,
-  :func:`msmill.dem.mill.stats.detect_steady_state` (the same function the DEM
-  run used on its particle count, not a copy), applied to the model's hold-up
-  series from an empty mill; DEM = ``RunStatistics.steady_state_time_s``.
-  A run whose DEM never met its criterion has no time to compare (``n/a``,
-  left out of the maximum and counted in ``runs_without_dem_steady_state``).
+* **time to steady state, today's criterion** (the headline): one criterion,
+  :func:`msmill.steadystate.first_steady` with the DEM's run settings
+  (:meth:`msmill.dem.mill.run.RunSettings.criterion`: two windows of 0.65 s,
+  product within 10 % of the feed, hold-up trend below 10 % of the feed,
+  window means within 5 %), onset = start of the first passing pair of
+  windows, applied to the DEM run's own saved time series (hold-up and product
+  mass out, :func:`msmill.dem.mill.run.saved_run_verdict`, the test
+  ``run_mill`` applies while it runs) and to the model's march from an empty
+  mill (hold-up and cumulative product,
+  :func:`msmill.model.result.time_to_steady_state`, the model's own
+  ``time_to_steady_state_s``). The DEM series is found through the run's
+  provenance (``source_dir``) or ``--runs-dir/size_<d>mm``; a run without it
+  falls back to the recorded criterion below;
+* **time to steady state, recorded criterion**: the figure stored with the
+  run (``RunStatistics.steady_state_time_s``) against the model's series
+  judged by the criterion the run recorded in its ``run_settings`` (runs made
+  before the mass-balance criterion: the count-only test
+  :func:`msmill.dem.mill.stats.detect_steady_state` with the recorded window
+  and tolerances).
+
+A run whose DEM never met the criterion has no time to compare (``n/a``, left
+out of the maximum and counted in ``runs_without_dem_steady_state``).
+``--scatter N`` adds the 5-95 % range of the onset over ``N`` simulations of
+the model's transport with the DEM run's number of rocks moving independently
+(multinomial per compartment and step): the scatter a single DEM realisation
+has from rock-count noise alone (collective pulsations add to it).
 
 Nothing is fitted here: the model reads the run's measured transport
-(destinations one characteristic time later) and nothing else. The last line is
-``runs=<n> residence_rel_err_max=<x> tss_abs_err_max_s=<y> ...``.
+(destinations one characteristic time later) and nothing else. The table's
+summary is the line ``runs=<n> residence_rel_err_max=<x> tss_abs_err_max_s=<y> ...``,
+the campaign's figures follow on the same (last) line with the prefix ``campaign_``.
 """
 
 from __future__ import annotations
@@ -30,76 +54,238 @@ from __future__ import annotations
 import argparse
 import math
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from msmill.dem.mill.run import RunSettings, saved_run_feed_kg_s, saved_run_verdict
 from msmill.dem.mill.stats import detect_steady_state
 from msmill.machine import OperatingPoint
 from msmill.model import Mill
 from msmill.model.providers import RunProvider, default_table_path
+from msmill.model.result import time_to_steady_state
 from msmill.model.submodels import BreakageParameters
 from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import RunStatistics, StageParameterTable
+from msmill.steadystate import SteadyStateCriterion, first_steady
 
 #: Ore parameters are irrelevant with breakage="none"; any valid set.
 _ORE = BreakageParameters("unbreakable", A_pct=50.0, b_t_kwh=1.0, l_ref_mm=29.0)
+_NAN = float("nan")
 
 
-def model_transport(run: RunStatistics, transport: str) -> dict[str, float]:
-    """Residence time (s) and time to steady state (s, DEM criterion) of the model at one run."""
+@dataclass
+class Row:
+    """One run's figures (s, or relative for ``res_err``)."""
+
+    size_mm: float
+    tau_s: float
+    res_dem_s: float
+    res_model_s: float
+    tss_dem_s: float
+    tss_model_s: float
+    tss_dem_rec_s: float
+    tss_model_rec_s: float
+    today: bool
+    scatter: tuple[float, float] = (_NAN, _NAN)
+
+    @property
+    def res_err(self) -> float:
+        return (self.res_model_s - self.res_dem_s) / self.res_dem_s if self.res_dem_s else _NAN
+
+    @property
+    def tss_err(self) -> float:
+        return self.tss_model_s - self.tss_dem_s
+
+    @property
+    def tss_err_rec(self) -> float:
+        return self.tss_model_rec_s - self.tss_dem_rec_s
+
+
+def export_raw_dir(doc_path: Path) -> Path | None:
+    """Folder of the time series an exported run document references (``raw_files``), or None."""
+    import json
+
+    raw = json.loads(doc_path.read_text(encoding="utf-8")).get("raw_files") or []
+    paths = [Path(r["path"]).parent for r in raw if r.get("kind") == "timeseries" and r.get("path")]
+    return paths[0] if paths else None
+
+
+def dem_run_dir(run: RunStatistics, runs_dir: Path | None) -> Path | None:
+    """The folder of the run's saved DEM data (time series), or None if it is not on this machine.
+
+    Candidates in order: ``runs_dir`` itself when it is a run folder, ``runs_dir/size_<d>mm``,
+    the run's provenance ``source_dir`` (or that of its recomputed statistics).
+    """
+    prov = run.provenance or {}
+    cands = [runs_dir, runs_dir / f"size_{run.design.size_mm:g}mm"] if runs_dir else []
+    cands += [Path(p) for p in (prov.get("source_dir"), (prov.get("statistics_recomputed_by") or {}).get("source_dir"))
+              if isinstance(p, str)]
+    for d in cands:
+        if all((d / f).is_file() for f in ("timeseries.parquet", "run.toml", "machine.toml")):
+            return d
+    return None
+
+
+def recorded_onset(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_rate: float,
+                   run_settings: dict) -> float:
+    """Onset (s) of a series by the criterion a run recorded in its ``run_settings`` (NaN if never)."""
+    w = float(run_settings.get("steady_window_s", 0.4))
+    rel = float(run_settings.get("rel_tol", 0.05))
+    trend = float(run_settings.get("trend_tol", 0.05))
+    if "balance_tol" in run_settings:
+        crit = SteadyStateCriterion(w, float(run_settings["balance_tol"]), trend, rel)
+        found = first_steady(time_s, holdup, product_cum, feed_rate, crit)
+    else:  # runs made before the mass-balance criterion: the count-only test
+        found = detect_steady_state(time_s, holdup, w, rel, trend)
+    return found[0] if found else _NAN
+
+
+def _mill(run: RunStatistics, transport: str) -> tuple[Mill, PSD, SizeGrid, OperatingPoint]:
     size = run.design.size_mm
     grid = SizeGrid(np.array([size / 1.1, size * 1.1]))
-    feed = PSD(grid, np.array([1.0]))
     op = OperatingPoint(feed_tph=run.design.feed_tph, stage_speeds_rpm=run.design.stage_speeds_rpm,
                         gate_deg=run.design.gate_deg)
     mill = Mill(_ORE, RunProvider(run, source=f"{size:g} mm run"), transport=transport, breakage="none",
                 damage="none", grid=grid, damage_classes=1)
+    return mill, PSD(grid, np.array([1.0])), grid, op
+
+
+def scatter_onsets(matrix: np.ndarray, rocks_per_step: float, tau_s: float, crit: SteadyStateCriterion,
+                   n_sims: int, seed: int = 0) -> np.ndarray:
+    """Onsets (s, NaN if never) of ``n_sims`` marches of whole rocks moving independently by ``matrix``.
+
+    ``matrix`` (C, C+1): one-step destinations of each compartment (last column
+    = out); the feed (``rocks_per_step``, fractional part carried over) enters
+    compartment 0. The marches last 8 s.
+    """
+    rng = np.random.default_rng(seed)
+    p = matrix / matrix.sum(axis=1, keepdims=True)
+    c = p.shape[0]
+    steps = math.ceil(8.0 / tau_s)
+    x = np.zeros((n_sims, c), dtype=np.int64)
+    held = np.zeros((n_sims, steps + 1))
+    out = np.zeros((n_sims, steps + 1))
+    carry = 0.0
+    for k in range(1, steps + 1):
+        new = sum(rng.multinomial(x[:, j], p[j]) for j in range(c))
+        carry += rocks_per_step
+        fed = math.floor(carry)
+        carry -= fed
+        x = new[:, :c]
+        x[:, 0] += fed
+        held[:, k] = x.sum(axis=1)
+        out[:, k] = out[:, k - 1] + new[:, c]
+    t = np.arange(steps + 1) * tau_s
+    found = [first_steady(t, held[i], out[i], rocks_per_step / tau_s, crit) for i in range(n_sims)]
+    return np.array([f[0] if f else _NAN for f in found])
+
+
+def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int) -> Row:
+    """Model against DEM for one run."""
+    crit = RunSettings().criterion()
+    mill, feed, grid, op = _mill(run, transport)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = mill.run(feed, op)
-        _, _, _, lm, _ = mill.prepare(grid, op)
+        _, streams, _, lm, _ = mill.prepare(grid, op)
     tps = run.design.feed_tph * run.characteristic_time_s / 3600.0
     x = lm.steady_state(lm.feed_vector(np.array([1.0]), tps))
     ts = res.timeseries
-    found = detect_steady_state(ts["time_s"].to_numpy(), ts["holdup_t"].to_numpy())
-    return {"residence_s": float(x.sum()) / (run.design.feed_tph / 3600.0),
-            "tss_s": found[0] if found else math.nan,
-            "tss_product_1pct_s": res.time_to_steady_state_s}
+    t, held, rate = ts["time_s"].to_numpy(), ts["holdup_t"].to_numpy(), ts["product_tph"].to_numpy()
+    tss_model = time_to_steady_state(t, rate, op.feed_tph, holdup_t=held, criterion=crit)
+    t0 = np.concatenate([[0.0], t])
+    cum = np.concatenate([[0.0], np.cumsum(rate * np.diff(t0) / 3600.0)])
+    rec_model = recorded_onset(t0, np.concatenate([[0.0], held]), cum, op.feed_tph / 3600.0,
+                               (run.provenance or {}).get("run_settings", {}))
+    rec_dem = run.steady_state_time_s if run.steady_state_time_s is not None else _NAN
+    d = dem_run_dir(run, runs_dir)
+    today = d is not None
+    tss_dem = _NAN
+    if today:
+        v = saved_run_verdict(d, crit)
+        tss_dem = v.onset_s if v.onset_s is not None else _NAN
+    else:
+        tss_dem, tss_model = rec_dem, rec_model
+    row = Row(run.design.size_mm, run.characteristic_time_s, run.residence_time_s or _NAN,
+              float(x.sum()) / (run.design.feed_tph / 3600.0), tss_dem, tss_model, rec_dem, rec_model, today)
+    if n_scatter and today:
+        import tomllib
+
+        rho = tomllib.loads((d / "run.toml").read_text(encoding="utf-8"))["rock"]["density_kg_m3"]
+        rock_kg = rho * math.pi / 6.0 * (run.design.size_mm / 1000.0) ** 3
+        rocks = saved_run_feed_kg_s(d) * run.characteristic_time_s / rock_kg
+        ons = scatter_onsets(streams.matrix[:, 0, :], rocks, run.characteristic_time_s, crit, n_scatter)
+        if np.isfinite(ons).any():
+            row.scatter = (float(np.nanpercentile(ons, 5)), float(np.nanpercentile(ons, 95)))
+    return row
+
+
+def _fmt(v: float, w: int, sign: str = "") -> str:
+    return f"{v:{sign}{w}.2f}" if np.isfinite(v) else f"{'n/a':>{w}}"
+
+
+def report(rows: list[Row], prefix: str = "") -> str:
+    """Print the table of rows; return the summary ``key=value`` text (keys prefixed)."""
+    print(f"{'size_mm':>8} {'tau_s':>6} {'res_dem_s':>9} {'res_model_s':>11} {'rel_err':>8} "
+          f"{'tss_dem_s':>9} {'tss_model_s':>11} {'abs_err_s':>9} {'rec_dem_s':>9} {'rec_model_s':>11} "
+          f"{'rec_err_s':>9} {'model_5-95%_s':>13}")
+    for r in rows:
+        sc = f"{r.scatter[0]:.2f}-{r.scatter[1]:.2f}" if np.isfinite(r.scatter[0]) else "-"
+        mark = "" if r.today else " (recorded criterion: no DEM series here)"
+        print(f"{r.size_mm:8.3g} {r.tau_s:6.3f} {r.res_dem_s:9.3f} {r.res_model_s:11.3f} {r.res_err:+8.3f} "
+              f"{_fmt(r.tss_dem_s, 9)} {_fmt(r.tss_model_s, 11)} {_fmt(r.tss_err, 9, '+')} "
+              f"{_fmt(r.tss_dem_rec_s, 9)} {_fmt(r.tss_model_rec_s, 11)} {_fmt(r.tss_err_rec, 9, '+')} "
+              f"{sc:>13}{mark}")
+    rel = [abs(r.res_err) for r in rows if np.isfinite(r.res_err)]
+    err = [abs(r.tss_err) for r in rows if np.isfinite(r.tss_err)]
+    rec = [abs(r.tss_err_rec) for r in rows if np.isfinite(r.tss_err_rec)]
+    no_ss = sum(not np.isfinite(r.tss_dem_s) for r in rows)
+
+    def mx(v: list[float], spec: str) -> str:
+        return f"{max(v):{spec}}" if v else "nan"
+
+    p = prefix
+    out = (f"{p}runs={len(rows)} {p}residence_rel_err_max={mx(rel, '.3f')} {p}tss_abs_err_max_s={mx(err, '.2f')} "
+           f"{p}runs_without_dem_steady_state={no_ss} {p}tss_from_dem_series={sum(r.today for r in rows)} "
+           f"{p}tss_abs_err_max_recorded_s={mx(rec, '.2f')}")
+    if p and err:
+        out += f" {p}tss_abs_err_median_s={float(np.median(err)):.2f}"
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--table", type=Path, default=None, help="stage-parameter table (default: the packaged one)")
     ap.add_argument("--transport", default="dem_matrix", help="transport sub-model (default dem_matrix)")
+    ap.add_argument("--runs-dir", type=Path, default=None,
+                    help="folder of the table's saved DEM runs (size_<d>mm); default: the runs' provenance")
+    ap.add_argument("--campaign", default=None,
+                    help="campaign export folder (default: the packaged one); 'none' to skip")
+    ap.add_argument("--scatter", type=int, default=0, help="rock-count scatter simulations per table run (0: none)")
     args = ap.parse_args()
     path = args.table or default_table_path()
     table = StageParameterTable.from_json(path)
-    print(f"table: {path}; transport: {args.transport}; rock: unbreakable")
+    print(f"table: {path}; transport: {args.transport}; rock: unbreakable; "
+          f"criterion: {RunSettings().criterion()}")
     n_dest = sum(r.inlet_destinations is not None and all(st.destinations is not None for st in r.stages)
                  for r in table.runs)
     if args.transport == "dem_matrix" and n_dest < len(table.runs):
         print(f"note: {len(table.runs) - n_dest} of {len(table.runs)} runs have no one-lag destinations: "
               "dem_matrix falls back to their three streams there")
-    print(f"{'size_mm':>8} {'tau_s':>6} {'res_dem_s':>9} {'res_model_s':>11} {'rel_err':>8} "
-          f"{'tss_dem_s':>9} {'tss_model_s':>11} {'abs_err_s':>9} {'tss_1pct_s':>10}")
-    rel, err, no_ss = [], [], 0
-    for run in table.runs:
-        m = model_transport(run, args.transport)
-        r_dem = run.residence_time_s
-        e_rel = (m["residence_s"] - r_dem) / r_dem if r_dem else math.nan
-        t_dem = run.steady_state_time_s
-        e_abs = m["tss_s"] - t_dem if t_dem is not None else math.nan
-        no_ss += t_dem is None
-        rel.append(abs(e_rel))
-        if t_dem is not None:
-            err.append(abs(e_abs))
-        t_dem_txt = f"{t_dem:9.2f}" if t_dem is not None else f"{'n/a':>9}"
-        print(f"{run.design.size_mm:8.3g} {run.characteristic_time_s:6.3f} {r_dem:9.3f} {m['residence_s']:11.3f} "
-              f"{e_rel:+8.3f} {t_dem_txt} {m['tss_s']:11.2f} {e_abs:+9.2f} {m['tss_product_1pct_s']:10.2f}")
-    print(f"runs={len(table.runs)} residence_rel_err_max={max(rel):.3f} "
-          f"tss_abs_err_max_s={max(err) if err else math.nan:.2f} runs_without_dem_steady_state={no_ss} "
-          f"runs_with_destinations={n_dest}")
+    summary = report([compare(r, args.transport, args.runs_dir, args.scatter) for r in table.runs])
+    summary += f" runs_with_destinations={n_dest}"
+    if (args.campaign or "").lower() != "none":
+        from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
+
+        folder = Path(args.campaign) if args.campaign else default_export_dir()
+        if folder.is_dir():
+            slices, full = split_runs(read_export(folder))
+            print(f"\ncampaign export: {folder} ({len(slices)} steady slice runs, {len(full)} steady full-mill runs)")
+            rows = [compare(e.statistics, args.transport, export_raw_dir(e.path), 0) for e in slices + full]
+            summary += " " + report(rows, prefix="campaign_")
+    print(summary)
 
 
 if __name__ == "__main__":

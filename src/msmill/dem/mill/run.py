@@ -65,7 +65,7 @@ from msmill.steadystate import (
 
 __all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics", "run_mill",
            "sampling_errors_reached",
-           "save_run", "stats_from_dir"]
+           "save_run", "saved_run_feed_kg_s", "saved_run_verdict", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
@@ -480,8 +480,39 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
     feed_scale = res.get("feed_scale")
     outcome = res.get("outcome")
     if outcome is None:  # saved before outcomes existed: today's criterion on the saved time series
-        feed_scale = scene_extent(m, sizes, d["mode"])[3]
-        ts = raw["timeseries"]
-        outcome = assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(),
-                         op.feed_tph * 1000.0 / 3600.0 * feed_scale, RunSettings().criterion()).outcome
+        feed_scale = _saved_feed_scale(raw)
+        outcome = _verdict(raw["timeseries"], op.feed_tph * 1000.0 / 3600.0 * feed_scale,
+                           RunSettings().criterion()).outcome
     return mark_statistics(ms, outcome, feed_scale)
+
+
+def _saved_feed_scale(raw: dict[str, Any]) -> float:
+    """Feed scale of a saved run: recorded in ``run.toml``, or the scene's (runs saved before it was)."""
+    s = raw["settings"]
+    recorded = s["result"].get("feed_scale")
+    if recorded is not None:
+        return float(recorded)
+    return float(scene_extent(raw["machine"], np.asarray(s["feed"]["sizes_mm"]), s["design"]["mode"])[3])
+
+
+def saved_run_verdict(run_dir: str | Path, criterion: SteadyStateCriterion | None = None) -> SteadyStateVerdict:
+    """Steady state of a saved run by ``criterion`` (default today's, :meth:`RunSettings.criterion`).
+
+    The same test :func:`run_mill` applies while running (hold-up and product
+    mass out of the engine's time series, the scene's feed rate), on the
+    run's own saved time series, whatever criterion it was run with. The
+    verdict's ``onset_s`` is the run's time to steady state by that criterion.
+    """
+    d = Path(run_dir)
+    ts = pd.read_parquet(d / "timeseries.parquet", columns=["time_s", "mass_kg", "mass_out_kg"])
+    return _verdict(ts, saved_run_feed_kg_s(d), criterion or RunSettings().criterion())
+
+
+def saved_run_feed_kg_s(run_dir: str | Path) -> float:
+    """Feed rate of a saved run's scene (kg/s): the design feed times the scene's feed scale."""
+    from msmill.validate import read_toml
+
+    d = Path(run_dir)
+    settings = read_toml(d / "run.toml", "run_dir/run.toml", "run.toml of a DEM run")
+    raw = {"settings": settings, "machine": Machine.from_toml(d / "machine.toml")}
+    return float(settings["design"]["feed_tph"]) * 1000.0 / 3600.0 * _saved_feed_scale(raw)

@@ -89,10 +89,12 @@ __all__ = [
     "StatsSettings",
     "characteristic_time",
     "compute_statistics",
+    "destination_matrix",
     "detect_steady_state",
     "identify_impacts",
     "snapshots_frame",
     "stage_of_z",
+    "tagged_moves",
     "transition_matrix",
 ]
 
@@ -393,13 +395,32 @@ def transition_matrix(
     ``k tau`` they test whether the one-lag transport is Markov
     (``P(k tau) = P(tau)^k``).
     """
-    n = machine.n_stages
+    pairs = tagged_moves(machine, snapshots, removed, lag, rock_density_kg_m3)
+    pairs = pairs[(pairs["time_s"] >= window_s[0] - 1e-9) & (pairs["time_s"] <= window_s[1] + 1e-9)]
+    return destination_matrix(pairs, machine.n_stages)
+
+
+def tagged_moves(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    lag: int, rock_density_kg_m3: float = 2700.0,
+) -> pd.DataFrame:
+    """Every rock in the inlet zone or a stage at every snapshot, with its compartment ``lag`` snapshots later.
+
+    Columns ``time_s`` (tag time), ``t_to``, ``particle_id``, ``stage_from``
+    (0 inlet zone, 1..n), ``stage_to`` (0..n, ``n + 1`` out through the
+    outlet), ``mass_kg`` (and ``y_m``, ``radius_m``, ``category``). The whole
+    record, not only a measurement window: :func:`transition_matrix` selects
+    the window's tags, studies of the filling mill select others.
+    """
     snaps = snapshots_frame(snapshots)
     times = np.sort(snaps["time_s"].unique())
-    pairs = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
-    pairs = pairs[(pairs["time_s"] >= window_s[0] - 1e-9) & (pairs["time_s"] <= window_s[1] + 1e-9)]
-    out = np.full((n + 1, n + 2), np.nan)
-    for c, row in _destinations(pairs, n).items():
+    return _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+
+
+def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
+    """Mass-weighted destinations ``(n + 1, n + 2)`` of tagged moves (:func:`tagged_moves`); NaN rows untagged."""
+    out = np.full((n_stages + 1, n_stages + 2), np.nan)
+    for c, row in _destinations(pairs, n_stages).items():
         out[c] = row
     return out
 
