@@ -7,7 +7,8 @@
 #
 # RUNS holds: batch0/pt_* (scripts/design_batch.py, Sobol batch), stage_table_v3/size_*mm (the stage
 # table's runs), full/size_*mm (full-mill runs paired with slice runs), campaign_raw/run* (folders the
-# campaign runner saved with --raw-dir). Every folder's statistics are recomputed with this checkout's
+# campaign runner saved with --raw-dir), capacity*/pt_* (scripts/design_batch.py batches at high feed and
+# narrow gates, issue 20). Every folder's statistics are recomputed with this checkout's
 # code first (`msmill dem stats`), so outcomes follow today's steady-state criterion; not-steady and
 # choked runs are stored with their outcome (the surrogate trains on steady slice runs only).
 set -euo pipefail
@@ -16,7 +17,8 @@ RUNS="${RUNS:?set RUNS to the folder of saved run folders}"
 STORE="${STORE:-$RUNS/final.sqlite}"
 export MSMILL_DB="sqlite:///$STORE"
 rm -f "$STORE"
-folders=("$RUNS"/batch0/pt_* "$RUNS"/stage_table_v3/size_*mm "$RUNS"/full/size_*mm "$RUNS"/campaign_raw/run*)
+folders=("$RUNS"/batch0/pt_* "$RUNS"/stage_table_v3/size_*mm "$RUNS"/full/size_*mm "$RUNS"/campaign_raw/run*
+         "$RUNS"/capacity*/pt_*)
 if [ "${RESTAT:-1}" = 1 ]; then
     for d in "${folders[@]}"; do python -m msmill dem stats "$d" >/dev/null; done
 fi

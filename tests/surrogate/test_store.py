@@ -273,6 +273,11 @@ def test_campaign_settings_are_validated(store):
     assert run_settings_dict({"max_time_s": "1.5", "seed": 3}) == {"max_time_s": 1.5, "seed": 3}
     with pytest.raises(MsmillInputError, match="no_such_setting"):
         run_settings_dict({"no_such_setting": 1})
+    # --set adaptive=false from the command line arrives as the word: it must not become True
+    assert run_settings_dict({"adaptive": "false"}) == {"adaptive": False}
+    assert run_settings_dict({"adaptive": "True"}) == {"adaptive": True}
+    with pytest.raises(MsmillInputError, match="adaptive"):
+        run_settings_dict({"adaptive": "maybe"})
     with pytest.raises(MsmillInputError):
         store.create_campaign("x", MACHINE, mode="half")
     store.create_campaign("x", MACHINE)

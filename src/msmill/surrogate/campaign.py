@@ -107,11 +107,25 @@ def run_settings_dict(values: dict[str, Any]) -> dict[str, Any]:
     out = {}
     for k, v in values.items():
         d = defaults[k]
+        if isinstance(d, bool):  # bool("false") is True: parse the words
+            out[k] = _parse_bool(k, v)
+            continue
         try:
             out[k] = v if v is None or d is None else type(d)(v)
         except (TypeError, ValueError):
             raise MsmillInputError(k, v, f"a {type(d).__name__}") from None
     return out
+
+
+def _parse_bool(name: str, value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    word = str(value).strip().lower()
+    if word in ("true", "1", "yes", "on"):
+        return True
+    if word in ("false", "0", "no", "off"):
+        return False
+    raise MsmillInputError(name, value, "true or false")
 
 
 # --------------------------------------------------------------------------- worker side
