@@ -78,3 +78,14 @@ def test_model_and_dem_onsets_agree_on_the_same_filling(tmp_path):
     assert dem is not None and np.isfinite(model)
     # the criterion's grid step (W / 20) and the model's step bound the difference
     assert abs(model - dem) <= RunSettings().steady_window_s / 20 + dt_s
+
+
+def test_a_short_old_record_is_never_judged_choked():
+    from msmill.dem.mill.run import retrospective_outcome
+
+    # a record ending before today's limit cannot tell a choke from a mill still filling
+    assert retrospective_outcome("choked", 4.4, 8.1) == "not_steady"
+    # a record as long as the limit can
+    assert retrospective_outcome("choked", 8.1, 8.1) == "choked"
+    for outcome in ("steady", "not_steady"):
+        assert retrospective_outcome(outcome, 2.0, 8.1) == outcome

@@ -63,9 +63,9 @@ from msmill.steadystate import (
     first_steady,
 )
 
-__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics", "run_mill",
-           "sampling_errors_reached",
-           "save_run", "saved_run_feed_kg_s", "saved_run_verdict", "stats_from_dir"]
+__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics",
+           "retrospective_outcome", "run_mill", "sampling_errors_reached", "save_run", "saved_run_feed_kg_s",
+           "saved_run_verdict", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
@@ -481,9 +481,31 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
     outcome = res.get("outcome")
     if outcome is None:  # saved before outcomes existed: today's criterion on the saved time series
         feed_scale = _saved_feed_scale(raw)
-        outcome = _verdict(raw["timeseries"], op.feed_tph * 1000.0 / 3600.0 * feed_scale,
-                           RunSettings().criterion()).outcome
+        verdict = _verdict(raw["timeseries"], op.feed_tph * 1000.0 / 3600.0 * feed_scale, RunSettings().criterion())
+        outcome = retrospective_outcome(verdict.outcome, float(raw["timeseries"]["time_s"].max()),
+                                        RunSettings().time_limit_s(d["size_mm"]))
     return mark_statistics(ms, outcome, feed_scale)
+
+
+def retrospective_outcome(outcome: str, record_end_s: float, limit_s: float) -> str:
+    """Outcome of a run saved before outcomes were recorded, judged by today's criterion on its series.
+
+    Such runs stopped when an older, weaker test declared steady state, often
+    well before today's time limit. A record that ends before the limit
+    ``limit_s`` cannot show a choke (hold-up growing without bound): a mill
+    still filling looks the same over a short record. So ``"choked"`` becomes
+    ``"not_steady"`` there; re-run the point to tell. (Two batch-0 runs judged
+    choked this way were steady when re-run with today's protocol, two seeds
+    each: ``docs/mill-dem.md`` section 3.1.)
+
+    Parameters
+    ----------
+    outcome : {"steady", "not_steady", "choked"}
+        Verdict of :func:`msmill.steadystate.assess` on the saved series.
+    record_end_s, limit_s : float
+        End of the saved record and today's time limit for the run (s).
+    """
+    return "not_steady" if outcome == "choked" and record_end_s < limit_s else outcome
 
 
 def _saved_feed_scale(raw: dict[str, Any]) -> float:
