@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     prov["cpu_s"] = round(time.process_time() - t0, 2)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     env.to_json(a.out)
-    again = load_capacity(a.out)  # the file rebuilds the same model
+    again = load_capacity(a.out, refit=True)  # the file rebuilds the same model (warns if not)
     c = prov["counts"]
     print(f"wrote {a.out}: {c['steady']} steady, {c['choked']} choked, {c['not_steady']} not steady (not used); "
           f"method {a.method}")

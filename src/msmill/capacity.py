@@ -57,9 +57,20 @@ import numpy as np
 from msmill.errors import MsmillInputError
 from msmill.stageparams import RunStatistics
 
-__all__ = ["AboveCapacityWarning", "CapacityCheck", "CapacityModel", "EnvelopeData", "EnvelopePoint", "METHODS",
-           "PRIORS", "check_capacity", "default_capacity_model", "default_envelope_path", "load_capacity",
-           "warn_if_above_capacity"]
+__all__ = [
+    "METHODS",
+    "PRIORS",
+    "AboveCapacityWarning",
+    "CapacityCheck",
+    "CapacityModel",
+    "EnvelopeData",
+    "EnvelopePoint",
+    "check_capacity",
+    "default_capacity_model",
+    "default_envelope_path",
+    "load_capacity",
+    "warn_if_above_capacity",
+]
 
 METHODS = ("censored", "classifier")
 ENVELOPE_KIND = "msmill_envelope"
@@ -330,24 +341,33 @@ class CapacityModel:
                                                  "domain": self.domain})
 
 
-def load_capacity(source: str | Path | EnvelopeData) -> CapacityModel:
-    """The capacity model of an envelope file, refitted from its points (no pickles).
+def load_capacity(source: str | Path | EnvelopeData, refit: bool = False) -> CapacityModel:
+    """The capacity model of an envelope file, rebuilt from its JSON (no pickles).
 
     A file without a ``model`` entry (``msmill dem envelope``) is fitted with
-    the default method. With one, the stored method is used (the classifier at
-    its stored hyper-parameters) and the refit is checked against the stored
-    parameters: a mismatch (the fitting code changed since the file was built)
-    warns that the file should be rebuilt.
+    the default method. With one, the censored model is rebuilt from its
+    stored parameters, the classifier refitted to the points at its stored
+    hyper-parameters. ``refit`` refits the censored model from the points and
+    checks it against the stored parameters: a mismatch (the fitting code or
+    the points changed since the file was built) warns that the file should be
+    rebuilt.
     """
     env = source if isinstance(source, EnvelopeData) else EnvelopeData.from_json(source)
     stored = env.model or {}
     method = stored.get("method", "censored")
-    theta = stored.get("params", {}).get("theta") if method == "classifier" else None
-    seed = stored.get("params", {}).get("seed", 0)
-    model = CapacityModel.fit(env.points, method=method, seed=seed, theta=theta)
-    if method == "censored" and "params" in stored:
-        old = np.array(list(stored["params"]["coefficients"].values()) + [stored["params"]["sigma"]])
-        new = np.array(list(model.params["coefficients"].values()) + [model.params["sigma"]])
+    params = stored.get("params") or {}
+    if method == "censored" and params and not refit:
+        try:
+            return CapacityModel("censored", params, int(stored["n_steady"]), int(stored["n_choked"]),
+                                 {k: list(v) for k, v in stored["domain"].items()})
+        except (KeyError, TypeError, ValueError):
+            raise MsmillInputError(str(source), "model", "an envelope whose model has params, counts and domain "
+                                   "(scripts/build_envelope.py)") from None
+    model = CapacityModel.fit(env.points, method=method, seed=params.get("seed", 0),
+                              theta=params.get("theta") if method == "classifier" else None)
+    if method == "censored" and params:
+        old = np.array([*params["coefficients"].values(), params["sigma"]])
+        new = np.array([*model.params["coefficients"].values(), model.params["sigma"]])
         if not np.allclose(old, new, rtol=1e-3, atol=1e-3):
             warnings.warn(f"envelope {getattr(source, 'name', 'data')}: refitted capacity parameters differ from "
                           "the stored ones (rebuild it with scripts/build_envelope.py)", UserWarning, stacklevel=2)
@@ -378,6 +398,7 @@ class CapacityCheck:
     speed_rpm: float
     gate_deg: float
     outside: tuple[str, ...] = ()
+    largest_feed_tph: float = float("inf")
 
     @property
     def above(self) -> bool:
@@ -388,6 +409,8 @@ class CapacityCheck:
         """One line: capacity, requested feed, by how much, probability of steady flow."""
         where = f"at {self.size_mm:.3g} mm, {self.speed_rpm:g} rpm, gate {self.gate_deg:g} deg"
         extra = f"; extrapolated in {', '.join(self.outside)}" if self.outside else ""
+        if self.capacity_tph > self.largest_feed_tph:
+            extra += f"; above the largest DEM feed ({self.largest_feed_tph:.0f} t/h), so not measured"
         if self.above:
             return (f"feed {self.feed_tph:g} t/h is above the predicted capacity {self.capacity_tph:.1f} t/h {where} "
                     f"(by {self.feed_tph - self.capacity_tph:.1f} t/h, "
@@ -405,7 +428,7 @@ def check_capacity(model: CapacityModel | None, size_mm: float, feed_tph: float,
     return CapacityCheck(float(feed_tph), model.capacity_tph(size_mm, speed_rpm, gate_deg),
                          float(model.probability_steady(size_mm, feed_tph, speed_rpm, gate_deg)[0]),
                          float(size_mm), float(speed_rpm), float(gate_deg),
-                         tuple(model.outside(size_mm, speed_rpm, gate_deg)))
+                         tuple(model.outside(size_mm, speed_rpm, gate_deg)), model.domain["feed_tph"][1])
 
 
 def warn_if_above_capacity(model: CapacityModel | None, size_mm: float, feed_tph: float, speed_rpm: float,
