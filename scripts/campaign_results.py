@@ -299,6 +299,9 @@ def p80_table(provider) -> list[str]:
             res = m.run(feed, OperatingPoint(feed_tph=f, speed_rpm=op.speed_rpm, gate_deg=g), timeseries=False)
         note = "outside the trained feed/gate range" if any(
             ("feed_tph" in str(x.message) or "gate_deg" in str(x.message)) for x in w) else ""
+        if res.capacity_tph is not None and f > res.capacity_tph:
+            note += f"{'; ' if note else ''}above the DEM capacity {res.capacity_tph:.0f} t/h (P(steady) " \
+                    f"{res.probability_steady:.2f})"
         lo, hi = res.p80_band_mm
         rows.append(f"| {f} | {g} | {res.p80_mm:.2f} | {lo:.2f}-{hi:.2f} | {note} |")
     return rows
@@ -438,8 +441,9 @@ def passed_share(pts) -> str:
             f"{st.size} below 0.9), choked runs " + ", ".join(f"{x:.2f}" for x in ch) + ". The choked runs' "
             f"shares lie inside the steady runs' spread (at 30 mm and 10 t/h a slice receives about {_rocks_per_s():.0f} "
             "rocks a second, so a 1 s window's product rate is noisy): "
-            "the choke verdict rests on the hold-up trend (`msmill.steadystate`), and one verdict near the "
-            "boundary can go either way.")
+            "the choke verdict (product below (1 - balance_tol) F in both of the last two windows and not "
+            "catching up, docs/mill-dem.md) sits close to that noise, so a verdict near the boundary can go either "
+            "way.")
 
 
 def prior_table(pts) -> list[str]:

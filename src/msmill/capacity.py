@@ -168,7 +168,7 @@ def _split(points: list[EnvelopePoint]) -> tuple[list[EnvelopePoint], list[Envel
     return steady, choked
 
 
-def _neg_log_posterior(theta: np.ndarray, z_s, lf_s, z_c, lo_c, hi_c) -> np.ndarray:
+def _neg_log_posterior(theta: np.ndarray, z_s, lf_s, z_c, lo_c, hi_c, pr: dict[str, float]) -> np.ndarray:
     """Censored negative log posterior; ``theta`` is ``(5, ...)`` (coefficients, log sigma), vectorised."""
     from scipy.special import log_ndtr
 
@@ -180,14 +180,13 @@ def _neg_log_posterior(theta: np.ndarray, z_s, lf_s, z_c, lo_c, hi_c) -> np.ndar
     b = log_ndtr((hi_c.reshape(hi_c.shape + (1,) * (mu_c.ndim - 1)) - mu_c) / sigma)   # P(c < F)
     a = log_ndtr((lo_c.reshape(lo_c.shape + (1,) * (mu_c.ndim - 1)) - mu_c) / sigma)   # P(c < T)
     ll = ll + (b + np.log1p(-np.exp(np.minimum(a - b, -1e-12)))).sum(axis=0)           # log P(T <= c < F)
-    pr = PRIORS
     lp = (-0.5 * ((beta[0] - pr["intercept_mean"]) / pr["intercept_sd"]) ** 2
           - 0.5 * (beta[1:] ** 2).sum(axis=0) / pr["slope_sd"] ** 2
           - 0.5 * ((log_sigma - pr["log_sigma_mean"]) / pr["log_sigma_sd"]) ** 2)
     return -(ll + lp)
 
 
-def _fit_censored(points: list[EnvelopePoint]) -> dict[str, Any]:
+def _fit_censored(points: list[EnvelopePoint], priors: dict[str, float] | None = None) -> dict[str, Any]:
     """MAP and Laplace covariance of the censored model; a JSON-able parameter dict."""
     from scipy.differentiate import hessian
     from scipy.optimize import minimize
@@ -199,15 +198,16 @@ def _fit_censored(points: list[EnvelopePoint]) -> dict[str, Any]:
     hi_c = np.log([p.feed_tph for p in choked])
     # a choked run without a usable throughput only says c < F
     lo_c = np.log([p.throughput_tph if p.throughput_tph and p.throughput_tph < p.feed_tph else 1e-9 for p in choked])
-    args = (z_s, lf_s, z_c, lo_c, hi_c)
-    x0 = np.array([PRIORS["intercept_mean"], 0.0, 0.0, 0.0, PRIORS["log_sigma_mean"]])
+    pr = {**PRIORS, **(priors or {})}
+    args = (z_s, lf_s, z_c, lo_c, hi_c, pr)
+    x0 = np.array([pr["intercept_mean"], 0.0, 0.0, 0.0, pr["log_sigma_mean"]])
     res = minimize(lambda t: float(_neg_log_posterior(t, *args)), x0, method="L-BFGS-B")
     h = hessian(lambda t: _neg_log_posterior(t, *args), res.x).ddf
     cov = np.linalg.inv(0.5 * (h + h.T))
     return {"coefficients": dict(zip(_COEFS, (float(v) for v in res.x[:4]), strict=True)),
             "sigma": float(np.exp(res.x[4])), "covariance": cov[:4, :4].tolist(),
             "log_sigma_sd": float(math.sqrt(max(cov[4, 4], 0.0))), "converged": bool(res.success),
-            "neg_log_posterior": float(res.fun), "priors": dict(PRIORS),
+            "neg_log_posterior": float(res.fun), "priors": pr,
             "law": "log c = b0 + b1 log2(size/15 mm) + b2 (speed-1550 rpm)/350 rpm + b3 (gate-40 deg)/40 deg"}
 
 
@@ -265,11 +265,12 @@ class CapacityModel:
 
     @classmethod
     def fit(cls, points: list[EnvelopePoint], method: str = "censored", throughput_as_steady: bool = True,
-            seed: int = 0, theta: list[float] | None = None) -> CapacityModel:
+            seed: int = 0, theta: list[float] | None = None, priors: dict[str, float] | None = None) -> CapacityModel:
         """Fit to steady and choked points (not-steady points are ignored).
 
-        ``throughput_as_steady``, ``seed`` and ``theta`` (fixed log
-        hyper-parameters, no optimisation) apply to the classifier.
+        ``priors`` (entries of :data:`PRIORS` to change) applies to the
+        censored model; ``throughput_as_steady``, ``seed`` and ``theta`` (fixed
+        log hyper-parameters, no optimisation) to the classifier.
 
         Raises
         ------
@@ -283,7 +284,7 @@ class CapacityModel:
         dom = {k: [float(min(getattr(p, k) for p in used)), float(max(getattr(p, k) for p in used))]
                for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg")}
         if method == "censored":
-            return cls(method, _fit_censored(points), len(steady), len(choked), dom)
+            return cls(method, _fit_censored(points, priors), len(steady), len(choked), dom)
         gpc, params = _fit_classifier(points, throughput_as_steady, seed, theta)
         return cls(method, params, params.pop("n_labelled_steady"), len(choked), dom, gpc)
 
@@ -364,7 +365,8 @@ def load_capacity(source: str | Path | EnvelopeData, refit: bool = False) -> Cap
             raise MsmillInputError(str(source), "model", "an envelope whose model has params, counts and domain "
                                    "(scripts/build_envelope.py)") from None
     model = CapacityModel.fit(env.points, method=method, seed=params.get("seed", 0),
-                              theta=params.get("theta") if method == "classifier" else None)
+                              theta=params.get("theta") if method == "classifier" else None,
+                              priors=params.get("priors"))
     if method == "censored" and params:
         old = np.array([*params["coefficients"].values(), params["sigma"]])
         new = np.array([*model.params["coefficients"].values(), model.params["sigma"]])
