@@ -165,3 +165,19 @@ def test_shipped_envelope_matches_the_shipped_export():
         if p.outcome == "choked":
             assert m.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0] < \
                 m.probability_steady(p.size_mm, p.throughput_tph, p.speed_rpm, p.gate_deg)[0]
+
+
+def test_warning_threshold_is_the_capacity_itself():
+    m = CapacityModel.fit(HAND)
+    c = m.capacity_tph(20.0, 1500.0, 40.0)
+    assert check_capacity(m, 20.0, 1.03 * c, 1500.0, 40.0).above
+    assert not check_capacity(m, 20.0, 0.97 * c, 1500.0, 40.0).above
+
+
+def test_capacity_is_uncertain_where_no_run_was_made():
+    """HAND-MADE runs all at 1500 rpm and gate 40: the speed and gate slopes are the priors' there."""
+    m = CapacityModel.fit(HAND)
+    _, sd_at = m.log_capacity(20.0, 1500.0, 40.0)
+    _, sd_off = m.log_capacity(20.0, 1900.0, 0.0)
+    assert sd_off[0] > sd_at[0] + 0.5  # prior sd 1 per unit on two slopes, about 1.1 units away on each
+    assert m.outside(20.0, 1900.0, 0.0) == ["speed_rpm", "gate_deg"]
