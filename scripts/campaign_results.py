@@ -505,7 +505,10 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
         f"feed any run had ({model.domain['feed_tph'][1]:.0f} t/h, hatched) it is an extrapolation of the "
         "log-linear law, not a measurement.",
         f"- In sample, the capacity lies below the feed of {fc} of {nc} choked runs and of {fs} of {ns} steady "
-        "runs (those would have warned). Each choked run held out in turn:",
+        "runs (those would have warned)"
+        + (": `msmill predict` at the choked runs' own settings does not warn, it reports a probability of "
+           "steady flow below 1 there (table)" if fc < nc else "")
+        + ". Each choked run held out in turn (a fit without it, as a new run would meet the model):",
         "",
         *choked_table(model, pts),
         "",
@@ -521,10 +524,12 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
         "",
         "- The Gaussian-process classifier (`CapacityModel.fit(..., method='classifier')`, zero prior mean) "
         "fitted to the same runs gives the choked runs P(steady) "
-        + ", ".join(f"{p:.2f}" for p in cls_p) + " at their own feeds and capacities "
-        + ", ".join("none below 120 t/h" if not np.isfinite(x) else f"{x:.0f} t/h" for x in cls_cap)
-        + " at the four points above: with so few choked runs it calls everything steady, which is why the "
-        "shipped envelope uses the censored model.",
+        + ", ".join(f"{p:.2f}" for p in cls_p) + " at their own feeds and "
+        + ("no capacity below 120 t/h at any of the four points above" if not np.isfinite(cls_cap).any() else
+           "capacities " + ", ".join("none below 120 t/h" if not np.isfinite(x) else f"{x:.0f} t/h" for x in cls_cap)
+           + " at the four points above")
+        + ": with so few choked runs it calls everything steady, which is why the shipped envelope uses the "
+        "censored model.",
         "",
         "`msmill predict` warns (one line: capacity, requested feed, by how much, probability of steady flow) when "
         "the feed rate is above the capacity at the feed's F80, speed and gate; `msmill sweep` flags such points "
