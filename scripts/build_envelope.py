@@ -94,6 +94,9 @@ def build(export: Path, store: str | None, method: str) -> tuple[object, object,
         sys.exit(f"the runs come from {len(machines)} machines ({', '.join(m[:12] for m in machines)}): "
                  "an envelope is for one machine")
     points = [r["point"] for r in rows]
+    if not any(p.outcome == "choked" for p in points):
+        sys.exit(f"{len(points)} runs, none choked: the data give no upper bound on the capacity, so no envelope "
+                 "is fitted (nothing written; remove a stale shipped envelope with git rm)")
     model = CapacityModel.fit(points, method=method)
     counts = {k: sum(p.outcome == k for p in points) for k in ("steady", "choked", "not_steady")}
     prov = {

@@ -151,9 +151,11 @@ def test_shipped_envelope_matches_the_shipped_export():
     from msmill.surrogate.campaign_export import default_export_dir, read_export
 
     path = default_envelope_path()
-    assert path is not None
-    env = EnvelopeData.from_json(path)
     runs = read_export(default_export_dir())
+    if path is None:  # allowed only when the export holds no choked run (no upper bound to fit)
+        assert not any(r.outcome == "choked" for r in runs), "the export has choked runs: build the envelope"
+        pytest.skip("no envelope ships: the export holds no choked run")
+    env = EnvelopeData.from_json(path)
     assert {r["content_hash"] for r in env.provenance["runs"] if r["source"].startswith("export:")} == \
         {r.content_hash for r in runs}
     assert env.counts()["choked"] == sum(r.outcome == "choked" for r in runs) == env.provenance["counts"]["choked"]
