@@ -390,13 +390,37 @@ def plot_capacity(model, pts, mid_size_mm: float, path: Path) -> None:
     plt.close(fig)
 
 
-def choked_table(model, pts) -> list[str]:
+def _key(size_mm: float, feed_tph: float, speed_rpm: float, gate_deg: float) -> tuple[float, ...]:
+    return tuple(round(float(v), 4) for v in (size_mm, feed_tph, speed_rpm, gate_deg))
+
+
+def run_settings_by_point(all_runs) -> dict[tuple[float, ...], dict]:
+    """The run settings each exported run was made with, by its design point."""
+    import json
+
+    out = {}
+    for r in all_runs:
+        d = r.statistics.design
+        doc = json.loads(r.path.read_text(encoding="utf-8"))
+        out[_key(d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg)] = (doc.get("run") or {}).get("run_settings") or {}
+    return out
+
+
+def _made_with(settings: dict) -> str:
+    w, t = settings.get("steady_window_s"), settings.get("max_time_s")
+    auto = "residence-scaled limit" if "residence_factor" in settings else f"fixed limit {t:g} s" if t else "?"
+    return f"{w:g} s windows, {auto}" if w else "?"
+
+
+def choked_table(model, pts, settings: dict | None = None) -> list[str]:
     """Each choked run: the capacity and P(steady) at its feed, fitted with and without it (leave one out)."""
     from msmill.capacity import CapacityModel
 
-    rows = ["| size (mm) | speed (rpm) | gate (deg) | feed (t/h) | passed (t/h) | capacity, all runs (t/h) | "
-            "P(steady) at its feed, all runs | capacity, without this run (t/h) | P(steady), without it |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    settings = settings or {}
+    rows = ["| size (mm) | speed (rpm) | gate (deg) | feed (t/h) | passed (t/h) | run made with | "
+            "capacity, all runs (t/h) | P(steady) at its feed, all runs | capacity, without this run (t/h) | "
+            "P(steady), without it |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     choked = [p for p in pts if p.outcome == "choked"]
     for p in choked:
         rest = [q for q in pts if q is not p]
@@ -407,9 +431,27 @@ def choked_table(model, pts) -> list[str]:
         lc, lp = ((f"{loo.capacity_tph(*at):.1f}",
                    f"{loo.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0]:.2f}")
                   if loo else ("- (no other choked run)", "-"))
+        made = _made_with(settings.get(_key(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg), {}))
         rows.append(f"| {p.size_mm:.1f} | {p.speed_rpm:.0f} | {p.gate_deg:.1f} | {p.feed_tph:.1f} | "
-                    f"{p.throughput_tph:.1f} | {c:.1f} | {pr:.2f} | {lc} | {lp} |")
+                    f"{p.throughput_tph:.1f} | {made} | {c:.1f} | {pr:.2f} | {lc} | {lp} |")
     return rows
+
+
+def _older_settings_caveat(pts, settings: dict) -> list[str]:
+    """A caveat line when choked runs were made with other steady-state windows than today's criterion."""
+    from msmill.steadystate import SteadyStateCriterion
+
+    today = SteadyStateCriterion().window_s
+    old = [p for p in pts if p.outcome == "choked" and (settings.get(_key(p.size_mm, p.feed_tph, p.speed_rpm,
+                                                                         p.gate_deg), {}).get("steady_window_s")
+                                                         not in (None, today))]
+    if not old:
+        return []
+    return [f"- {len(old)} of the choked runs were made with other run settings than today's (steady-state "
+            f"windows of {today:g} s and a time limit scaled with the residence time): their outcome was "
+            "recomputed from a time series that stopped when the old criterion was met, possibly before today's "
+            "criterion can see steady state, and a filling mill's product rate looks like a choke's. Re-run such "
+            "points with today's settings before trusting them.", ""]
 
 
 def warn_counts(model, pts) -> tuple[int, int, int, int]:
@@ -510,8 +552,9 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
            "steady flow below 1 there (table)" if fc < nc else "")
         + ". Each choked run held out in turn (a fit without it, as a new run would meet the model):",
         "",
-        *choked_table(model, pts),
+        *choked_table(model, pts, run_settings_by_point(all_runs)),
         "",
+        *_older_settings_caveat(pts, run_settings_by_point(all_runs)),
         passed_share(pts),
         f"- The scatter sigma = {model.params['sigma']:.2f} is large: steady runs passed more feed than the "
         "choked ones at nearby sizes, speeds and gates, so the data do not show a sharp boundary; the probability "
