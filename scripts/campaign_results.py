@@ -13,9 +13,12 @@ Runs on whatever the export holds (re-run it after every batch):
   qualitative claims tested against the DEM runs and the surrogate (with the
   surrogate's posterior spread; no tuning);
 * the product P80 at 10/30/60 t/h and gates 0/40/80 deg (``msmill predict``'s model);
-* the slice-to-full correction, when the export holds paired full-mill runs.
+* the slice-to-full correction, when the export holds paired full-mill runs;
+* the capacity (operating envelope, ``msmill.capacity``) of the shipped envelope: a map over gate angle and
+  speed, the probability of steady flow against feed, the choked runs held out one at a time, and the
+  capacity's sensitivity to the model's priors.
 
-    python scripts/campaign_results.py [--export DIR] [--surrogate FILE] [--out docs/campaign-results.md]
+    python scripts/campaign_results.py [--export DIR] [--surrogate FILE] [--envelope FILE] [--out docs/campaign-results.md]
 """
 
 from __future__ import annotations
@@ -296,6 +299,9 @@ def p80_table(provider) -> list[str]:
             res = m.run(feed, OperatingPoint(feed_tph=f, speed_rpm=op.speed_rpm, gate_deg=g), timeseries=False)
         note = "outside the trained feed/gate range" if any(
             ("feed_tph" in str(x.message) or "gate_deg" in str(x.message)) for x in w) else ""
+        if res.capacity_tph is not None and f > res.capacity_tph:
+            note += f"{'; ' if note else ''}above the DEM capacity {res.capacity_tph:.0f} t/h (P(steady) " \
+                    f"{res.probability_steady:.2f})"
         lo, hi = res.p80_band_mm
         rows.append(f"| {f} | {g} | {res.p80_mm:.2f} | {lo:.2f}-{hi:.2f} | {note} |")
     return rows
@@ -321,6 +327,261 @@ def pair_table(slices, fulls) -> list[str]:
     return [*out, ""]
 
 
+# ------------------------------------------------------------------ capacity (operating envelope)
+#: points at which the page tabulates the capacity (size mm, speed rpm, gate deg)
+CAPACITY_AT = ((14.0, 1500.0, 5.0), (20.0, 1500.0, 10.0), (20.0, 1900.0, 10.0), (28.0, 1500.0, 40.0))
+#: prior variants of the sensitivity table (entries of msmill.capacity.PRIORS)
+PRIOR_VARIANTS = (("shipped priors", {}), ("slopes sd 0.5", {"slope_sd": 0.5}), ("slopes sd 2", {"slope_sd": 2.0}),
+                  ("sigma prior 0.1", {"log_sigma_mean": float(np.log(0.1))}),
+                  ("sigma prior 0.4", {"log_sigma_mean": float(np.log(0.4))}))
+
+
+def _overlay(ax, pts, x: str, y: str) -> None:
+    """The envelope's runs projected on (x, y): steady as circles, choked as red crosses (feed) and dots (passed)."""
+    st = [p for p in pts if p.outcome == "steady"]
+    ch = [p for p in pts if p.outcome == "choked"]
+    ax.scatter([getattr(p, x) for p in st], [getattr(p, y) for p in st], s=14, facecolors="none",
+               edgecolors="k", lw=0.7, label=f"steady ({len(st)})")
+    ax.scatter([getattr(p, x) for p in ch], [getattr(p, y) for p in ch], s=60, marker="x", c="r", lw=2,
+               label=f"choked ({len(ch)}): feed")
+    if y == "feed_tph":
+        ax.scatter([getattr(p, x) for p in ch], [p.throughput_tph for p in ch], s=25, c="r", marker="v",
+                   label="choked: throughput passed")
+
+
+def plot_capacity(model, pts, mid_size_mm: float, path: Path) -> None:
+    """Capacity over gate x speed at mid size; P(steady) over gate x feed and size x feed; runs overlaid."""
+    import matplotlib.pyplot as plt
+
+    hi_feed = model.domain["feed_tph"][1]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    g, v = np.meshgrid(np.linspace(0, 80, 81), np.linspace(1200, 1900, 71))
+    cap = np.exp(model.log_capacity(mid_size_mm, v.ravel(), g.ravel())[0]).reshape(g.shape)
+    levels = np.arange(0, 10 * np.ceil(min(cap.max(), 3 * hi_feed) / 10) + 10, 10)
+    cs = axes[0].contourf(g, v, np.minimum(cap, levels[-1]), levels=levels, cmap="viridis")
+    axes[0].contourf(g, v, cap, levels=[hi_feed, np.inf], colors="none", hatches=["//"])
+    axes[0].contour(g, v, cap, levels=[hi_feed], colors="w", linewidths=1)
+    fig.colorbar(cs, ax=axes[0], label="capacity (t/h) at P(steady) = 1/2")
+    _overlay(axes[0], pts, "gate_deg", "speed_rpm")
+    axes[0].set(xlabel=LABELS["gate_deg"], ylabel=LABELS["speed_rpm"],
+                title=f"capacity at {mid_size_mm:.3g} mm (hatched: above the largest\nfeed run, {hi_feed:.0f} t/h)")
+    speed = 1550.0
+    for ax, (xname, xs), fixed in ((axes[1], ("gate_deg", np.linspace(0, 80, 81)), f"{mid_size_mm:.3g} mm"),
+                                   (axes[2], ("size_mm", np.geomspace(5, 32, 60)), "gate 10 deg")):
+        x, f = np.meshgrid(xs, np.linspace(2, 100, 99))
+        size = x if xname == "size_mm" else mid_size_mm
+        gate = x if xname == "gate_deg" else 10.0
+        pr = model.probability_steady(np.broadcast_to(size, x.shape).ravel(), f.ravel(), speed,
+                                      np.broadcast_to(gate, x.shape).ravel()).reshape(x.shape)
+        pc = ax.pcolormesh(x, f, pr, cmap="RdYlGn", vmin=0, vmax=1, shading="auto")
+        c = ax.contour(x, f, pr, levels=[0.1, 0.5, 0.9], colors="k", linestyles=["--", "-", "--"], linewidths=1)
+        ax.clabel(c, fmt="%.1f", fontsize=7)
+        _overlay(ax, pts, xname, "feed_tph")
+        ax.axhline(hi_feed, color="grey", lw=0.8, ls=":")
+        ax.set(xlabel=LABELS[xname], ylabel=LABELS["feed_tph"], xscale="log" if xname == "size_mm" else "linear",
+               title=f"P(steady) at {fixed}, {speed:g} rpm")
+        if xname == "size_mm":
+            ax.set_xticks([6, 10, 15, 20, 30], labels=["6", "10", "15", "20", "30"])
+    fig.colorbar(pc, ax=axes[2], label="probability of steady flow")
+    axes[1].legend(fontsize=7, loc="upper left")
+    fig.suptitle("runs at all sizes, speeds and gates projected onto each panel", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _key(size_mm: float, feed_tph: float, speed_rpm: float, gate_deg: float) -> tuple[float, ...]:
+    return tuple(round(float(v), 4) for v in (size_mm, feed_tph, speed_rpm, gate_deg))
+
+
+def run_settings_by_point(all_runs) -> dict[tuple[float, ...], dict]:
+    """The run settings each exported run was made with, by its design point."""
+    import json
+
+    out = {}
+    for r in all_runs:
+        d = r.statistics.design
+        doc = json.loads(r.path.read_text(encoding="utf-8"))
+        out[_key(d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg)] = (doc.get("run") or {}).get("run_settings") or {}
+    return out
+
+
+def _made_with(settings: dict) -> str:
+    w, t = settings.get("steady_window_s"), settings.get("max_time_s")
+    auto = "residence-scaled limit" if "residence_factor" in settings else f"fixed limit {t:g} s" if t else "?"
+    return f"{w:g} s windows, {auto}" if w else "?"
+
+
+def choked_table(model, pts, settings: dict | None = None) -> list[str]:
+    """Each choked run: the capacity and P(steady) at its feed, fitted with and without it (leave one out)."""
+    from msmill.capacity import CapacityModel
+
+    settings = settings or {}
+    rows = ["| size (mm) | speed (rpm) | gate (deg) | feed (t/h) | passed (t/h) | run made with | "
+            "capacity, all runs (t/h) | P(steady) at its feed, all runs | capacity, without this run (t/h) | "
+            "P(steady), without it |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    choked = [p for p in pts if p.outcome == "choked"]
+    for p in choked:
+        rest = [q for q in pts if q is not p]
+        loo = CapacityModel.fit(rest, priors=model.params.get("priors")) if any(
+            q.outcome == "choked" for q in rest) else None
+        at = (p.size_mm, p.speed_rpm, p.gate_deg)
+        c, pr = model.capacity_tph(*at), model.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0]
+        lc, lp = ((f"{loo.capacity_tph(*at):.1f}",
+                   f"{loo.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0]:.2f}")
+                  if loo else ("- (no other choked run)", "-"))
+        made = _made_with(settings.get(_key(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg), {}))
+        rows.append(f"| {p.size_mm:.1f} | {p.speed_rpm:.0f} | {p.gate_deg:.1f} | {p.feed_tph:.1f} | "
+                    f"{p.throughput_tph:.1f} | {made} | {c:.1f} | {pr:.2f} | {lc} | {lp} |")
+    return rows
+
+
+def _older_settings_caveat(pts, settings: dict) -> list[str]:
+    """A caveat line when choked runs were made with other steady-state windows than today's criterion."""
+    from msmill.steadystate import SteadyStateCriterion
+
+    today = SteadyStateCriterion().window_s
+    old = [p for p in pts if p.outcome == "choked" and (settings.get(_key(p.size_mm, p.feed_tph, p.speed_rpm,
+                                                                         p.gate_deg), {}).get("steady_window_s")
+                                                         not in (None, today))]
+    if not old:
+        return []
+    return [f"- {len(old)} of the choked runs were made with other run settings than today's (steady-state "
+            f"windows of {today:g} s and a time limit scaled with the residence time): their outcome was "
+            "recomputed from a time series that stopped when the old criterion was met, possibly before today's "
+            "criterion can see steady state, and a filling mill's product rate looks like a choke's. Re-run such "
+            "points with today's settings before trusting them.", ""]
+
+
+def warn_counts(model, pts) -> tuple[int, int, int, int]:
+    """(steady runs above the capacity, steady runs, choked runs above it, choked runs), in sample."""
+    st = [p for p in pts if p.outcome == "steady"]
+    ch = [p for p in pts if p.outcome == "choked"]
+
+    def above(p) -> bool:
+        return p.feed_tph > model.capacity_tph(p.size_mm, p.speed_rpm, p.gate_deg)
+
+    return sum(map(above, st)), len(st), sum(map(above, ch)), len(ch)
+
+
+def _rocks_per_s(size_mm: float = 30.0, feed_tph: float = 10.0, slice_share: float = 1 / 3,
+                 density_kg_m3: float = 2700.0) -> float:
+    """Rocks per second fed to the default slice (a third of the mill's length, generic rock)."""
+    return feed_tph / 3.6 * slice_share / (density_kg_m3 * np.pi / 6 * (size_mm / 1000) ** 3)
+
+
+def passed_share(pts) -> str:
+    """The throughput passed in the measurement window as a share of the feed, steady against choked runs."""
+    st = np.array([p.throughput_tph / p.feed_tph for p in pts if p.outcome == "steady" and p.throughput_tph])
+    ch = [p.throughput_tph / p.feed_tph for p in pts if p.outcome == "choked" and p.throughput_tph]
+    if not st.size:
+        return ""
+    q10, q50, q90 = np.percentile(st, [10, 50, 90])
+    return (f"- The product rate the runs passed in their measurement window, as a share of their feed: steady runs "
+            f"median {q50:.2f} (10-90 %: {q10:.2f}-{q90:.2f}, lowest {st.min():.2f}; {int((st < 0.9).sum())} of "
+            f"{st.size} below 0.9), choked runs " + ", ".join(f"{x:.2f}" for x in ch) + ". The choked runs' "
+            f"shares lie inside the steady runs' spread (at 30 mm and 10 t/h a slice receives about {_rocks_per_s():.0f} "
+            "rocks a second, so a 1 s window's product rate is noisy): "
+            "the choke verdict (product below (1 - balance_tol) F in both of the last two windows and not "
+            "catching up, docs/mill-dem.md) sits close to that noise, so a verdict near the boundary can go either "
+            "way.")
+
+
+def prior_table(pts) -> list[str]:
+    """Capacity at :data:`CAPACITY_AT` under the prior variants."""
+    from msmill.capacity import CapacityModel
+
+    head = "| priors | sigma | " + " | ".join(f"{s:g} mm, {v:g} rpm, {g:g} deg" for s, v, g in CAPACITY_AT) + " |"
+    rows = [head, "|" + "---|" * (2 + len(CAPACITY_AT))]
+    for name, pr in PRIOR_VARIANTS:
+        m = CapacityModel.fit(pts, priors=pr)
+        rows.append(f"| {name} | {m.params['sigma']:.2f} | "
+                    + " | ".join(f"{m.capacity_tph(*x):.0f}" for x in CAPACITY_AT) + " |")
+    return rows
+
+
+def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[str]:
+    """The page's capacity section (and its figure) from the shipped envelope."""
+    from msmill.capacity import CapacityModel, EnvelopeData, load_capacity
+
+    if env_path is None:
+        return ["No envelope ships (`scripts/build_envelope.py` builds it from the export).", ""]
+    env = EnvelopeData.from_json(env_path)
+    model = load_capacity(env_path)
+    pts = env.points
+    used = {r["content_hash"] for r in env.provenance.get("runs", [])}
+    missing = [r for r in all_runs if r.content_hash not in used]
+    n = env.counts()
+    lo, hi = model.domain["size_mm"]
+    mid = float(np.sqrt(lo * hi))
+    plot_capacity(model, pts, mid, img / "campaign-capacity.png")
+    fs, ns, fc, nc = warn_counts(model, pts)
+    c = model.params["coefficients"]
+    sd = np.sqrt(np.diag(model.params["covariance"]))
+    cls = CapacityModel.fit(pts, method="classifier")
+    cls_p = [cls.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0] for p in pts
+             if p.outcome == "choked"]
+    cls_cap = [cls.capacity_tph(*x) for x in CAPACITY_AT]
+    return [
+        f"From the shipped envelope `{rel(env_path)}` (`scripts/build_envelope.py`, {env.provenance.get('date_utc', '')}"
+        f", commit {str(env.provenance.get('git_commit', ''))[:7]}): **{n['steady']} steady and {n['choked']} "
+        f"choked** runs; {n['not_steady']} not-steady runs carry no capacity information and are not used."
+        + (f" **{len(missing)} run documents of the export are not in the envelope: rebuild it.**" if missing else ""),
+        "",
+        "![capacity](img/campaign-capacity.png)",
+        "",
+        "Model (`msmill.capacity`, censored): log capacity = b0 + b1 log2(size/15 mm) + b2 (speed - 1550 rpm)/350 "
+        "rpm + b3 (gate - 40 deg)/40 deg, with a run-to-run scatter sigma; a steady run at feed F says capacity "
+        ">= F, a choked run says throughput <= capacity < F. Fitted (MAP, +- 1 posterior sd): "
+        + ", ".join(f"{k} {v:.2f} +- {e:.2f}" for (k, v), e in zip(c.items(), sd, strict=True))
+        + f"; sigma {model.params['sigma']:.2f} (a factor {np.exp(model.params['sigma']):.2f} either way). The left "
+        f"panel is the median capacity at {mid:.3g} mm (the geometric middle of the runs' sizes); the others are the "
+        "probability that the mill passes a feed, with the capacity as the solid P = 1/2 line.",
+        "",
+        "What the data support:",
+        "",
+        f"- **{n['choked']} choked runs** among {n['steady'] + n['choked']}. The capacity is measured only near "
+        "them (narrow gates); everywhere else the steady runs give only lower bounds, so the law's slopes and the "
+        "scatter come largely from those bounds and the priors. Where the median capacity is above the largest "
+        f"feed any run had ({model.domain['feed_tph'][1]:.0f} t/h, hatched) it is an extrapolation of the "
+        "log-linear law, not a measurement.",
+        f"- In sample, the capacity lies below the feed of {fc} of {nc} choked runs and of {fs} of {ns} steady "
+        "runs (those would have warned)"
+        + (": `msmill predict` at the choked runs' own settings does not warn, it reports a probability of "
+           "steady flow below 1 there (table)" if fc < nc else "")
+        + ". Each choked run held out in turn (a fit without it, as a new run would meet the model):",
+        "",
+        *choked_table(model, pts, run_settings_by_point(all_runs)),
+        "",
+        *_older_settings_caveat(pts, run_settings_by_point(all_runs)),
+        passed_share(pts),
+        f"- The scatter sigma = {model.params['sigma']:.2f} is large: steady runs passed more feed than the "
+        "choked ones at nearby sizes, speeds and gates, so the data do not show a sharp boundary; the probability "
+        "of steady flow falls gradually through the capacity. A warning is a flag to check, not a prediction "
+        "that the plant will choke.",
+        "- Sensitivity of the capacity (t/h) to the priors (`msmill.capacity.PRIORS`); columns inside the run "
+        "data move less than the extrapolated wide-gate one:",
+        "",
+        *prior_table(pts),
+        "",
+        "- The Gaussian-process classifier (`CapacityModel.fit(..., method='classifier')`, zero prior mean) "
+        "fitted to the same runs gives the choked runs P(steady) "
+        + ", ".join(f"{p:.2f}" for p in cls_p) + " at their own feeds and "
+        + ("no capacity below 120 t/h at any of the four points above" if not np.isfinite(cls_cap).any() else
+           "capacities " + ", ".join("none below 120 t/h" if not np.isfinite(x) else f"{x:.0f} t/h" for x in cls_cap)
+           + " at the four points above")
+        + ": with so few choked runs it calls everything steady, which is why the shipped envelope uses the "
+        "censored model.",
+        "",
+        "`msmill predict` warns (one line: capacity, requested feed, by how much, probability of steady flow) when "
+        "the feed rate is above the capacity at the feed's F80, speed and gate; `msmill sweep` flags such points "
+        "(`above_capacity`) and `msmill optimize` excludes them (`--envelope FILE` to use another envelope, "
+        "`--no-capacity-check` to switch it off).",
+        "",
+    ]
+
+
 def git_commit() -> str:
     """HEAD of the repository."""
     try:
@@ -339,6 +600,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--export", type=Path, default=None)
     ap.add_argument("--surrogate", type=Path, default=None)
+    ap.add_argument("--envelope", type=Path, default=None, help="envelope JSON (default: the shipped one)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs/campaign-results.md")
     a = ap.parse_args(argv)
     export = a.export or default_export_dir()
@@ -359,15 +621,18 @@ def main(argv: list[str] | None = None) -> None:
     fit = plot_cost(runs, img / "campaign-cost.png")
     at = centre(provider.surrogate)
     plot_trends(provider, at, img / "campaign-trends.png")
-    page = render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, export)
+    from msmill.capacity import default_envelope_path
+
+    page = render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, export,
+                  a.envelope or default_envelope_path(), img)
     a.out.write_text(page, encoding="utf-8")
-    print(f"wrote {a.out} and 4 figures in {img}")
+    print(f"wrote {a.out} and 5 figures in {img}")
     last = curve.iloc[-1]
     print(f"runs={int(last['runs'])} loo_kl_velocity_mean={last['kl_velocity']:.4f} "
           f"dem_hours={runs['wall_s'].sum() / 3600:.2f}")
 
 
-def render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, export) -> str:
+def render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, export, env_path=None, img=None) -> str:
     """The Markdown page."""
     m = provider.surrogate
 
@@ -446,6 +711,7 @@ def render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, expor
         L += ["The export holds no full-mill run paired with a slice run, so the shipped surrogate predicts the "
               "slice (no correction). The one documented pair (10 mm, `docs/mill-dem.md`, 'Full-mill run') "
               "had 19-36 % more secondary impacts per primary impact in the full mill and streams within 0.02.", ""]
+    L += ["## Capacity (operating envelope)", "", *capacity_section(env_path, all_runs, img or ROOT / "docs/img", rel)]
     return "\n".join(L) + "\n"
 
 

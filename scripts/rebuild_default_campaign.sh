@@ -27,5 +27,6 @@ python -m msmill campaign create default --size-range-mm 6 30 --set adaptive=tru
 rm -f src/msmill/data/campaigns/default/run-*.json
 python scripts/campaign_export.py --out src/msmill/data/campaigns/default
 python scripts/build_default_surrogate.py --loo closed --restarts 1
+python scripts/build_envelope.py
 python benchmarks/surrogate_accuracy.py --loo closed
 python scripts/campaign_results.py

@@ -1,15 +1,24 @@
-"""Capacity from steady and choked points (msmill.capacity). All points here are SYNTHETIC."""
+"""Capacity from steady and choked points (msmill.capacity). Points here are SYNTHETIC or HAND-MADE, except
+the shipped envelope's (our DEM campaign)."""
 
+import functools
+import json
 import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from msmill.capacity import (
     AboveCapacityWarning,
     CapacityModel,
     EnvelopeData,
     EnvelopePoint,
+    check_capacity,
+    default_capacity_model,
+    default_envelope_path,
+    load_capacity,
     warn_if_above_capacity,
 )
 from msmill.errors import MsmillInputError
@@ -74,3 +83,103 @@ def test_envelope_json_round_trip(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(MsmillInputError):
         EnvelopeData.from_json(tmp_path / "bad.json")
+
+
+# ------------------------------------------------------------------ censored model, envelope files, shipped envelope
+HAND = [EnvelopePoint(s, f, 1500.0, 40.0, "steady") for s in (10, 20, 30) for f in (10.0, 15.0)] + \
+       [EnvelopePoint(s, f, 1500.0, 40.0, "choked", 20.0) for s in (10, 20, 30) for f in (25.0, 40.0)]
+
+
+def test_censored_capacity_lies_between_what_passed_and_what_choked():
+    """HAND-MADE points: 15 t/h passed, 25 t/h choked passing 20 t/h, so 20 <= capacity < 25."""
+    m = CapacityModel.fit(HAND)
+    assert 19.0 < m.capacity_tph(20.0, 1500.0, 40.0) < 25.5
+    assert m.probability_steady(20.0, m.capacity_tph(20.0, 1500.0, 40.0), 1500.0, 40.0)[0] == pytest.approx(0.5)
+    assert m.probability_steady(20.0, 12.0, 1500.0, 40.0)[0] > 0.9 > 0.1 > m.probability_steady(20.0, 35.0, 1500.0,
+                                                                                                 40.0)[0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(4, 40), st.floats(1100, 2000), st.floats(0, 90), st.floats(2, 100), st.floats(1.01, 3))
+def test_censored_probability_falls_with_feed(size, speed, gate, feed, factor):
+    p = _synthetic_model().probability_steady(size, [feed, feed * factor], speed, gate)
+    assert 0 <= p[1] <= p[0] <= 1
+    if 1e-9 < p[0] < 1 - 1e-9:  # strictly, where the probability is not saturated
+        assert p[1] < p[0]
+
+
+@functools.lru_cache(maxsize=1)
+def _synthetic_model():
+    return CapacityModel.fit(synthetic_points(40, seed=3))
+
+
+def test_envelope_file_round_trip_rebuilds_the_model(tmp_path):
+    m = CapacityModel.fit(HAND)
+    m.to_envelope(HAND, {"note": "HAND-MADE"}).to_json(tmp_path / "e.json")
+    env = EnvelopeData.from_json(tmp_path / "e.json")
+    assert env.points == HAND and env.counts() == {"steady": 6, "choked": 6, "not_steady": 0}
+    args = ([8.0, 20.0, 33.0], [12.0, 22.0, 30.0], [1400.0, 1500.0, 1700.0], [20.0, 40.0, 60.0])
+    for again in (load_capacity(tmp_path / "e.json"), load_capacity(tmp_path / "e.json", refit=True)):
+        np.testing.assert_allclose(again.probability_steady(*args), m.probability_steady(*args), rtol=1e-6)
+    doc = json.loads((tmp_path / "e.json").read_text())
+    doc["model"]["params"]["coefficients"]["log_capacity_at_ref"] += 0.5  # stored parameters the points do not give
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.warns(UserWarning, match="differ from the stored"):
+        load_capacity(tmp_path / "bad.json", refit=True)
+
+
+def test_classifier_envelope_round_trip(tmp_path):
+    m = CapacityModel.fit(HAND, method="classifier")
+    m.to_envelope(HAND, {}).to_json(tmp_path / "c.json")
+    again = load_capacity(tmp_path / "c.json")
+    assert again.method == "classifier"
+    np.testing.assert_allclose(again.probability_steady(20.0, [12.0, 30.0], 1500.0, 40.0),
+                               m.probability_steady(20.0, [12.0, 30.0], 1500.0, 40.0), rtol=1e-6)
+
+
+def test_message_says_capacity_feed_excess_and_probability():
+    chk = check_capacity(CapacityModel.fit(HAND), 20.0, 30.0, 1500.0, 40.0)
+    msg = chk.message()
+    assert chk.above and "\n" not in msg
+    assert f"capacity {chk.capacity_tph:.1f} t/h" in msg and "feed 30 t/h" in msg
+    assert f"by {30.0 - chk.capacity_tph:.1f} t/h" in msg and f"probability of steady flow {chk.probability_steady:.2f}" in msg
+    assert "extrapolated in speed_rpm" in check_capacity(CapacityModel.fit(HAND), 20.0, 30.0, 1800.0, 40.0).message()
+
+
+def test_shipped_envelope_matches_the_shipped_export():
+    """The shipped envelope was built from the shipped export (rebuild both together: scripts/build_envelope.py)."""
+    from msmill.surrogate.campaign_export import default_export_dir, read_export
+
+    path = default_envelope_path()
+    runs = read_export(default_export_dir())
+    if path is None:  # allowed only when the export holds no choked run (no upper bound to fit)
+        assert not any(r.outcome == "choked" for r in runs), "the export has choked runs: build the envelope"
+        pytest.skip("no envelope ships: the export holds no choked run")
+    env = EnvelopeData.from_json(path)
+    assert {r["content_hash"] for r in env.provenance["runs"] if r["source"].startswith("export:")} == \
+        {r.content_hash for r in runs}
+    assert env.counts()["choked"] == sum(r.outcome == "choked" for r in runs) == env.provenance["counts"]["choked"]
+    for key in ("command", "msmill_version", "git_commit", "date_utc", "inputs"):
+        assert key in env.provenance
+    m = default_capacity_model()
+    assert m.method == "censored" and m.n_choked == env.counts()["choked"]
+    for p in env.points:  # every choked run's feed is above the capacity's lower bound, its throughput
+        if p.outcome == "choked":
+            assert m.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0] < \
+                m.probability_steady(p.size_mm, p.throughput_tph, p.speed_rpm, p.gate_deg)[0]
+
+
+def test_warning_threshold_is_the_capacity_itself():
+    m = CapacityModel.fit(HAND)
+    c = m.capacity_tph(20.0, 1500.0, 40.0)
+    assert check_capacity(m, 20.0, 1.03 * c, 1500.0, 40.0).above
+    assert not check_capacity(m, 20.0, 0.97 * c, 1500.0, 40.0).above
+
+
+def test_capacity_is_uncertain_where_no_run_was_made():
+    """HAND-MADE runs all at 1500 rpm and gate 40: the speed and gate slopes are the priors' there."""
+    m = CapacityModel.fit(HAND)
+    _, sd_at = m.log_capacity(20.0, 1500.0, 40.0)
+    _, sd_off = m.log_capacity(20.0, 1900.0, 0.0)
+    assert sd_off[0] > sd_at[0] + 0.5  # prior sd 1 per unit on two slopes, about 1.1 units away on each
+    assert m.outside(20.0, 1900.0, 0.0) == ["speed_rpm", "gate_deg"]

@@ -72,3 +72,29 @@ def test_sweep_and_optimize(tmp_path, capsys):
     # a smaller L_ref breaks more easily, so the target is reached at a lower speed
     assert sens["speed_rpm"].is_monotonic_increasing and sens["speed_rpm"].nunique() == 3
     assert run(["sweep", str(run_file), "--var", "colour=1:2"]) == 2
+
+
+def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):
+    from msmill.capacity import CapacityModel, EnvelopePoint
+
+    # HAND-MADE envelope: 15 t/h passed, 25 and 40 t/h choked passing 20 t/h, at 10-30 mm, 1500 rpm, gate 40
+    pts = [EnvelopePoint(s, f, 1500.0, 40.0, "steady") for s in (10, 20, 30) for f in (10.0, 15.0)]
+    pts += [EnvelopePoint(s, f, 1500.0, 40.0, "choked", 20.0) for s in (10, 20, 30) for f in (25.0, 40.0)]
+    cap = CapacityModel.fit(pts)
+    cap.to_envelope(pts, {"note": "HAND-MADE"}).to_json(tmp_path / "env.json")
+    text = (ROOT / "examples" / "ug2.toml").read_text(encoding="utf-8")
+    run_file = tmp_path / "ug2.toml"
+    run_file.write_text(text.replace('file = "default"', 'file = "table"'), encoding="utf-8")
+    assert run(["sweep", str(run_file), "--var", "feed_tph=10:40:4", "--envelope", str(tmp_path / "env.json"),
+                "--out", str(tmp_path / "s")]) == 0
+    assert "2 of 4 points above it" in capsys.readouterr().out
+    t = pd.read_csv(tmp_path / "s" / "sweep.csv")
+    assert list(t["above_capacity"]) == [False, False, True, True] and list(t["feasible"]) == [True, True, False, False]
+    assert run(["optimize", str(run_file), "--bound", "feed_tph=10:40", "--target-p80-mm", "1000", "--n-grid", "4",
+                "--envelope", str(tmp_path / "env.json"), "--out", str(tmp_path / "o")]) == 0
+    best = pd.read_csv(tmp_path / "o" / "candidates.csv").query("meets_target")["feed_tph"].max()
+    assert 19 < best <= cap.capacity_tph(24.3, 1500.0, 40.0) + 0.1
+    assert run(["sweep", str(run_file), "--var", "feed_tph=10:40:4", "--no-capacity-check",
+                "--out", str(tmp_path / "s2")]) == 0
+    assert "no DEM envelope" in capsys.readouterr().out
+    assert not pd.read_csv(tmp_path / "s2" / "sweep.csv")["above_capacity"].any()

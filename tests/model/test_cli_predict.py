@@ -144,6 +144,8 @@ def test_predict_warns_above_capacity_from_envelope(folder, capsys):
     assert run(["predict", str(p), "--envelope", str(folder / "envelope.json")]) == 0
     err = capsys.readouterr().err  # the CLI prints each warning once as a 'warning:' line
     assert "warning:" in err and "above the predicted capacity" in err
+    assert run(["predict", str(p), "--envelope", str(folder / "envelope.json"), "--no-capacity-check"]) == 0
+    assert "above the predicted capacity" not in capsys.readouterr().err  # switched off
     low = write(folder, GOOD.replace("rate_tph = 30.0", "rate_tph = 12.0"), "low.toml")
     assert run(["predict", str(low), "--envelope", str(folder / "envelope.json")]) == 0
     assert "above the predicted capacity" not in capsys.readouterr().err

@@ -19,8 +19,11 @@ def predict(
     plots: Annotated[bool | None, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = None,
     solver: Annotated[str | None, typer.Option(help="Override [model] solver.")] = None,
     envelope: Annotated[Path | None, typer.Option(
-        "--envelope", help="DEM envelope points (JSON, 'msmill dem envelope'): warn above the predicted capacity.")
-    ] = None,
+        "--envelope", help="DEM envelope (JSON: scripts/build_envelope.py or 'msmill dem envelope') to check the "
+        "feed rate against, instead of the shipped one.")] = None,
+    capacity_check: Annotated[bool, typer.Option(
+        "--capacity-check/--no-capacity-check", help="Warn when the feed rate exceeds the envelope's capacity.")
+    ] = True,
 ) -> None:
     """Predict the product PSD, hold-up and impact energy of a mill run file."""
     from msmill.cli.output import atomic_output, check_writable
@@ -33,12 +36,7 @@ def predict(
     folder = check_writable(out if out is not None else rf.path(rf.output.dir),
                             "--out" if out is not None else f"{rf.name}.output.dir")
     mill, feed, op = rf.build()
-    if envelope is not None:
-        from msmill.capacity import CapacityModel, EnvelopeData, warn_if_above_capacity
-
-        # capacity at the feed's F80: the coarse end of the feed sets the load the mill must pass
-        cap_model = CapacityModel.fit(EnvelopeData.from_json(envelope).points)
-        warn_if_above_capacity(cap_model, feed.p80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
+    apply_envelope(mill, envelope, capacity_check)
     result = mill.run(feed, op)
 
     # render everything in memory first, then commit the set atomically with a manifest
@@ -59,6 +57,14 @@ def predict(
         for name, data in files.items():
             (stage / name).write_bytes(data)
     _print_summary(rf, mill, result, folder, list(files))
+
+
+def apply_envelope(mill, envelope: Path | None, capacity_check: bool) -> None:
+    """The mill checks its feed against ``envelope`` (default: the shipped one), or not at all."""
+    if not capacity_check:
+        mill.use_envelope(None)
+    elif envelope is not None:
+        mill.use_envelope(envelope)
 
 
 def _impact_kw(result) -> float:
@@ -92,6 +98,9 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
         ("impact power (kW; no-load not included, docs/validation.md)", f"{_impact_kw(result):.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
+        *([("capacity at F80, speed, gate (t/h; DEM envelope)", f"{result.capacity_tph:.3g}"),
+           ("probability of steady flow at this feed", f"{result.probability_steady:.2f}")]
+          if result.capacity_tph is not None else []),
         ("feed / product mass with extrapolated stage statistics (%)",
          f"{result.extrapolated_feed_pct:.3g} / {result.extrapolated_product_pct:.3g}"),
     ]

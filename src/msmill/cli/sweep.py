@@ -43,11 +43,17 @@ def _parse_range(text: str, field: str, with_count: bool) -> tuple[str, list[flo
                                + " with numbers (LOW <= HIGH)") from None
 
 
-def _build(run_file: Path, names: list[str]):
+ENVELOPE_HELP = "DEM envelope (JSON) whose capacity constrains the points, instead of the shipped one."
+CHECK_HELP = "Points above the envelope's capacity are infeasible (flagged in the table, excluded by the optimiser)."
+
+
+def _build(run_file: Path, names: list[str], envelope: Path | None = None, capacity_check: bool = True):
+    from msmill.cli.predict import apply_envelope
     from msmill.model.runfile import RunFile
 
     rf = RunFile.from_toml(run_file)
     mill, feed, op = rf.build()
+    apply_envelope(mill, envelope, capacity_check)
     if "feed_scale" in names:
         mill.grid = None  # the model grid follows each scaled feed's top size
     return rf, mill, feed, op
@@ -59,6 +65,8 @@ def sweep(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: <run dir>/sweep_out).")] = None,
     passing_size_mm: Annotated[float | None, typer.Option(help="Also report % passing at this size (mm).")] = None,
     no_load_kw: Annotated[float, typer.Option(help="Stated no-load power (kW) in the specific energy.")] = 0.0,
+    envelope: Annotated[Path | None, typer.Option("--envelope", help=ENVELOPE_HELP)] = None,
+    capacity_check: Annotated[bool, typer.Option("--capacity-check/--no-capacity-check", help=CHECK_HELP)] = True,
 ) -> None:
     """P80, throughput, specific energy and hold-up over one or two operating variables."""
     from msmill.cli.validate import _console, write_files
@@ -68,7 +76,7 @@ def sweep(
 
     t0 = time.perf_counter()
     axes = dict(_parse_range(v, "--var", True) for v in var)
-    rf, mill, feed, op = _build(run_file, list(axes))
+    rf, mill, feed, op = _build(run_file, list(axes), envelope, capacity_check)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # off-point warnings: see inside_design_space
         table = run_sweep(mill, feed, op, axes, passing_size_mm=passing_size_mm, no_load_kw=no_load_kw)
@@ -81,7 +89,18 @@ def sweep(
     write_files(dest, files)
     con = _console()
     con.print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    _capacity_line(con, mill, table)
     con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def _capacity_line(con, mill, table) -> None:
+    if mill.capacity is None:
+        con.print("capacity: no DEM envelope (no constraint)")
+        return
+    n = int(table["above_capacity"].sum())
+    cap = mill.capacity
+    con.print(f"capacity (DEM envelope, {cap.n_choked} choked of {cap.n_steady + cap.n_choked} runs): "
+              f"{n} of {len(table)} points above it (above_capacity, feasible = false)")
 
 
 def optimize(
@@ -95,6 +114,8 @@ def optimize(
     l_ref_se_mm: Annotated[float | None, typer.Option(help="L_ref standard error (from msmill calibrate): "
                                                       "re-optimise at L_ref +- s.e.")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: <run dir>/optimize_out).")] = None,
+    envelope: Annotated[Path | None, typer.Option("--envelope", help=ENVELOPE_HELP)] = None,
+    capacity_check: Annotated[bool, typer.Option("--capacity-check/--no-capacity-check", help=CHECK_HELP)] = True,
 ) -> None:
     """Settings within the bounds reaching a target P80 (or passing) at the highest feed or lowest energy."""
     from msmill.cli.validate import _console, write_files
@@ -112,7 +133,7 @@ def optimize(
         except ValueError:
             raise MsmillInputError("--target-passing", target_passing, "SIZE_MM:PCT, e.g. 2:60") from None
         tp = (a, b)
-    rf, mill, feed, op = _build(run_file, list(bounds))
+    rf, mill, feed, op = _build(run_file, list(bounds), envelope, capacity_check)
     opts = dict(goal=goal, target_p80_mm=target_p80_mm, target_passing=tp, n_grid=n_grid, no_load_kw=no_load_kw)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -125,7 +146,7 @@ def optimize(
                 import dataclasses
 
                 return Mill(dataclasses.replace(mill.ore, l_ref_mm=L), mill.provider, grid=mill.grid,
-                            breakage=mill.breakage.name, damage=mill.damage.name)
+                            breakage=mill.breakage.name, damage=mill.damage.name, envelope=mill.capacity)
 
             sens = optimum_sensitivity(make, mill.ore.l_ref_mm, l_ref_se_mm, feed, op, bounds, **opts)
     files = {"candidates.csv": res.candidates.to_csv(index=False).encode(),
@@ -137,6 +158,7 @@ def optimize(
     dest = out if out is not None else rf.path("optimize_out")
     write_files(dest, files)
     con = _console()
+    _capacity_line(con, mill, res.candidates)
     if res.settings is None:
         con.print(f"no setting within the bounds reaches {res.target} ({len(res.candidates)} evaluated)")
     else:
@@ -145,7 +167,9 @@ def optimize(
                   + ", ".join(f"{k} = {v:.4g}" for k, v in res.settings.items())
                   + f" -> P80 {r['p80_mm']:.4g} mm, {r['throughput_tph']:.4g} t/h, "
                     f"{r['specific_energy_kwh_t']:.3g} kWh/t, {r['power_kw']:.3g} kW"
-                  + ("" if r["inside_design_space"] else " (outside the design space)"))
+                  + ("" if r["inside_design_space"] else " (outside the design space)")
+                  + (f"; capacity {r['capacity_tph']:.4g} t/h, P(steady) {r['p_steady']:.2f}"
+                     if np.isfinite(r.get("capacity_tph", np.nan)) else ""))
         if "p80_low_mm" in r:
             con.print(f"P80 band {r['p80_low_mm']:.4g}-{r['p80_high_mm']:.4g} mm")
     if sens is not None:

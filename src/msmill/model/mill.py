@@ -141,6 +141,13 @@ class Mill:
         samples under 2 s). The band is the samples' spread about their median,
         added to the full-resolution prediction, so the coarser resolution's
         bias cancels (:func:`msmill.model.result.with_band`).
+    envelope : "default", path, CapacityModel or None
+        DEM operating envelope (:mod:`msmill.capacity`): :meth:`run` warns
+        (:class:`~msmill.capacity.AboveCapacityWarning`) when the feed rate
+        exceeds the capacity at the feed's F80, speed and gate, and reports
+        capacity and steady probability in the result. ``"default"``: the
+        shipped envelope (only for the default machine, or no machine given);
+        None switches the check off.
     """
 
     def __init__(self, ore: Any, stage_parameters: Any, machine: Any = None, *,
@@ -150,7 +157,7 @@ class Mill:
                  parcels_per_step: int = 2000, mc_steps: int | None = None, seed: int | None = None,
                  passing_sizes_mm=DEFAULT_PASSING_SIZES_MM, band_samples: int = DEFAULT_BAND_SAMPLES,
                  band_quadrature_nodes: int = DEFAULT_BAND_QUADRATURE_NODES,
-                 band_damage_classes: int = DEFAULT_BAND_DAMAGE_CLASSES) -> None:
+                 band_damage_classes: int = DEFAULT_BAND_DAMAGE_CLASSES, envelope: Any = "default") -> None:
         self.ore = breakage_parameters(ore)
         if isinstance(stage_parameters, str | Path):
             stage_parameters = load_provider(stage_parameters)
@@ -210,6 +217,33 @@ class Mill:
         self.band_damage_classes = int(band_damage_classes)
         self._cache: dict[tuple, tuple] = {}
         self._band_cache: dict[tuple, tuple] = {}
+        self.use_envelope(envelope)
+
+    def use_envelope(self, envelope: Any) -> None:
+        """Set the operating envelope :meth:`run` checks against (see the class's ``envelope``)."""
+        from msmill.capacity import CapacityModel, default_capacity_model, load_capacity
+
+        if envelope is None:
+            self.capacity = None
+        elif isinstance(envelope, CapacityModel):
+            self.capacity = envelope
+        elif isinstance(envelope, str) and envelope == "default":
+            from msmill.machine import Machine
+
+            own = self.machine is None or self.machine == Machine.default()
+            self.capacity = default_capacity_model() if own else None  # the shipped envelope is the default mill's
+        elif isinstance(envelope, str | Path):
+            self.capacity = load_capacity(envelope)
+        else:
+            raise MsmillInputError("envelope", type(envelope).__name__,
+                                   "'default', an envelope JSON path, a CapacityModel or None")
+
+    def check_capacity(self, feed: PSD, operating_point: Any) -> Any:
+        """:class:`~msmill.capacity.CapacityCheck` of a feed and operating point (None without an envelope)."""
+        from msmill.capacity import check_capacity
+
+        op = _operating_point(operating_point)
+        return check_capacity(self.capacity, feed.p80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
 
     # ------------------------------------------------------------------ display
     def __repr__(self) -> str:
@@ -295,7 +329,20 @@ class Mill:
         max_steps = integer(max_steps, "max_steps", ge=1)
         limit(max_steps, "max_steps", "time_steps")
         with _single_threaded_blas():
-            return self._run(feed, op, timeseries, max_steps)
+            res = self._run(feed, op, timeseries, max_steps)
+        return self._with_capacity(res, feed, op)
+
+    def _with_capacity(self, res: MillResult, feed: PSD, op: Any) -> MillResult:
+        """Warn above the envelope's capacity; capacity, probability and a note in the result."""
+        from msmill.capacity import AboveCapacityWarning
+
+        chk = self.check_capacity(feed, op)
+        if chk is None:
+            return res
+        if chk.above:
+            warnings.warn(chk.message(), AboveCapacityWarning, stacklevel=3)
+        return dataclasses.replace(res, capacity_tph=chk.capacity_tph, probability_steady=chk.probability_steady,
+                                   notes=(*res.notes, chk.message()))
 
     def _run(self, feed: PSD, op: Any, timeseries: bool, max_steps: int) -> MillResult:
         grid = self.model_grid(feed)

@@ -9,8 +9,12 @@ per tonne; ``msmill.model.power``), hold-up, % passing at a size, whether the
 point is inside the design space, and whether it is feasible.
 
 Feasibility hook: ``feasible(op, result) -> bool`` (default: every point is
-feasible). A capacity limit (e.g. the largest feed rate the mill can pass at
-a speed and gate) plugs in here and applies to sweeps and the optimiser alike.
+feasible). The mill's DEM operating envelope (``Mill(envelope=...)``, by
+default the shipped one, :mod:`msmill.capacity`) is a constraint on top of it:
+every row carries ``capacity_tph`` (at the feed's F80, speed and gate),
+``p_steady`` (probability the mill passes the feed) and ``above_capacity``,
+and a point above capacity is infeasible, in sweeps and the optimiser alike.
+:func:`capacity_feasible` makes the same constraint from another envelope.
 
 Note: with a stage-parameter table measured at one operating point, the
 transport and impact statistics do not change with feed rate or gate, so the
@@ -34,7 +38,7 @@ import pandas as pd
 from msmill.errors import MsmillInputError, OutOfDomainWarning
 from msmill.psd import PSD, SizeGrid
 
-__all__ = ["VARIABLES", "OptimumResult", "evaluate_point", "optimize", "optimize_settings",
+__all__ = ["VARIABLES", "OptimumResult", "capacity_feasible", "evaluate_point", "optimize", "optimize_settings",
            "pareto_front", "sweep"]
 
 VARIABLES = ("speed_rpm", "feed_tph", "gate_deg", "feed_scale")
@@ -52,6 +56,25 @@ def _check_vars(names: Any) -> None:
     bad = [n for n in names if n not in VARIABLES]
     if bad:
         raise MsmillInputError("variable", bad[0], "one of " + ", ".join(VARIABLES))
+
+
+def capacity_feasible(model: Any) -> Feasible:
+    """Feasibility hook: the point's feed rate is within ``model``'s capacity (a :class:`CapacityModel`)."""
+    from msmill.capacity import check_capacity
+
+    def feasible(op: Any, res: Any) -> bool:
+        chk = check_capacity(model, res.f80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
+        return chk is None or not chk.above
+
+    return feasible
+
+
+def _capacity_columns(res: Any) -> dict[str, Any]:
+    cap = getattr(res, "capacity_tph", None)
+    if cap is None:
+        return {"capacity_tph": float("nan"), "p_steady": float("nan"), "above_capacity": False}
+    return {"capacity_tph": float(cap), "p_steady": float(res.probability_steady),
+            "above_capacity": bool(res.feed_tph > cap)}
 
 
 def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float],
@@ -75,7 +98,8 @@ def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float
            "specific_energy_kwh_t": pw.specific_energy_kwh_t, "power_kw": pw.total_kw,
            "holdup_t": float(res.stages["holdup_t"].sum()),
            "inside_design_space": not any("design space" in str(w.message) for w in caught),
-           "feasible": bool(feasible(op, res)) if feasible is not None else True}
+           **_capacity_columns(res)}
+    row["feasible"] = (bool(feasible(op, res)) if feasible is not None else True) and not row["above_capacity"]
     band = getattr(res, "p80_band_mm", None)  # uncertainty band (issue 13), when the result has one
     if band is not None:
         row["p80_low_mm"], row["p80_high_mm"] = float(band[0]), float(band[1])

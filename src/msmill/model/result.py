@@ -74,6 +74,10 @@ class MillResult:
         The same p05/p95 columns are appended to ``psd_table``.
     band_samples : int
         Number of posterior samples behind the band (0: no band).
+    capacity_tph, probability_steady : float or None
+        Capacity at the feed's F80, speed and gate from the mill's DEM
+        envelope (:mod:`msmill.capacity`), and the probability that the mill
+        passes the requested feed there; None without an envelope.
     """
 
     feed_psd: PSD
@@ -102,6 +106,8 @@ class MillResult:
     p80_band_mm: tuple[float, float] | None = None
     psd_band: pd.DataFrame | None = None
     band_samples: int = 0
+    capacity_tph: float | None = None
+    probability_steady: float | None = None
 
     def summary(self) -> pd.Series:
         """Headline figures as a Series (index names carry the units)."""
