@@ -154,7 +154,7 @@ def test_shipped_envelope_matches_the_shipped_export():
     runs = read_export(default_export_dir())
     if path is None:  # allowed only when the export holds no choked run (no upper bound to fit)
         assert not any(r.outcome == "choked" for r in runs), "the export has choked runs: build the envelope"
-        pytest.skip("no envelope ships: the export holds no choked run")
+        return  # no envelope ships, rightly: the export holds no choked run
     env = EnvelopeData.from_json(path)
     assert {r["content_hash"] for r in env.provenance["runs"] if r["source"].startswith("export:")} == \
         {r.content_hash for r in runs}
