@@ -205,3 +205,13 @@ def test_count_must_match_lambda_and_round_trips(tmp_path):
     d["stages"][0]["secondary_count_histogram"] = [5, -1]
     with pytest.raises(MsmillInputError, match="histogram"):
         RunStatistics.from_dict(d)
+
+
+def test_negative_binomial_of_a_vanishing_mean_is_a_mixture():
+    # hypothesis found mean = 5e-324: the quadrature's Gamma quantiles underflowed to an empty rule
+    from msmill.stageparams import CountDistribution
+
+    for mean in (5e-324, 1e-300, 1e-12):
+        d = CountDistribution.negative_binomial(mean, 1.3)
+        assert np.isclose(sum(d.weights), 1.0) and min(d.means) >= 0.0
+        assert np.dot(d.weights, d.means) == pytest.approx(mean, rel=1e-9, abs=1e-320)

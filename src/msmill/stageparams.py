@@ -189,9 +189,11 @@ def negative_binomial_mixture(mean: float, size: float, n_nodes: int = NB_QUADRA
     """
     from scipy import special, stats
 
-    theta = mean / size
     if mean <= 0:
         return np.array([1.0]), np.array([0.0])
+    # the Gamma's shape depends on ``size`` only: build the rule at scale 1 and rescale to ``mean`` below
+    # (at the scale mean/size itself, a tiny mean, e.g. 5e-324, underflowed the quantiles to an empty rule)
+    theta = 1.0
     if size < 1:
         u, w = special.roots_genlaguerre(_NB_FINE_NODES, size - 1.0)
         s, w = np.sqrt(theta * u), w / special.gamma(size)
