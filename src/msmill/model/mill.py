@@ -15,7 +15,6 @@ Example
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import warnings
 from pathlib import Path
@@ -31,6 +30,7 @@ from msmill.model.montecarlo import MonteCarloSolver
 from msmill.model.providers import StageParameterProvider, load_provider
 from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
+from msmill.threads import single_threaded
 from msmill.validate import InputWarning, integer, limit, number
 
 SOLVERS = ("expected_value", "monte_carlo")
@@ -55,19 +55,12 @@ DEFAULT_BAND_QUADRATURE_NODES = 4
 DEFAULT_BAND_DAMAGE_CLASSES = 4
 
 
-@contextlib.contextmanager
 def _single_threaded_blas():
     """Run BLAS single-threaded: the model's matrices are small (tens to hundreds of rows),
-    threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x.
-    Uses ``threadpoolctl`` when it is installed (it comes with scikit-learn); else a no-op.
+    threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x
+    (:func:`msmill.threads.single_threaded`: the library scan is made once per process).
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        yield
-        return
-    with threadpool_limits(1, user_api="blas"):
-        yield
+    return single_threaded("blas")
 
 
 def breakage_parameters(ore: Any) -> sm.BreakageParameters:
