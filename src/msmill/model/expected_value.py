@@ -21,6 +21,7 @@ weighted sum of those per-component operators (:func:`secondary_series`). The st
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from msmill.errors import MsmillError
-from msmill.model.parameters import MixtureArrays
+from msmill.model.parameters import CountArrays, MixtureArrays
 from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
 
 
@@ -102,32 +103,70 @@ def split_damage(d_new: np.ndarray, n_classes: int, threshold: float) -> tuple[n
 def impact_operator(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
                     n_nodes: int) -> ImpactOperator:
     """Build the one-impact operator of one stage (mixture arrays of shape (N, K))."""
+    m = MixtureArrays(*(np.asarray(a, dtype=float)[None] for a in (mix.weights, mix.means_m_s, mix.sigmas_m_s)))
+    op = impact_operators(edges_mm, m, breakage, damage, n_damage, n_nodes)
+    return ImpactOperator(op.survive[0], op.fragments[0], op.mean_energy_kwh_t[0])
+
+
+#: Largest array (elements) :func:`impact_operators` makes at once; bigger batches go in chunks.
+BATCH_ELEMENTS = 1 << 21
+
+
+def impact_operators(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
+                     n_nodes: int) -> ImpactOperator:
+    """One-impact operators of a batch of velocity distributions (mixture arrays (B, N, K)).
+
+    The batch is folded into the damage axis of the sub-model calls (they are
+    elementwise in energy, size and damage, and ``expected_fragments`` works
+    column by column), so a batch costs about one stage's number of numpy calls.
+
+    Returns
+    -------
+    ImpactOperator
+        With a leading batch axis: ``survive`` (B, N, nd, nd), ``fragments``
+        (B, N, N, nd), ``mean_energy_kwh_t`` (B, N).
+    """
+    v, w = quadrature(mix, n_nodes)  # (B, N, Q)
+    b, n, q = v.shape
+    per = n * q * n_damage * (1 if hasattr(breakage, "expected_fragments") else n)
+    step = max(1, BATCH_ELEMENTS // per)
+    parts = [_impact_chunk(edges_mm, v[i:i + step], w[i:i + step], breakage, damage, n_damage)
+             for i in range(0, b, step)]
+    return ImpactOperator(*(np.concatenate(a) for a in zip(*parts, strict=True)))
+
+
+def _impact_chunk(edges_mm, v, w, breakage, damage, nd) -> tuple[np.ndarray, ...]:
+    """:func:`impact_operators` of one chunk: velocities and weights (B, N, Q)."""
+    b, n, q = v.shape
     mids = np.sqrt(edges_mm[:-1] * edges_mm[1:])
-    n = mids.size
     th = float(damage.threshold)
-    dn = damage_nodes(n_damage, th)
-    v, w = quadrature(mix, n_nodes)  # (N, Q)
     e = specific_energy_kwh_t(v)
+    cols = b * nd  # folded (batch, damage) columns
+    fold = lambda a: np.broadcast_to(np.moveaxis(a, 0, -1)[..., None], (n, q, b, nd)).reshape(n, q, cols)  # noqa: E731
+    ef = fold(e)
+    dn = np.tile(damage_nodes(nd, th), b)[None, None, :]
     L = mids[:, None, None]
-    pb = breakage.probability(e[..., None], L, dn[None, None, :])  # (N, Q, nd)
-    d_new = damage.after_impact(e[..., None], L, dn[None, None, :])
+    pb = breakage.probability(ef, L, dn)  # (N, Q, cols)
+    d_new = damage.after_impact(ef, L, dn)
     broke_thr = d_new >= th
     pbr = pb + (1.0 - pb) * broke_thr
+    wf = fold(w)
     if hasattr(breakage, "expected_fragments"):  # optional fast path of the sub-model
-        frag = breakage.expected_fragments(edges_mm, pb, w[..., None] * pbr)
+        frag = breakage.expected_fragments(edges_mm, pb, wf * pbr)
     else:
         parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
-        cols = breakage.fragments(edges_mm, parent, pb)  # (N, Q, nd, N)
-        frag = np.einsum("iq,iqd,iqdk->kid", w, pbr, cols)
-    surv = w[..., None] * (1.0 - pbr)  # (N, Q, nd)
-    lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), n_damage, th)
-    classes = np.arange(n_damage)
-    onehot_lo = (lo[..., None] == classes)  # (N, Q, nd, nd2)
-    onehot_hi = ((lo + 1)[..., None] == classes)
-    S = np.einsum("iqd,iqde->ied", surv * (1.0 - frac), onehot_lo) + \
-        np.einsum("iqd,iqde->ied", surv * frac, onehot_hi)
-    mean_e = np.sum(w * e, axis=-1)
-    return ImpactOperator(S, frag, mean_e)
+        frag = np.einsum("iqd,iqdk->kid", wf * pbr, breakage.fragments(edges_mm, parent, pb))
+    surv = wf * (1.0 - pbr)  # (N, Q, cols)
+    lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), nd, th)
+    # survivors of (i, column) land in damage classes lo and lo + 1 (frac = 0 at the top class)
+    row = np.arange(n)[:, None, None] * nd
+    col = np.arange(cols)[None, None, :]
+    size = n * nd * cols
+    S = (np.bincount(((row + lo) * cols + col).ravel(), (surv * (1.0 - frac)).ravel(), size)
+         + np.bincount(((row + np.minimum(lo + 1, nd - 1)) * cols + col).ravel(), (surv * frac).ravel(), size))
+    S = np.moveaxis(S.reshape(n, nd, b, nd), 2, 0)  # (B, N, nd2, nd)
+    frag = np.moveaxis(frag.reshape(n, n, b, nd), 2, 0)  # (B, N_k, N_i, nd)
+    return S, frag, np.sum(w * e, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -269,37 +308,69 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
                    n_damage: int, n_nodes: int) -> StageOperator:
     """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
 
-    ``stage`` is the 0-based stage index into the (S, N) arrays of ``stats``.
+    ``stage`` is the 0-based stage index into the (S, N) arrays of ``stats``
+    (:func:`stage_operators` of that stage).
     """
-    n = edges_mm.size - 1
+    sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
+    c = stats.count_mixture()
+    op = stage_operators(edges_mm, stats.hit_probability[stage], sub(stats.primary_velocity),
+                         sub(stats.secondary_velocity), CountArrays(c.weights[stage], c.means[stage]),
+                         breakage, damage, n_damage, n_nodes)
+    return op
+
+
+def stage_operators(edges_mm: np.ndarray, hit: np.ndarray, primary: MixtureArrays, secondary: MixtureArrays,
+                    counts: CountArrays, breakage, damage, n_damage: int, n_nodes: int) -> StageOperator:
+    """Stage operators of any batch of stages: primary impact with probability ``h``, then secondaries.
+
+    Parameters
+    ----------
+    hit : ndarray (..., N)
+        Primary hit probability per size class; the leading axes are the batch
+        (e.g. stages, or samples and stages).
+    primary, secondary : MixtureArrays
+        Velocity mixtures (..., N, K) (m/s).
+    counts : CountArrays
+        Secondary-count mixtures (..., N, C).
+
+    Returns
+    -------
+    StageOperator
+        Arrays with the batch's leading axes: ``G`` (..., n_s, n_s), the counts
+        and energies (..., n_s).
+    """
+    hit = np.asarray(hit, dtype=float)
+    lead, n = hit.shape[:-1], hit.shape[-1]
     nd = n_damage
     ns = n * nd
-    h = np.repeat(stats.hit_probability[stage], nd)
-    sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
-    prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
-    sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
-    Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
-    counts = stats.count_mixture()
-    eA, phi = secondary_series(sec.survive, counts.weights[stage], counts.means[stage])
+    flat = lambda m: MixtureArrays(*(np.asarray(a, dtype=float).reshape(-1, n, np.shape(a)[-1])  # noqa: E731
+                                     for a in (m.weights, m.means_m_s, m.sigmas_m_s)))
+    hh = hit.reshape(-1, n)  # (B, N)
+    bsz = hh.shape[0]
+    prim = impact_operators(edges_mm, flat(primary), breakage, damage, nd, n_nodes)
+    sec = impact_operators(edges_mm, flat(secondary), breakage, damage, nd, n_nodes)
+    Sp = prim.survive  # (B, N, nd, nd) blocks of the block-diagonal survivor operator
+    cw, cm = (np.asarray(a, dtype=float) for a in (counts.weights, counts.means))
+    eA, phi = secondary_series(sec.survive.reshape(-1, nd, nd), cw.reshape(bsz * n, -1), cm.reshape(bsz * n, -1))
+    eA, phi = eA.reshape(bsz, n, nd, nd), phi.reshape(bsz, n, nd, nd)
     # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
-    surv = np.einsum("ide,ief->idf", eA, Sp)
-    frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))
-    hh = stats.hit_probability[stage]  # (N,)
-    G = np.zeros((n, nd, n, nd))
+    phiSp = phi @ Sp
+    frag = prim.fragments + np.einsum("bkie,bief->bkif", sec.fragments, phiSp)
+    G = np.zeros((bsz, n, nd, n, nd))
     ii = np.arange(n)
-    G[ii, :, ii, :] = surv * hh[:, None, None]
-    G[:, 0, :, :] += frag * hh[None, :, None]
-    G = G.reshape(ns, ns)
-    G[np.arange(ns), np.arange(ns)] += 1.0 - h
-    cnt = np.einsum("ide,ief->if", phi, Sp)  # expected secondary impacts per primary survivor
-    sec_count = (cnt * hh[:, None]).reshape(ns)
-    sec_energy = (cnt * (sec.mean_energy_kwh_t * hh)[:, None]).reshape(ns)
+    G[:, ii, :, ii, :] = np.moveaxis((eA @ Sp) * hh[..., None, None], 0, 1)
+    G[:, :, 0, :, :] += frag * hh[:, None, :, None]
+    G = G.reshape(bsz, ns, ns)
+    h = np.repeat(hh, nd, axis=-1)  # (B, ns)
+    G[:, np.arange(ns), np.arange(ns)] += 1.0 - h
+    cnt = phiSp.sum(axis=-2)  # (B, N, nd): expected secondary impacts per primary survivor
+    shape = lambda a: a.reshape(*lead, *a.shape[1:])  # noqa: E731
     return StageOperator(
-        G=G,
-        primary_count=h,
-        primary_energy_kwh_t=h * np.repeat(prim.mean_energy_kwh_t, nd),
-        secondary_count=sec_count,
-        secondary_energy_kwh_t=sec_energy,
+        G=shape(G),
+        primary_count=shape(h),
+        primary_energy_kwh_t=shape(h * np.repeat(prim.mean_energy_kwh_t, nd, axis=-1)),
+        secondary_count=shape((cnt * hh[..., None]).reshape(bsz, ns)),
+        secondary_energy_kwh_t=shape((cnt * (sec.mean_energy_kwh_t * hh)[..., None]).reshape(bsz, ns)),
     )
 
 
@@ -379,7 +450,10 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     n = edges_mm.size - 1
     nd = n_damage
     ns = n * nd
-    stage_ops = [stage_operator(edges_mm, stats, s, breakage, damage, nd, n_nodes) for s in range(n_st)]
+    batch = stage_operators(edges_mm, stats.hit_probability, stats.primary_velocity, stats.secondary_velocity,
+                            stats.count_mixture(), breakage, damage, nd, n_nodes)  # all stages at once
+    stage_ops = [StageOperator(*(getattr(batch, f.name)[s] for f in dataclasses.fields(StageOperator)))
+                 for s in range(n_st)]
     if impacted not in ("refeed", "all"):  # pragma: no cover - validated by Mill
         raise ValueError(impacted)
 
