@@ -226,7 +226,9 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
       the number of components.
 
     ``"auto"`` (default) uses the series unless ``k_max`` would exceed
-    :data:`SERIES_MAX_IMPACTS`.
+    :data:`SERIES_MAX_IMPACTS`, with the size classes (rows) grouped by the
+    ``k_max`` they need (powers of two from :data:`SERIES_MIN_GROUP`), so a
+    large batch is not summed as far as its largest mean needs.
 
     Parameters
     ----------
@@ -244,11 +246,35 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
     w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
     if method not in ("auto", "series", "expm"):
         raise ValueError(method)
-    if method != "expm":
-        tails = _count_tails(w, lam, SERIES_MAX_IMPACTS if method == "auto" else None)
-        if tails is not None:
-            return _power_series(survive, *tails)
-    return _expm_series(survive, w, lam)
+    if method == "expm":
+        return _expm_series(survive, w, lam)
+    if method == "series":
+        return _series_or_expm(survive, w, lam, None)
+    eA, phi = np.empty(survive.shape), np.empty(survive.shape)
+    for rows in _series_groups(w, lam):
+        eA[rows], phi[rows] = _series_or_expm(survive[rows], w[rows], lam[rows], SERIES_MAX_IMPACTS)
+    return eA, phi
+
+
+#: Smallest series length of a group of rows in :func:`secondary_series` ("auto").
+SERIES_MIN_GROUP = 64
+
+
+def _k_max(lam_max: np.ndarray) -> np.ndarray:
+    """Series length for a largest Poisson mean ``lam_max`` (the mass beyond is below 1e-30)."""
+    return (lam_max + 12.0 * np.sqrt(lam_max) + 40).astype(int)
+
+
+def _series_groups(w: np.ndarray, lam: np.ndarray) -> list[np.ndarray]:
+    """Rows grouped by the series length they need (powers of two from :data:`SERIES_MIN_GROUP`)."""
+    k = _k_max(np.max(np.where(w > 0, lam, 0.0), axis=-1, initial=0.0))
+    g = np.ceil(np.log2(np.maximum(k, SERIES_MIN_GROUP) / SERIES_MIN_GROUP)).astype(int)
+    return [np.flatnonzero(g == v) for v in np.unique(g)]
+
+
+def _series_or_expm(survive, w, lam, k_cap) -> tuple[np.ndarray, np.ndarray]:
+    tails = _count_tails(w, lam, k_cap)
+    return _power_series(survive, *tails) if tails is not None else _expm_series(survive, w, lam)
 
 
 def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -256,7 +282,7 @@ def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.
     from scipy import special
 
     lam_max = float(lam[w > 0].max()) if np.any(w > 0) else 0.0
-    k_max = int(lam_max + 12.0 * np.sqrt(lam_max) + 40)  # Poisson mass beyond: < 1e-30
+    k_max = int(_k_max(np.array(lam_max)))  # Poisson mass beyond: < 1e-30
     if k_cap is not None and k_max > k_cap:
         return None
     k = np.arange(k_max + 2, dtype=float)
@@ -483,3 +509,115 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     out_op = sp.hstack([collapse @ b for b in out_blocks], format="csr")
     return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
                       n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)
+
+
+def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactStatistics], breakage, damage,
+                    n_damage: int, n_nodes: int, impacted: str, feed_fractions: np.ndarray,
+                    tonnes_per_step: np.ndarray) -> np.ndarray:
+    """Steady-state product of a batch of mills (e.g. posterior samples), solved together.
+
+    Equal (to rounding) to ``assemble(...).out_op @ assemble(...).steady_state(f)``
+    for each member, but batched: the stage operators of all members and
+    stages in one :func:`stage_operators` call, then one sweep over the size
+    classes from the top (:func:`_size_sweep`): rock only moves between
+    compartments and damage classes within its size class or breaks into
+    smaller (or the same) classes, so ``(I - M) x = f`` is block-triangular in
+    size and each class is a small dense solve of (compartments x damage
+    classes) unknowns for all members at once. Members that cannot be stacked
+    (different shapes or feed compartments) or breakage that puts mass above
+    its parent class go through :func:`assemble` one by one.
+
+    Parameters
+    ----------
+    transports : list of Transition or ndarray (S, N, 3)
+        One-step transport of every member.
+    stats : list of ImpactStatistics
+        Impact statistics (S, N) of every member.
+    feed_fractions : ndarray (N,)
+        Feed mass fractions per size class.
+    tonnes_per_step : ndarray (B,)
+        Feed of one step of every member (t).
+
+    Returns
+    -------
+    ndarray (B, N)
+        Product of one step at steady state by size class (t).
+    """
+    trs = [as_transition(t) for t in transports]
+    tps = np.asarray(tonnes_per_step, dtype=float)
+    stacked = _stack_members(trs, stats)
+    if stacked is not None:
+        T, hit, prim, sec, counts = stacked
+        ops = stage_operators(edges_mm, hit, prim, sec, counts, breakage, damage, n_damage, n_nodes)
+        b, n_st, n = hit.shape
+        G4 = ops.G.reshape(b, n_st, n, n_damage, n, n_damage)
+        if not np.any(G4.transpose(0, 1, 3, 5, 2, 4)[..., np.tril(np.ones((n, n), dtype=bool), -1)]):
+            f = np.zeros((b, n_st + 1, n, n_damage))
+            f[:, trs[0].feed_compartment, :, 0] = np.asarray(feed_fractions, dtype=float) * tps[:, None]
+            return _size_sweep(T, G4, ops.G, f, impacted)
+    out = []
+    for tr, st, t in zip(trs, stats, tps, strict=True):
+        lm = assemble(edges_mm, tr, st, breakage, damage, n_damage, n_nodes, impacted)
+        out.append(np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(feed_fractions, t))))
+    return np.array(out)
+
+
+def _stack_members(trs: list, stats: list[ImpactStatistics]) -> tuple | None:
+    """Transition matrices (B, C, N, C+1) and the stats' arrays with a leading member axis, or None."""
+    if len({(t.matrix.shape, t.feed_compartment) for t in trs}) != 1:
+        return None
+    counts = [s.count_mixture() for s in stats]
+    arrays = {"hit": [s.hit_probability for s in stats], "cw": [c.weights for c in counts],
+              "cm": [c.means for c in counts]}
+    for kind in ("primary_velocity", "secondary_velocity"):
+        for f in ("weights", "means_m_s", "sigmas_m_s"):
+            arrays[kind[0] + f] = [getattr(getattr(s, kind), f) for s in stats]
+    if any(len({np.shape(a) for a in v}) != 1 for v in arrays.values()):
+        return None
+    a = {k: np.stack([np.asarray(x, dtype=float) for x in v]) for k, v in arrays.items()}
+    mix = lambda p: MixtureArrays(a[p + "weights"], a[p + "means_m_s"], a[p + "sigmas_m_s"])  # noqa: E731
+    return (np.stack([t.matrix for t in trs]), a["hit"], mix("p"), mix("s"), CountArrays(a["cw"], a["cm"]))
+
+
+def _size_sweep(T: np.ndarray, G4: np.ndarray, G: np.ndarray, f: np.ndarray, impacted: str) -> np.ndarray:
+    """Steady state of a batch of mills by size class from the top; returns the product (B, N) (t/step).
+
+    ``T`` (B, C, N, C+1) transitions, ``G4`` the stage operators (B, S, N, nd, N, nd)
+    (``G`` the same as (B, S, ns, ns)), ``f`` the feed of one step (B, C, N, nd).
+    With ``impacted="refeed"`` a stage's operator acts on the mass that stays
+    (``G_c T_cc``), with ``"all"`` on all its mass before it moves (``T_c. G_c``).
+    """
+    b, n_c, n, nd = f.shape
+    m = n_c * nd
+    ii = np.arange(n)
+    Gd = np.moveaxis(G4[:, :, ii, :, ii, :], 0, 2)  # (B, S, N, nd, nd): within-class blocks
+    Tt = np.moveaxis(T[..., :n_c], 1, -1)  # (B, N, C2, C)
+    A = Tt[:, :, :, None, :, None] * np.eye(nd)[:, None, :]  # (B, N, C2, nd, C, nd): moves
+    stay = np.moveaxis(T[:, 1:, :, 1:][:, np.arange(n_c - 1), :, np.arange(n_c - 1)], 0, 1)  # (B, S, N)
+    for c in range(1, n_c):
+        if impacted == "refeed":
+            A[:, :, c, :, c, :] = Gd[:, c - 1] * stay[:, c - 1, :, None, None]
+        else:
+            A[:, :, :, :, c, :] = Tt[:, :, :, c, None, None] * Gd[:, c - 1][:, :, None]
+    A = np.eye(m) - A.reshape(b, n, m, m)
+    x = np.zeros((b, n_c, n, nd))
+    h = np.zeros((b, n_c - 1, n, nd))  # fragments from larger classes, per stage and class
+    for i in range(n - 1, -1, -1):
+        r = f[:, :, i].copy()
+        if impacted == "refeed":
+            r[:, 1:] += h[:, :, i]
+        else:
+            r += np.einsum("bcs,bsd->bcd", Tt[:, i, :, 1:], h[:, :, i])
+        try:
+            x[:, :, i] = np.linalg.solve(A[:, i], r.reshape(b, m, 1)).reshape(b, n_c, nd)
+        except np.linalg.LinAlgError:
+            x[:, :, i] = np.nan
+        u = x[:, 1:, i] * (stay[:, :, i, None] if impacted == "refeed" else 1.0)  # (B, S, nd)
+        h[:, :, :i] += np.einsum("bskxd,bsd->bskx", G4[:, :, :i, :, i, :], u)
+    if not np.all(np.isfinite(x)):
+        raise MsmillError("the mill never empties (no outflow for some rock); check the bottom stage's pass-through")
+    x = np.maximum(x, 0.0)
+    if impacted == "refeed":
+        return np.einsum("bcn,bcn->bn", T[..., -1], x.sum(axis=-1))
+    hit = (G @ x[:, 1:].reshape(b, n_c - 1, n * nd, 1)).reshape(b, n_c - 1, n, nd)
+    return T[:, 0, :, -1] * x[:, 0].sum(axis=-1) + np.einsum("bcn,bcn->bn", T[:, 1:, :, -1], hit.sum(axis=-1))
