@@ -108,8 +108,9 @@ def impact_operator(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, 
     return ImpactOperator(op.survive[0], op.fragments[0], op.mean_energy_kwh_t[0])
 
 
-#: Largest array (elements) :func:`impact_operators` makes at once; bigger batches go in chunks.
-BATCH_ELEMENTS = 1 << 21
+#: Largest array (elements) :func:`impact_operators` makes at once; bigger batches go in chunks
+#: (work arrays that stay in cache: one 2M-element chunk instead is 1.5x slower).
+BATCH_ELEMENTS = 1 << 17
 
 
 def impact_operators(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
@@ -196,8 +197,10 @@ def _block_diag(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Largest number of secondary impacts summed by the power series before falling back to expm.
-SERIES_MAX_IMPACTS = 2000
+#: Smallest and largest series length of a group of rows in :func:`secondary_series` ("auto");
+#: a group needing more terms goes through expm.
+SERIES_MIN_GROUP = 64
+SERIES_MAX_GROUP = 256
 _SERIES_TAIL = 1e-18  # P(K > k_max) and the neglected part of E[K] stay below this (per unit mass)
 
 
@@ -225,10 +228,12 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
       cancellation; the cost is ``k_max`` batched products, independent of
       the number of components.
 
-    ``"auto"`` (default) uses the series unless ``k_max`` would exceed
-    :data:`SERIES_MAX_IMPACTS`, with the size classes (rows) grouped by the
-    ``k_max`` they need (powers of two from :data:`SERIES_MIN_GROUP`), so a
-    large batch is not summed as far as its largest mean needs.
+    ``"auto"`` (default) groups the size classes (rows) by the ``k_max`` they
+    need (powers of two from :data:`SERIES_MIN_GROUP`), so a large batch is
+    not summed as far as its largest mean needs, and uses the series for a
+    group up to :data:`SERIES_MAX_GROUP` terms, ``expm`` beyond (a few rows
+    with large means: ``k_max`` products of a few matrices cost more than
+    their ``expm``).
 
     Parameters
     ----------
@@ -252,12 +257,9 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
         return _series_or_expm(survive, w, lam, None)
     eA, phi = np.empty(survive.shape), np.empty(survive.shape)
     for rows in _series_groups(w, lam):
-        eA[rows], phi[rows] = _series_or_expm(survive[rows], w[rows], lam[rows], SERIES_MAX_IMPACTS)
+        eA[rows], phi[rows] = _series_or_expm(survive[rows], w[rows], lam[rows], SERIES_MAX_GROUP)
     return eA, phi
 
-
-#: Smallest series length of a group of rows in :func:`secondary_series` ("auto").
-SERIES_MIN_GROUP = 64
 
 
 def _k_max(lam_max: np.ndarray) -> np.ndarray:
@@ -296,15 +298,30 @@ def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.
 
 
 def _power_series(survive: np.ndarray, pk: np.ndarray, qk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sum_k pk S^k`` and ``sum_k qk S^k`` per row, each row to its own length.
+
+    A row stops after the first ``k`` where ``P(K > k)`` and ``sum_{j > k} P(K > j)``
+    are both below the series tolerance (what it neglects of every column is
+    below that); rows are sorted by length so each step multiplies only the
+    rows still running (a prefix).
+    """
     n, nd, _ = survive.shape
+    tail_q = np.cumsum(qk[:, ::-1], axis=1)[:, ::-1] - qk  # sum_{j > k} P(K > j)
+    done = (qk <= _SERIES_TAIL) & (tail_q <= _SERIES_TAIL)
+    length = np.where(done.any(axis=1), np.argmax(done, axis=1), qk.shape[1] - 1) + 1  # terms per row
+    order = np.argsort(-length, kind="stable")
+    S, p, q = survive[order], pk[order], qk[order]
+    running = np.searchsorted(-length[order], -np.arange(length.max()), side="right")  # rows still at term j
     power = np.broadcast_to(np.eye(nd), (n, nd, nd)).copy()
     eA = np.zeros((n, nd, nd))
     phi = np.zeros((n, nd, nd))
-    for j in range(pk.shape[1]):  # loop over the impact number, batched over size classes
-        eA += pk[:, j, None, None] * power
-        phi += qk[:, j, None, None] * power
-        power = survive @ power
-    return eA, phi
+    for j, r in enumerate(running):  # loop over the impact number, batched over the running rows
+        eA[:r] += p[:r, j, None, None] * power[:r]
+        phi[:r] += q[:r, j, None, None] * power[:r]
+        power[:r] = S[:r] @ power[:r]
+    out_eA, out_phi = np.empty_like(eA), np.empty_like(phi)
+    out_eA[order], out_phi[order] = eA, phi
+    return out_eA, out_phi
 
 
 def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,18 @@ from msmill.surrogate.stage_model import StageSurrogate
 from msmill.surrogate.targets import count_arrays_from_summary, decode_inlet_destinations
 
 _UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
+#: Rows per call of :func:`count_arrays_from_summary` (its (rows, 400) work arrays stay in cache:
+#: ~15x faster than one call over a whole band's 64 x 5 x N rows).
+COUNT_CHUNK_ROWS = 256
+
+
+def _count_arrays(mean: np.ndarray, var_ratio: np.ndarray, p_zero: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`count_arrays_from_summary` over arrays of any shape, in chunks of :data:`COUNT_CHUNK_ROWS`."""
+    flat = [np.asarray(a, dtype=float).ravel() for a in (mean, var_ratio, p_zero)]
+    parts = [count_arrays_from_summary(*(a[i:i + COUNT_CHUNK_ROWS] for a in flat))
+             for i in range(0, flat[0].size, COUNT_CHUNK_ROWS)]
+    shape = (*np.shape(mean), -1)
+    return tuple(np.concatenate([p[k] for p in parts]).reshape(shape) for k in (0, 1))
 
 
 class SurrogateProvider:
@@ -124,7 +136,7 @@ class SurrogateProvider:
         streams, hit, lam = get(lambda p: p.streams), get(lambda p: p.hit_probability), get(lambda p: p.secondary_lambda)
         counts = None
         if preds[0].count_var_ratio is not None:  # the runs carried count distributions (schema v2)
-            counts = [per(a) for a in count_arrays_from_summary(
+            counts = [per(a) for a in _count_arrays(
                 np.stack([p.secondary_lambda for p in preds]), np.stack([p.count_var_ratio for p in preds]),
                 np.stack([p.count_p_zero for p in preds]))]
         tr = None
