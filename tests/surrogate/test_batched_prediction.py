@@ -21,7 +21,7 @@ from msmill.model.expected_value import assemble
 from msmill.psd import PSD, SizeGrid
 from msmill.surrogate.gp import sqrt_factor
 from msmill.surrogate.provider import SurrogateProvider
-from msmill.threads import single_threaded
+from msmill.threadpools import single_threaded
 
 SPEEDS = [1500.0] * 4 + [3000.0]
 SIZES = np.geomspace(0.5, 40.0, 12)

@@ -30,7 +30,7 @@ from msmill.model.montecarlo import MonteCarloSolver
 from msmill.model.providers import StageParameterProvider, load_provider
 from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
-from msmill.threads import single_threaded
+from msmill.threadpools import single_threaded
 from msmill.validate import InputWarning, integer, limit, number
 
 SOLVERS = ("expected_value", "monte_carlo")
@@ -58,7 +58,7 @@ DEFAULT_BAND_DAMAGE_CLASSES = 4
 def _single_threaded_blas():
     """Run BLAS single-threaded: the model's matrices are small (tens to hundreds of rows),
     threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x
-    (:func:`msmill.threads.single_threaded`: the library scan is made once per process).
+    (:func:`msmill.threadpools.single_threaded`: the library scan is made once per process).
     """
     return single_threaded("blas")
 

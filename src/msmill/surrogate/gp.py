@@ -25,7 +25,7 @@ from scipy.linalg import cho_solve
 
 from msmill.errors import MsmillInputError
 from msmill.surrogate.space import DesignSpace
-from msmill.threads import single_threaded
+from msmill.threadpools import single_threaded
 
 #: Bounds of the (unit-cube) ARD length scales, the signal variances and the white level.
 LENGTH_SCALE_BOUNDS = (5e-2, 1e2)
