@@ -102,7 +102,8 @@ def _members(rng, n_members, matrix):
 
 @pytest.mark.parametrize("impacted", ["refeed", "all"])
 @pytest.mark.parametrize("matrix", [True, False], ids=["dem_matrix", "streams"])
-def test_steady_products_equal_assemble_one_by_one(impacted, matrix):
+def test_steady_products_equal_assemble_one_by_one(impacted, matrix, monkeypatch):
+    monkeypatch.setattr(ev, "STEADY_CHUNK_MEMBERS", 2)  # 5 members: chunks of 2, 2, 1
     rng = np.random.default_rng(11)
     transports, stats = _members(rng, 5, matrix)
     feed = rng.dirichlet(np.ones(N))

@@ -528,6 +528,10 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
                       n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)
 
 
+#: Members solved together by :func:`steady_products` (more go in chunks of this many).
+STEADY_CHUNK_MEMBERS = 64
+
+
 def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactStatistics], breakage, damage,
                     n_damage: int, n_nodes: int, impacted: str, feed_fractions: np.ndarray,
                     tonnes_per_step: np.ndarray) -> np.ndarray:
@@ -542,7 +546,8 @@ def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactSt
     size and each class is a small dense solve of (compartments x damage
     classes) unknowns for all members at once. Members that cannot be stacked
     (different shapes or feed compartments) or breakage that puts mass above
-    its parent class go through :func:`assemble` one by one.
+    its parent class go through :func:`assemble` one by one; more than
+    :data:`STEADY_CHUNK_MEMBERS` members are solved in chunks of that many.
 
     Parameters
     ----------
@@ -562,6 +567,11 @@ def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactSt
     """
     trs = [as_transition(t) for t in transports]
     tps = np.asarray(tonnes_per_step, dtype=float)
+    k = STEADY_CHUNK_MEMBERS
+    if len(trs) > k:  # bounded memory (stage operators of 64 members: ~20 MB at 21 classes, 4 damage classes)
+        return np.concatenate([steady_products(edges_mm, trs[i:i + k], stats[i:i + k], breakage, damage, n_damage,
+                                               n_nodes, impacted, feed_fractions, tps[i:i + k])
+                               for i in range(0, len(trs), k)])
     stacked = _stack_members(trs, stats)
     if stacked is not None:
         T, hit, prim, sec, counts = stacked
