@@ -86,7 +86,10 @@ def _fields_close(a, b, path=""):
         assert a == b, path
 
 
-def test_batched_decode_equals_one_sample_at_a_time(provider):
+def test_batched_decode_equals_one_sample_at_a_time(provider, monkeypatch):
+    import msmill.surrogate.provider as prov
+
+    monkeypatch.setattr(prov, "DECODE_CHUNK_SETS", 3)  # 5 sets: batches of 3 and 2
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         X = provider._inputs(SIZES, SPEEDS, 30.0, 40.0)

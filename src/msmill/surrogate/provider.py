@@ -28,6 +28,8 @@ from msmill.surrogate.stage_model import StageSurrogate
 from msmill.surrogate.targets import count_arrays_from_summary, decode_inlet_destinations
 
 _UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
+#: Sets of target rows decoded together by ``SurrogateProvider._params``.
+DECODE_CHUNK_SETS = 64
 #: Rows per call of :func:`count_arrays_from_summary` (its (rows, 400) work arrays stay in cache:
 #: ~15x faster than one call over a whole band's 64 x 5 x N rows).
 COUNT_CHUNK_ROWS = 256
@@ -124,7 +126,10 @@ class SurrogateProvider:
             warnings.warn(f"{self.source}: extrapolating: " + "; ".join(msgs), OutOfDomainWarning, stacklevel=3)
 
     def _params(self, Ys: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray) -> list[StageParameters]:
-        """Stage parameters of target rows ``Ys`` (n, S, N, T): all ``n`` sets decoded in one batch."""
+        """Stage parameters of target rows ``Ys`` (n, S, N, T): the sets decoded in batches of up to 64."""
+        if len(Ys) > DECODE_CHUNK_SETS:  # bounded memory: the decode copies the rows
+            return [p for i in range(0, len(Ys), DECODE_CHUNK_SETS)
+                    for p in self._params(Ys[i:i + DECODE_CHUNK_SETS], sizes_mm, X)]
         m = self.surrogate
         n, S, N, T = Ys.shape
         flat = np.swapaxes(Ys, 0, 1).reshape(S, n * N, T)  # every set's rows side by side
