@@ -492,7 +492,6 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     n_st = tr.n_stages
     n = edges_mm.size - 1
     nd = n_damage
-    ns = n * nd
     batch = stage_operators(edges_mm, stats.hit_probability, stats.primary_velocity, stats.secondary_velocity,
                             stats.count_mixture(), breakage, damage, nd, n_nodes)  # all stages at once
     stage_ops = [StageOperator(*(getattr(batch, f.name)[s] for f in dataclasses.fields(StageOperator)))
@@ -500,32 +499,52 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     if impacted not in ("refeed", "all"):  # pragma: no cover - validated by Mill
         raise ValueError(impacted)
 
-    def move(c: int, c2: int) -> sp.dia_matrix:
-        return sp.diags(np.repeat(T[c, :, c2], nd))
-
-    blocks: list[list] = [[None] * (n_st + 1) for _ in range(n_st + 1)]
-    imp_blocks: list = [sp.csr_matrix((ns, ns))]
-    out_blocks: list = []
-    for c in range(n_st + 1):
-        G = sp.csr_matrix(stage_ops[c - 1].G) if c >= 1 else None
-        for c2 in range(n_st + 2):
-            if G is None or (impacted == "refeed" and c2 != c):
-                b = move(c, c2)  # the inlet zone is not impacted; with "refeed" only what stays is
-            elif impacted == "refeed":
-                b = G @ move(c, c2)
-            else:
-                b = move(c, c2) @ G  # "all": impacts first, then the products move
-            if c2 == n_st + 1:
-                out_blocks.append(b)
-            elif np.any(T[c, :, c2]) or c2 == c:
-                blocks[c2][c] = b
-        if c >= 1:
-            imp_blocks.append(move(c, c) if impacted == "refeed" else sp.identity(ns))
-    M = sp.bmat(blocks, format="csr")
-    collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
-    out_op = sp.hstack([collapse @ b for b in out_blocks], format="csr")
-    return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
+    M, out_op, imp = _step_matrices(T, batch.G, n, nd, impacted)
+    return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops,
                       n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)
+
+
+def _step_matrices(T: np.ndarray, G: np.ndarray, n: int, nd: int, impacted: str) -> tuple[sp.csr_matrix, ...]:
+    """Step operator ``M``, product operator and impacted-mass operator, built as one COO each.
+
+    ``T`` (C, N, C+1) transitions, ``G`` (S, ns, ns) stage operators. Block
+    ``(c2, c)`` of ``M`` moves compartment ``c``'s mass to ``c2``
+    (``diag(T[c, :, c2])`` per damage class); a stage's impacts act on the
+    mass that stays (``"refeed"``: block ``(c, c)`` is ``G_c diag(T_cc)``) or on
+    all its mass before it moves (``"all"``: blocks ``diag(T_c.) G_c``).
+    """
+    n_c = T.shape[0]
+    ns = n * nd
+    t = np.repeat(T, nd, axis=1)  # (C, ns, C+1): per state
+    k = np.arange(ns)
+    rows, cols, vals = [], [], []
+    o_rows, o_cols, o_vals = [], [], []
+
+    def add(r, c, v, out=False):
+        keep = v != 0.0
+        (o_rows if out else rows).append(r[keep])
+        (o_cols if out else cols).append(c[keep])
+        (o_vals if out else vals).append(v[keep])
+
+    for c in range(n_c):
+        impacts = c >= 1
+        for c2 in range(n_c + 1):
+            out = c2 == n_c
+            if not impacts or (impacted == "refeed" and c2 != c):  # a move (the inlet zone is not impacted)
+                add(k // nd if out else c2 * ns + k, c * ns + k, t[c, :, c2], out)
+                continue
+            B = G[c - 1] * t[c, :, c2][None, :] if impacted == "refeed" else t[c, :, c2][:, None] * G[c - 1]
+            if out:
+                B = B.reshape(n, nd, ns).sum(axis=1)
+            r, q = np.nonzero(B)
+            add(r if out else c2 * ns + r, c * ns + q, B[r, q], out)
+    size = n_c * ns
+    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    out_op = sp.csr_matrix((np.concatenate(o_vals), (np.concatenate(o_rows), np.concatenate(o_cols))),
+                           shape=(n, size))
+    d = np.concatenate([np.zeros(ns)] + [t[c, :, c] if impacted == "refeed" else np.ones(ns)
+                                          for c in range(1, n_c)])
+    return M, out_op, sp.diags(d, format="csr")
 
 
 #: Members solved together by :func:`steady_products` (more go in chunks of this many).
