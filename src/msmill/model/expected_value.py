@@ -21,6 +21,7 @@ weighted sum of those per-component operators (:func:`secondary_series`). The st
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from msmill.errors import MsmillError
-from msmill.model.parameters import MixtureArrays
+from msmill.model.parameters import CountArrays, MixtureArrays
 from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
 
 
@@ -102,32 +103,71 @@ def split_damage(d_new: np.ndarray, n_classes: int, threshold: float) -> tuple[n
 def impact_operator(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
                     n_nodes: int) -> ImpactOperator:
     """Build the one-impact operator of one stage (mixture arrays of shape (N, K))."""
+    m = MixtureArrays(*(np.asarray(a, dtype=float)[None] for a in (mix.weights, mix.means_m_s, mix.sigmas_m_s)))
+    op = impact_operators(edges_mm, m, breakage, damage, n_damage, n_nodes)
+    return ImpactOperator(op.survive[0], op.fragments[0], op.mean_energy_kwh_t[0])
+
+
+#: Largest array (elements) :func:`impact_operators` makes at once; bigger batches go in chunks
+#: (work arrays that stay in cache: one 2M-element chunk instead is 1.5x slower).
+BATCH_ELEMENTS = 1 << 17
+
+
+def impact_operators(edges_mm: np.ndarray, mix: MixtureArrays, breakage, damage, n_damage: int,
+                     n_nodes: int) -> ImpactOperator:
+    """One-impact operators of a batch of velocity distributions (mixture arrays (B, N, K)).
+
+    The batch is folded into the damage axis of the sub-model calls (they are
+    elementwise in energy, size and damage, and ``expected_fragments`` works
+    column by column), so a batch costs about one stage's number of numpy calls.
+
+    Returns
+    -------
+    ImpactOperator
+        With a leading batch axis: ``survive`` (B, N, nd, nd), ``fragments``
+        (B, N, N, nd), ``mean_energy_kwh_t`` (B, N).
+    """
+    v, w = quadrature(mix, n_nodes)  # (B, N, Q)
+    b, n, q = v.shape
+    per = n * q * n_damage * (1 if hasattr(breakage, "expected_fragments") else n)
+    step = max(1, BATCH_ELEMENTS // per)
+    parts = [_impact_chunk(edges_mm, v[i:i + step], w[i:i + step], breakage, damage, n_damage)
+             for i in range(0, b, step)]
+    return ImpactOperator(*(np.concatenate(a) for a in zip(*parts, strict=True)))
+
+
+def _impact_chunk(edges_mm, v, w, breakage, damage, nd) -> tuple[np.ndarray, ...]:
+    """:func:`impact_operators` of one chunk: velocities and weights (B, N, Q)."""
+    b, n, q = v.shape
     mids = np.sqrt(edges_mm[:-1] * edges_mm[1:])
-    n = mids.size
     th = float(damage.threshold)
-    dn = damage_nodes(n_damage, th)
-    v, w = quadrature(mix, n_nodes)  # (N, Q)
     e = specific_energy_kwh_t(v)
+    cols = b * nd  # folded (batch, damage) columns
+    fold = lambda a: np.broadcast_to(np.moveaxis(a, 0, -1)[..., None], (n, q, b, nd)).reshape(n, q, cols)  # noqa: E731
+    ef = fold(e)
+    dn = np.tile(damage_nodes(nd, th), b)[None, None, :]
     L = mids[:, None, None]
-    pb = breakage.probability(e[..., None], L, dn[None, None, :])  # (N, Q, nd)
-    d_new = damage.after_impact(e[..., None], L, dn[None, None, :])
+    pb = breakage.probability(ef, L, dn)  # (N, Q, cols)
+    d_new = damage.after_impact(ef, L, dn)
     broke_thr = d_new >= th
     pbr = pb + (1.0 - pb) * broke_thr
+    wf = fold(w)
     if hasattr(breakage, "expected_fragments"):  # optional fast path of the sub-model
-        frag = breakage.expected_fragments(edges_mm, pb, w[..., None] * pbr)
+        frag = breakage.expected_fragments(edges_mm, pb, wf * pbr)
     else:
         parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
-        cols = breakage.fragments(edges_mm, parent, pb)  # (N, Q, nd, N)
-        frag = np.einsum("iq,iqd,iqdk->kid", w, pbr, cols)
-    surv = w[..., None] * (1.0 - pbr)  # (N, Q, nd)
-    lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), n_damage, th)
-    classes = np.arange(n_damage)
-    onehot_lo = (lo[..., None] == classes)  # (N, Q, nd, nd2)
-    onehot_hi = ((lo + 1)[..., None] == classes)
-    S = np.einsum("iqd,iqde->ied", surv * (1.0 - frac), onehot_lo) + \
-        np.einsum("iqd,iqde->ied", surv * frac, onehot_hi)
-    mean_e = np.sum(w * e, axis=-1)
-    return ImpactOperator(S, frag, mean_e)
+        frag = np.einsum("iqd,iqdk->kid", wf * pbr, breakage.fragments(edges_mm, parent, pb))
+    surv = wf * (1.0 - pbr)  # (N, Q, cols)
+    lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), nd, th)
+    # survivors of (i, column) land in damage classes lo and lo + 1 (frac = 0 at the top class)
+    row = np.arange(n)[:, None, None] * nd
+    col = np.arange(cols)[None, None, :]
+    size = n * nd * cols
+    S = (np.bincount(((row + lo) * cols + col).ravel(), (surv * (1.0 - frac)).ravel(), size)
+         + np.bincount(((row + np.minimum(lo + 1, nd - 1)) * cols + col).ravel(), (surv * frac).ravel(), size))
+    S = np.moveaxis(S.reshape(n, nd, b, nd), 2, 0)  # (B, N, nd2, nd)
+    frag = np.moveaxis(frag.reshape(n, n, b, nd), 2, 0)  # (B, N_k, N_i, nd)
+    return S, frag, np.sum(w * e, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -157,8 +197,10 @@ def _block_diag(blocks: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Largest number of secondary impacts summed by the power series before falling back to expm.
-SERIES_MAX_IMPACTS = 2000
+#: Smallest and largest series length of a group of rows in :func:`secondary_series` ("auto");
+#: a group needing more terms goes through expm.
+SERIES_MIN_GROUP = 64
+SERIES_MAX_GROUP = 256
 _SERIES_TAIL = 1e-18  # P(K > k_max) and the neglected part of E[K] stay below this (per unit mass)
 
 
@@ -186,8 +228,12 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
       cancellation; the cost is ``k_max`` batched products, independent of
       the number of components.
 
-    ``"auto"`` (default) uses the series unless ``k_max`` would exceed
-    :data:`SERIES_MAX_IMPACTS`.
+    ``"auto"`` (default) groups the size classes (rows) by the ``k_max`` they
+    need (powers of two from :data:`SERIES_MIN_GROUP`), so a large batch is
+    not summed as far as its largest mean needs, and uses the series for a
+    group up to :data:`SERIES_MAX_GROUP` terms, ``expm`` beyond (a few rows
+    with large means: ``k_max`` products of a few matrices cost more than
+    their ``expm``).
 
     Parameters
     ----------
@@ -205,11 +251,32 @@ def secondary_series(survive: np.ndarray, weights: np.ndarray, means: np.ndarray
     w, lam = np.asarray(weights, dtype=float), np.asarray(means, dtype=float)
     if method not in ("auto", "series", "expm"):
         raise ValueError(method)
-    if method != "expm":
-        tails = _count_tails(w, lam, SERIES_MAX_IMPACTS if method == "auto" else None)
-        if tails is not None:
-            return _power_series(survive, *tails)
-    return _expm_series(survive, w, lam)
+    if method == "expm":
+        return _expm_series(survive, w, lam)
+    if method == "series":
+        return _series_or_expm(survive, w, lam, None)
+    eA, phi = np.empty(survive.shape), np.empty(survive.shape)
+    for rows in _series_groups(w, lam):
+        eA[rows], phi[rows] = _series_or_expm(survive[rows], w[rows], lam[rows], SERIES_MAX_GROUP)
+    return eA, phi
+
+
+
+def _k_max(lam_max: np.ndarray) -> np.ndarray:
+    """Series length for a largest Poisson mean ``lam_max`` (the mass beyond is below 1e-30)."""
+    return (lam_max + 12.0 * np.sqrt(lam_max) + 40).astype(int)
+
+
+def _series_groups(w: np.ndarray, lam: np.ndarray) -> list[np.ndarray]:
+    """Rows grouped by the series length they need (powers of two from :data:`SERIES_MIN_GROUP`)."""
+    k = _k_max(np.max(np.where(w > 0, lam, 0.0), axis=-1, initial=0.0))
+    g = np.ceil(np.log2(np.maximum(k, SERIES_MIN_GROUP) / SERIES_MIN_GROUP)).astype(int)
+    return [np.flatnonzero(g == v) for v in np.unique(g)]
+
+
+def _series_or_expm(survive, w, lam, k_cap) -> tuple[np.ndarray, np.ndarray]:
+    tails = _count_tails(w, lam, k_cap)
+    return _power_series(survive, *tails) if tails is not None else _expm_series(survive, w, lam)
 
 
 def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -217,7 +284,7 @@ def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.
     from scipy import special
 
     lam_max = float(lam[w > 0].max()) if np.any(w > 0) else 0.0
-    k_max = int(lam_max + 12.0 * np.sqrt(lam_max) + 40)  # Poisson mass beyond: < 1e-30
+    k_max = int(_k_max(np.array(lam_max)))  # Poisson mass beyond: < 1e-30
     if k_cap is not None and k_max > k_cap:
         return None
     k = np.arange(k_max + 2, dtype=float)
@@ -231,15 +298,30 @@ def _count_tails(w: np.ndarray, lam: np.ndarray, k_cap: int | None) -> tuple[np.
 
 
 def _power_series(survive: np.ndarray, pk: np.ndarray, qk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sum_k pk S^k`` and ``sum_k qk S^k`` per row, each row to its own length.
+
+    A row stops after the first ``k`` where ``P(K > k)`` and ``sum_{j > k} P(K > j)``
+    are both below the series tolerance (what it neglects of every column is
+    below that); rows are sorted by length so each step multiplies only the
+    rows still running (a prefix).
+    """
     n, nd, _ = survive.shape
+    tail_q = np.cumsum(qk[:, ::-1], axis=1)[:, ::-1] - qk  # sum_{j > k} P(K > j)
+    done = (qk <= _SERIES_TAIL) & (tail_q <= _SERIES_TAIL)
+    length = np.where(done.any(axis=1), np.argmax(done, axis=1), qk.shape[1] - 1) + 1  # terms per row
+    order = np.argsort(-length, kind="stable")
+    S, p, q = survive[order], pk[order], qk[order]
+    running = np.searchsorted(-length[order], -np.arange(length.max()), side="right")  # rows still at term j
     power = np.broadcast_to(np.eye(nd), (n, nd, nd)).copy()
     eA = np.zeros((n, nd, nd))
     phi = np.zeros((n, nd, nd))
-    for j in range(pk.shape[1]):  # loop over the impact number, batched over size classes
-        eA += pk[:, j, None, None] * power
-        phi += qk[:, j, None, None] * power
-        power = survive @ power
-    return eA, phi
+    for j, r in enumerate(running):  # loop over the impact number, batched over the running rows
+        eA[:r] += p[:r, j, None, None] * power[:r]
+        phi[:r] += q[:r, j, None, None] * power[:r]
+        power[:r] = S[:r] @ power[:r]
+    out_eA, out_phi = np.empty_like(eA), np.empty_like(phi)
+    out_eA[order], out_phi[order] = eA, phi
+    return out_eA, out_phi
 
 
 def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -269,37 +351,69 @@ def stage_operator(edges_mm: np.ndarray, stats: ImpactStatistics, stage: int, br
                    n_damage: int, n_nodes: int) -> StageOperator:
     """Primary impact with probability ``h``, then Poisson secondary impacts on survivors.
 
-    ``stage`` is the 0-based stage index into the (S, N) arrays of ``stats``.
+    ``stage`` is the 0-based stage index into the (S, N) arrays of ``stats``
+    (:func:`stage_operators` of that stage).
     """
-    n = edges_mm.size - 1
+    sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
+    c = stats.count_mixture()
+    op = stage_operators(edges_mm, stats.hit_probability[stage], sub(stats.primary_velocity),
+                         sub(stats.secondary_velocity), CountArrays(c.weights[stage], c.means[stage]),
+                         breakage, damage, n_damage, n_nodes)
+    return op
+
+
+def stage_operators(edges_mm: np.ndarray, hit: np.ndarray, primary: MixtureArrays, secondary: MixtureArrays,
+                    counts: CountArrays, breakage, damage, n_damage: int, n_nodes: int) -> StageOperator:
+    """Stage operators of any batch of stages: primary impact with probability ``h``, then secondaries.
+
+    Parameters
+    ----------
+    hit : ndarray (..., N)
+        Primary hit probability per size class; the leading axes are the batch
+        (e.g. stages, or samples and stages).
+    primary, secondary : MixtureArrays
+        Velocity mixtures (..., N, K) (m/s).
+    counts : CountArrays
+        Secondary-count mixtures (..., N, C).
+
+    Returns
+    -------
+    StageOperator
+        Arrays with the batch's leading axes: ``G`` (..., n_s, n_s), the counts
+        and energies (..., n_s).
+    """
+    hit = np.asarray(hit, dtype=float)
+    lead, n = hit.shape[:-1], hit.shape[-1]
     nd = n_damage
     ns = n * nd
-    h = np.repeat(stats.hit_probability[stage], nd)
-    sub = lambda m: MixtureArrays(m.weights[stage], m.means_m_s[stage], m.sigmas_m_s[stage])  # noqa: E731
-    prim = impact_operator(edges_mm, sub(stats.primary_velocity), breakage, damage, nd, n_nodes)
-    sec = impact_operator(edges_mm, sub(stats.secondary_velocity), breakage, damage, nd, n_nodes)
-    Sp = prim.survive  # (N, nd, nd) blocks of the block-diagonal survivor operator
-    counts = stats.count_mixture()
-    eA, phi = secondary_series(sec.survive, counts.weights[stage], counts.means[stage])
+    flat = lambda m: MixtureArrays(*(np.asarray(a, dtype=float).reshape(-1, n, np.shape(a)[-1])  # noqa: E731
+                                     for a in (m.weights, m.means_m_s, m.sigmas_m_s)))
+    hh = hit.reshape(-1, n)  # (B, N)
+    bsz = hh.shape[0]
+    prim = impact_operators(edges_mm, flat(primary), breakage, damage, nd, n_nodes)
+    sec = impact_operators(edges_mm, flat(secondary), breakage, damage, nd, n_nodes)
+    Sp = prim.survive  # (B, N, nd, nd) blocks of the block-diagonal survivor operator
+    cw, cm = (np.asarray(a, dtype=float) for a in (counts.weights, counts.means))
+    eA, phi = secondary_series(sec.survive.reshape(-1, nd, nd), cw.reshape(bsz * n, -1), cm.reshape(bsz * n, -1))
+    eA, phi = eA.reshape(bsz, n, nd, nd), phi.reshape(bsz, n, nd, nd)
     # after a primary hit: survivors of primary and secondaries, and all fragments (class k)
-    surv = np.einsum("ide,ief->idf", eA, Sp)
-    frag = prim.fragments + np.einsum("kie,ief->kif", sec.fragments, np.einsum("ide,ief->idf", phi, Sp))
-    hh = stats.hit_probability[stage]  # (N,)
-    G = np.zeros((n, nd, n, nd))
+    phiSp = phi @ Sp
+    frag = prim.fragments + np.einsum("bkie,bief->bkif", sec.fragments, phiSp)
+    G = np.zeros((bsz, n, nd, n, nd))
     ii = np.arange(n)
-    G[ii, :, ii, :] = surv * hh[:, None, None]
-    G[:, 0, :, :] += frag * hh[None, :, None]
-    G = G.reshape(ns, ns)
-    G[np.arange(ns), np.arange(ns)] += 1.0 - h
-    cnt = np.einsum("ide,ief->if", phi, Sp)  # expected secondary impacts per primary survivor
-    sec_count = (cnt * hh[:, None]).reshape(ns)
-    sec_energy = (cnt * (sec.mean_energy_kwh_t * hh)[:, None]).reshape(ns)
+    G[:, ii, :, ii, :] = np.moveaxis((eA @ Sp) * hh[..., None, None], 0, 1)
+    G[:, :, 0, :, :] += frag * hh[:, None, :, None]
+    G = G.reshape(bsz, ns, ns)
+    h = np.repeat(hh, nd, axis=-1)  # (B, ns)
+    G[:, np.arange(ns), np.arange(ns)] += 1.0 - h
+    cnt = phiSp.sum(axis=-2)  # (B, N, nd): expected secondary impacts per primary survivor
+    shape = lambda a: a.reshape(*lead, *a.shape[1:])  # noqa: E731
     return StageOperator(
-        G=G,
-        primary_count=h,
-        primary_energy_kwh_t=h * np.repeat(prim.mean_energy_kwh_t, nd),
-        secondary_count=sec_count,
-        secondary_energy_kwh_t=sec_energy,
+        G=shape(G),
+        primary_count=shape(h),
+        primary_energy_kwh_t=shape(h * np.repeat(prim.mean_energy_kwh_t, nd, axis=-1)),
+        secondary_count=shape((cnt * hh[..., None]).reshape(bsz, ns)),
+        secondary_energy_kwh_t=shape((cnt * (sec.mean_energy_kwh_t * hh)[..., None]).reshape(bsz, ns)),
     )
 
 
@@ -378,34 +492,178 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     n_st = tr.n_stages
     n = edges_mm.size - 1
     nd = n_damage
-    ns = n * nd
-    stage_ops = [stage_operator(edges_mm, stats, s, breakage, damage, nd, n_nodes) for s in range(n_st)]
+    batch = stage_operators(edges_mm, stats.hit_probability, stats.primary_velocity, stats.secondary_velocity,
+                            stats.count_mixture(), breakage, damage, nd, n_nodes)  # all stages at once
+    stage_ops = [StageOperator(*(getattr(batch, f.name)[s] for f in dataclasses.fields(StageOperator)))
+                 for s in range(n_st)]
     if impacted not in ("refeed", "all"):  # pragma: no cover - validated by Mill
         raise ValueError(impacted)
 
-    def move(c: int, c2: int) -> sp.dia_matrix:
-        return sp.diags(np.repeat(T[c, :, c2], nd))
-
-    blocks: list[list] = [[None] * (n_st + 1) for _ in range(n_st + 1)]
-    imp_blocks: list = [sp.csr_matrix((ns, ns))]
-    out_blocks: list = []
-    for c in range(n_st + 1):
-        G = sp.csr_matrix(stage_ops[c - 1].G) if c >= 1 else None
-        for c2 in range(n_st + 2):
-            if G is None or (impacted == "refeed" and c2 != c):
-                b = move(c, c2)  # the inlet zone is not impacted; with "refeed" only what stays is
-            elif impacted == "refeed":
-                b = G @ move(c, c2)
-            else:
-                b = move(c, c2) @ G  # "all": impacts first, then the products move
-            if c2 == n_st + 1:
-                out_blocks.append(b)
-            elif np.any(T[c, :, c2]) or c2 == c:
-                blocks[c2][c] = b
-        if c >= 1:
-            imp_blocks.append(move(c, c) if impacted == "refeed" else sp.identity(ns))
-    M = sp.bmat(blocks, format="csr")
-    collapse = sp.kron(sp.identity(n), np.ones((1, nd)))
-    out_op = sp.hstack([collapse @ b for b in out_blocks], format="csr")
-    return LinearMill(M=M, out_op=out_op, impacted=sp.block_diag(imp_blocks, format="csr"), stages=stage_ops,
+    M, out_op, imp = _step_matrices(T, batch.G, n, nd, impacted)
+    return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops,
                       n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)
+
+
+def _step_matrices(T: np.ndarray, G: np.ndarray, n: int, nd: int, impacted: str) -> tuple[sp.csr_matrix, ...]:
+    """Step operator ``M``, product operator and impacted-mass operator, built as one COO each.
+
+    ``T`` (C, N, C+1) transitions, ``G`` (S, ns, ns) stage operators. Block
+    ``(c2, c)`` of ``M`` moves compartment ``c``'s mass to ``c2``
+    (``diag(T[c, :, c2])`` per damage class); a stage's impacts act on the
+    mass that stays (``"refeed"``: block ``(c, c)`` is ``G_c diag(T_cc)``) or on
+    all its mass before it moves (``"all"``: blocks ``diag(T_c.) G_c``).
+    """
+    n_c = T.shape[0]
+    ns = n * nd
+    t = np.repeat(T, nd, axis=1)  # (C, ns, C+1): per state
+    k = np.arange(ns)
+    rows, cols, vals = [], [], []
+    o_rows, o_cols, o_vals = [], [], []
+
+    def add(r, c, v, out=False):
+        keep = v != 0.0
+        (o_rows if out else rows).append(r[keep])
+        (o_cols if out else cols).append(c[keep])
+        (o_vals if out else vals).append(v[keep])
+
+    for c in range(n_c):
+        impacts = c >= 1
+        for c2 in range(n_c + 1):
+            out = c2 == n_c
+            if not impacts or (impacted == "refeed" and c2 != c):  # a move (the inlet zone is not impacted)
+                add(k // nd if out else c2 * ns + k, c * ns + k, t[c, :, c2], out)
+                continue
+            B = G[c - 1] * t[c, :, c2][None, :] if impacted == "refeed" else t[c, :, c2][:, None] * G[c - 1]
+            if out:
+                B = B.reshape(n, nd, ns).sum(axis=1)
+            r, q = np.nonzero(B)
+            add(r if out else c2 * ns + r, c * ns + q, B[r, q], out)
+    size = n_c * ns
+    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    out_op = sp.csr_matrix((np.concatenate(o_vals), (np.concatenate(o_rows), np.concatenate(o_cols))),
+                           shape=(n, size))
+    d = np.concatenate([np.zeros(ns)] + [t[c, :, c] if impacted == "refeed" else np.ones(ns)
+                                          for c in range(1, n_c)])
+    return M, out_op, sp.diags(d, format="csr")
+
+
+#: Members solved together by :func:`steady_products` (more go in chunks of this many).
+STEADY_CHUNK_MEMBERS = 64
+
+
+def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactStatistics], breakage, damage,
+                    n_damage: int, n_nodes: int, impacted: str, feed_fractions: np.ndarray,
+                    tonnes_per_step: np.ndarray) -> np.ndarray:
+    """Steady-state product of a batch of mills (e.g. posterior samples), solved together.
+
+    Equal (to rounding) to ``assemble(...).out_op @ assemble(...).steady_state(f)``
+    for each member, but batched: the stage operators of all members and
+    stages in one :func:`stage_operators` call, then one sweep over the size
+    classes from the top (:func:`_size_sweep`): rock only moves between
+    compartments and damage classes within its size class or breaks into
+    smaller (or the same) classes, so ``(I - M) x = f`` is block-triangular in
+    size and each class is a small dense solve of (compartments x damage
+    classes) unknowns for all members at once. Members that cannot be stacked
+    (different shapes or feed compartments) or breakage that puts mass above
+    its parent class go through :func:`assemble` one by one; more than
+    :data:`STEADY_CHUNK_MEMBERS` members are solved in chunks of that many.
+
+    Parameters
+    ----------
+    transports : list of Transition or ndarray (S, N, 3)
+        One-step transport of every member.
+    stats : list of ImpactStatistics
+        Impact statistics (S, N) of every member.
+    feed_fractions : ndarray (N,)
+        Feed mass fractions per size class.
+    tonnes_per_step : ndarray (B,)
+        Feed of one step of every member (t).
+
+    Returns
+    -------
+    ndarray (B, N)
+        Product of one step at steady state by size class (t).
+    """
+    trs = [as_transition(t) for t in transports]
+    tps = np.asarray(tonnes_per_step, dtype=float)
+    k = STEADY_CHUNK_MEMBERS
+    if len(trs) > k:  # bounded memory (stage operators of 64 members: ~20 MB at 21 classes, 4 damage classes)
+        return np.concatenate([steady_products(edges_mm, trs[i:i + k], stats[i:i + k], breakage, damage, n_damage,
+                                               n_nodes, impacted, feed_fractions, tps[i:i + k])
+                               for i in range(0, len(trs), k)])
+    stacked = _stack_members(trs, stats)
+    if stacked is not None:
+        T, hit, prim, sec, counts = stacked
+        ops = stage_operators(edges_mm, hit, prim, sec, counts, breakage, damage, n_damage, n_nodes)
+        b, n_st, n = hit.shape
+        G4 = ops.G.reshape(b, n_st, n, n_damage, n, n_damage)
+        if not np.any(G4.transpose(0, 1, 3, 5, 2, 4)[..., np.tril(np.ones((n, n), dtype=bool), -1)]):
+            f = np.zeros((b, n_st + 1, n, n_damage))
+            f[:, trs[0].feed_compartment, :, 0] = np.asarray(feed_fractions, dtype=float) * tps[:, None]
+            return _size_sweep(T, G4, ops.G, f, impacted)
+    out = []
+    for tr, st, t in zip(trs, stats, tps, strict=True):
+        lm = assemble(edges_mm, tr, st, breakage, damage, n_damage, n_nodes, impacted)
+        out.append(np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(feed_fractions, t))))
+    return np.array(out)
+
+
+def _stack_members(trs: list, stats: list[ImpactStatistics]) -> tuple | None:
+    """Transition matrices (B, C, N, C+1) and the stats' arrays with a leading member axis, or None."""
+    if len({(t.matrix.shape, t.feed_compartment) for t in trs}) != 1:
+        return None
+    counts = [s.count_mixture() for s in stats]
+    arrays = {"hit": [s.hit_probability for s in stats], "cw": [c.weights for c in counts],
+              "cm": [c.means for c in counts]}
+    for kind in ("primary_velocity", "secondary_velocity"):
+        for f in ("weights", "means_m_s", "sigmas_m_s"):
+            arrays[kind[0] + f] = [getattr(getattr(s, kind), f) for s in stats]
+    if any(len({np.shape(a) for a in v}) != 1 for v in arrays.values()):
+        return None
+    a = {k: np.stack([np.asarray(x, dtype=float) for x in v]) for k, v in arrays.items()}
+    mix = lambda p: MixtureArrays(a[p + "weights"], a[p + "means_m_s"], a[p + "sigmas_m_s"])  # noqa: E731
+    return (np.stack([t.matrix for t in trs]), a["hit"], mix("p"), mix("s"), CountArrays(a["cw"], a["cm"]))
+
+
+def _size_sweep(T: np.ndarray, G4: np.ndarray, G: np.ndarray, f: np.ndarray, impacted: str) -> np.ndarray:
+    """Steady state of a batch of mills by size class from the top; returns the product (B, N) (t/step).
+
+    ``T`` (B, C, N, C+1) transitions, ``G4`` the stage operators (B, S, N, nd, N, nd)
+    (``G`` the same as (B, S, ns, ns)), ``f`` the feed of one step (B, C, N, nd).
+    With ``impacted="refeed"`` a stage's operator acts on the mass that stays
+    (``G_c T_cc``), with ``"all"`` on all its mass before it moves (``T_c. G_c``).
+    """
+    b, n_c, n, nd = f.shape
+    m = n_c * nd
+    ii = np.arange(n)
+    Gd = np.moveaxis(G4[:, :, ii, :, ii, :], 0, 2)  # (B, S, N, nd, nd): within-class blocks
+    Tt = np.moveaxis(T[..., :n_c], 1, -1)  # (B, N, C2, C)
+    A = Tt[:, :, :, None, :, None] * np.eye(nd)[:, None, :]  # (B, N, C2, nd, C, nd): moves
+    stay = np.moveaxis(T[:, 1:, :, 1:][:, np.arange(n_c - 1), :, np.arange(n_c - 1)], 0, 1)  # (B, S, N)
+    for c in range(1, n_c):
+        if impacted == "refeed":
+            A[:, :, c, :, c, :] = Gd[:, c - 1] * stay[:, c - 1, :, None, None]
+        else:
+            A[:, :, :, :, c, :] = Tt[:, :, :, c, None, None] * Gd[:, c - 1][:, :, None]
+    A = np.eye(m) - A.reshape(b, n, m, m)
+    x = np.zeros((b, n_c, n, nd))
+    h = np.zeros((b, n_c - 1, n, nd))  # fragments from larger classes, per stage and class
+    for i in range(n - 1, -1, -1):
+        r = f[:, :, i].copy()
+        if impacted == "refeed":
+            r[:, 1:] += h[:, :, i]
+        else:
+            r += np.einsum("bcs,bsd->bcd", Tt[:, i, :, 1:], h[:, :, i])
+        try:
+            x[:, :, i] = np.linalg.solve(A[:, i], r.reshape(b, m, 1)).reshape(b, n_c, nd)
+        except np.linalg.LinAlgError:
+            x[:, :, i] = np.nan
+        u = x[:, 1:, i] * (stay[:, :, i, None] if impacted == "refeed" else 1.0)  # (B, S, nd)
+        h[:, :, :i] += np.einsum("bskxd,bsd->bskx", G4[:, :, :i, :, i, :], u)
+    if not np.all(np.isfinite(x)):
+        raise MsmillError("the mill never empties (no outflow for some rock); check the bottom stage's pass-through")
+    x = np.maximum(x, 0.0)
+    if impacted == "refeed":
+        return np.einsum("bcn,bcn->bn", T[..., -1], x.sum(axis=-1))
+    hit = (G @ x[:, 1:].reshape(b, n_c - 1, n * nd, 1)).reshape(b, n_c - 1, n, nd)
+    return T[:, 0, :, -1] * x[:, 0].sum(axis=-1) + np.einsum("bcn,bcn->bn", T[:, 1:, :, -1], hit.sum(axis=-1))

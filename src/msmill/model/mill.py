@@ -15,7 +15,6 @@ Example
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import warnings
 from pathlib import Path
@@ -26,11 +25,12 @@ import pandas as pd
 
 from msmill.errors import MsmillInputError, SummaryNote
 from msmill.model import submodels as sm
-from msmill.model.expected_value import LinearMill, assemble
+from msmill.model.expected_value import LinearMill, assemble, steady_products
 from msmill.model.montecarlo import MonteCarloSolver
 from msmill.model.providers import StageParameterProvider, load_provider
 from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
+from msmill.threadpools import single_threaded
 from msmill.validate import InputWarning, integer, limit, number
 
 SOLVERS = ("expected_value", "monte_carlo")
@@ -55,19 +55,12 @@ DEFAULT_BAND_QUADRATURE_NODES = 4
 DEFAULT_BAND_DAMAGE_CLASSES = 4
 
 
-@contextlib.contextmanager
 def _single_threaded_blas():
     """Run BLAS single-threaded: the model's matrices are small (tens to hundreds of rows),
-    threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x.
-    Uses ``threadpoolctl`` when it is installed (it comes with scikit-learn); else a no-op.
+    threads gain nothing and, on a busy machine, spinning BLAS threads cost 10x
+    (:func:`msmill.threadpools.single_threaded`: the library scan is made once per process).
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        yield
-        return
-    with threadpool_limits(1, user_api="blas"):
-        yield
+    return single_threaded("blas")
 
 
 def breakage_parameters(ore: Any) -> sm.BreakageParameters:
@@ -377,7 +370,8 @@ class Mill:
         """Product % passing and P80 of posterior samples of the stage parameters.
 
         Each sample goes through the expected-value solver's steady state
-        (at ``band_damage_classes`` and ``band_quadrature_nodes``).
+        (at ``band_damage_classes`` and ``band_quadrature_nodes``), all samples
+        in one batch (:func:`msmill.model.expected_value.steady_products`).
 
         Returns
         -------
@@ -388,16 +382,16 @@ class Mill:
         speeds = op.stage_speeds(self.provider.n_stages)
         samples = self.provider.sample_stage_parameters(grid.mids_mm, self.band_samples, speeds,
                                                         op.feed_tph, op.gate_deg, seed=self.seed or 0)
+        speeds_rpm = np.asarray(speeds, dtype=float)
+        transports = [sm.transition_of(self.transport, p) for p in samples]
+        stats = [sm.without_stopped_rotors(self.impacts.impacts(p, speeds_rpm), speeds_rpm) for p in samples]
+        tps = np.array([op.feed_tph * p.characteristic_time_s / 3600.0 for p in samples])
+        products = steady_products(grid.edges_mm, transports, stats, self.breakage, self.damage,
+                                   self.band_damage_classes, self.band_quadrature_nodes, self.impacted,
+                                   feed.fractions, tps)  # all samples in one batch
         passing, p80 = [], []
-        for params in samples:
-            streams = sm.transition_of(self.transport, params)
-            stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
-                                              np.asarray(speeds, dtype=float))
-            lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage, self.band_damage_classes,
-                          self.band_quadrature_nodes, self.impacted)
-            tps = op.feed_tph * params.characteristic_time_s / 3600.0
-            product = np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(feed.fractions, tps)))
-            psd = PSD(grid, np.clip(product, 0.0, None) / np.clip(product, 0.0, None).sum(), validate=False)
+        for product in np.clip(products, 0.0, None):
+            psd = PSD(grid, product / product.sum(), validate=False)
             passing.append(psd.passing_pct)
             p80.append(psd.p80_mm)
         return np.array(passing), np.array(p80)

@@ -265,23 +265,57 @@ def transition_of(model: Any, params: StageParameters) -> Transition:
 
 
 # -------------------------------------------------------------- implementations
+#: Condition number of the eigenvector matrix above which :func:`fractional_powers` uses
+#: scipy's Schur-Pade algorithm for that matrix instead of the eigendecomposition.
+EIG_COND_MAX = 1e6
+
+
+def fractional_powers(Q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Real part of the principal powers ``Q_b ** p_b`` of a stack of square matrices (B, m, m).
+
+    By eigendecomposition (``V diag(w**p) V^-1``, principal branch of ``w**p``),
+    batched over the stack; a matrix whose eigenvectors are ill-conditioned
+    (``cond(V) > EIG_COND_MAX``, e.g. nearly defective) goes through
+    ``scipy.linalg.fractional_matrix_power`` instead. Both are the principal
+    fractional power, so they agree to rounding (``cond(V) * eps``).
+    """
+    import scipy.linalg
+
+    Q = np.asarray(Q, dtype=float)
+    p = np.asarray(p, dtype=float)
+    out = np.empty(Q.shape)
+    if Q.shape[0] == 0:
+        return out
+    w, V = np.linalg.eig(Q)
+    try:
+        Vinv = np.linalg.inv(V)
+    except np.linalg.LinAlgError:  # an exactly singular V somewhere: all through scipy
+        Vinv = np.full(V.shape, np.nan)
+    cond = np.abs(V).sum(axis=-2).max(axis=-1) * np.abs(Vinv).sum(axis=-2).max(axis=-1)  # 1-norm
+    ok = np.isfinite(cond) & (cond <= EIG_COND_MAX)
+    if ok.any():
+        wp = np.power(w[ok].astype(complex), p[ok, None])
+        out[ok] = np.real((V[ok] * wp[:, None, :]) @ Vinv[ok])
+    for b in np.flatnonzero(~ok):
+        out[b] = np.real(scipy.linalg.fractional_matrix_power(Q[b], p[b]))
+    return out
+
+
 def _to_step(T: np.ndarray, lag_s: np.ndarray, step_s: float) -> np.ndarray:
     """Transition matrices measured at ``lag_s`` (per class) as matrices for one step of ``step_s``.
 
     ``P(step) = P(lag)**(step / lag)`` (the Markov chain's own rule; real part of the
-    principal fractional power, clipped at 0 and re-normalised). Needed when a
-    table's runs have different characteristic times and the model steps at their mean.
+    principal fractional power, clipped at 0 and re-normalised; all classes in one
+    batch, :func:`fractional_powers`). Needed when a table's runs have different
+    characteristic times and the model steps at their mean.
     """
-    import scipy.linalg
-
     out = T.copy()
     c = T.shape[0]
-    for i in np.flatnonzero(np.abs(lag_s / step_s - 1.0) > 1e-6):
-        Q = np.eye(c + 1)
-        Q[:c] = T[:, i, :]
-        R = np.real(scipy.linalg.fractional_matrix_power(Q, step_s / lag_s[i]))[:c]
-        R = np.maximum(R, 0.0)
-        out[:, i, :] = R / R.sum(axis=-1, keepdims=True)
+    sel = np.flatnonzero(np.abs(lag_s / step_s - 1.0) > 1e-6)
+    Q = np.broadcast_to(np.eye(c + 1), (sel.size, c + 1, c + 1)).copy()
+    Q[:, :c] = np.swapaxes(T[:, sel, :], 0, 1)  # (classes, c, c + 1)
+    R = np.maximum(fractional_powers(Q, step_s / lag_s[sel])[:, :c], 0.0)
+    out[:, sel, :] = np.swapaxes(R / R.sum(axis=-1, keepdims=True), 0, 1)
     return out
 
 
@@ -663,12 +697,16 @@ class TavaresDamage:
         r[-1] = np.nextafter(1.0, 0.0)
         self._r = r
         self._dd = np.asarray(_bk.damage_increment(r, ore.gamma))
+        self._slope = np.diff(self._dd) / np.diff(r)
 
     def after_impact(self, ecs_kwh_t, size_mm, damage):
         d = np.asarray(damage, dtype=float)
         r = np.asarray(_bk.survivor_energy_ratio(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
                                                  self.ore.l_ref_mm, d))
-        dd = np.interp(r, self._r, self._dd)  # tabulated damage_increment(r, gamma)
+        # tabulated damage_increment(r, gamma), linear between nodes: np.interp on the uniform
+        # table, its interval found by index arithmetic instead of a binary search
+        j = np.minimum((r * (self._r.size - 1)).astype(np.intp), self._r.size - 2)
+        dd = self._dd[j] + (r - self._r[j]) * self._slope[j]
         return np.minimum(1.0 - (1.0 - d) * (1.0 - dd), np.nextafter(1.0, 0.0))
 
     def __repr__(self) -> str:

@@ -25,6 +25,7 @@ from scipy.linalg import cho_solve
 
 from msmill.errors import MsmillInputError
 from msmill.surrogate.space import DesignSpace
+from msmill.threadpools import single_threaded
 
 #: Bounds of the (unit-cube) ARD length scales, the signal variances and the white level.
 LENGTH_SCALE_BOUNDS = (5e-2, 1e2)
@@ -71,12 +72,7 @@ def _refactor(gpr: Any, params: dict[str, Any]) -> None:
 
 
 def _threads_one():
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        import contextlib
-        return contextlib.nullcontext()
-    return threadpool_limits(1)
+    return single_threaded()
 
 
 class SurrogateGP:
@@ -177,6 +173,9 @@ class SurrogateGP:
     def predict(self, X: np.ndarray, return_std: bool = False, outputs=None, include_noise: bool = False):
         """Posterior mean (and std) of the targets at ``X`` (P, 4), in target units.
 
+        All targets at once (:class:`_Stacked`: the fitted GPs' kernels and
+        factors as arrays); equal to the estimators' own ``predict`` to rounding.
+
         Parameters
         ----------
         X : ndarray (P, 4)
@@ -196,22 +195,26 @@ class SurrogateGP:
         """
         U = self.design_space.to_unit(np.atleast_2d(X))
         idx = self._outputs(outputs)
-        mean = np.empty((U.shape[0], idx.size))
-        std = np.empty_like(mean)
+        st = self._stacked().take(idx)
         with _threads_one():
-            for c, j in enumerate(idx):
-                e = self.estimators_[j]
-                if return_std:
-                    m, s = e.predict(U, return_std=True)
-                    var = s * s - (0.0 if include_noise else self.white_[j])
-                    std[:, c] = np.sqrt(np.maximum(var, 0.0)) * self.y_std_[j]
-                else:
-                    m = e.predict(U)
-                mean[:, c] = m * self.y_std_[j] + self.y_mean_[j]
-        return (mean, std) if return_std else mean
+            Kt = st.cross(U)  # (T, P, R)
+            mean = np.einsum("tpr,tr->pt", Kt, st.alpha) * st.y_std + st.y_mean
+            if not return_std:
+                return mean
+            V = st.L_inv @ np.swapaxes(Kt, 1, 2)  # (T, R, P)
+            var = st.prior_var[:, None] - np.einsum("trp,trp->tp", V, V)
+            if include_noise:
+                var = var + st.white[:, None]
+            std = np.sqrt(np.maximum(var, 0.0)).T * st.y_std
+        return mean, std
 
     def sample(self, X: np.ndarray, n_samples: int, outputs=None, rng=None) -> np.ndarray:
         """Joint posterior samples of the latent targets over the points ``X``.
+
+        All targets at once (one batched eigendecomposition of the posterior
+        covariances, :func:`sqrt_factor`); the normal deviates are drawn target by target in the
+        order of ``outputs`` (``(n_samples, P)`` each), as one draw per target
+        would.
 
         Returns
         -------
@@ -221,16 +224,24 @@ class SurrogateGP:
         rng = np.random.default_rng(rng)
         U = self.design_space.to_unit(np.atleast_2d(X))
         idx = self._outputs(outputs)
-        out = np.empty((n_samples, U.shape[0], idx.size))
+        st = self._stacked().take(idx)
         with _threads_one():
-            for c, j in enumerate(idx):
-                m, cov = self.estimators_[j].predict(U, return_cov=True)
-                cov = cov - self.white_[j] * np.eye(U.shape[0])
-                w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-                a = v * np.sqrt(np.maximum(w, 0.0))
-                z = rng.standard_normal((n_samples, U.shape[0]))
-                out[:, :, c] = (m + z @ a.T) * self.y_std_[j] + self.y_mean_[j]
-        return out
+            Kt = st.cross(U)  # (T, P, R)
+            mean = np.einsum("tpr,tr->tp", Kt, st.alpha)
+            V = st.L_inv @ np.swapaxes(Kt, 1, 2)  # (T, R, P)
+            cov = st.latent(U, U) - np.swapaxes(V, 1, 2) @ V
+            a = sqrt_factor(cov)
+            z = rng.standard_normal((idx.size, n_samples, U.shape[0]))
+            draws = mean[:, None, :] + z @ np.swapaxes(a, 1, 2)  # (T, n_samples, P)
+        return np.transpose(draws, (1, 2, 0)) * st.y_std + st.y_mean
+
+    def _stacked(self) -> _Stacked:
+        """The fitted estimators as arrays (made once per fit)."""
+        st = self.__dict__.get("_stacked_cache")
+        if st is None or st.source is not self.estimators_:
+            st = _Stacked.of(self)
+            self.__dict__["_stacked_cache"] = st
+        return st
 
     def loo(self) -> tuple[np.ndarray, np.ndarray]:
         """Closed-form leave-one-out mean and variance at the training points (target units).
@@ -252,3 +263,80 @@ class SurrogateGP:
             mean[:, j] = (y - (kinv @ y) / d) * self.y_std_[j] + self.y_mean_[j]
             var[:, j] = self.y_std_[j] ** 2 / d
         return mean, var
+
+
+def sqrt_factor(cov: np.ndarray) -> np.ndarray:
+    """``A`` with ``A A^T = cov`` for (stacks of) covariance matrices (..., P, P): ``V sqrt(max(w, 0))``.
+
+    ``V`` are the eigenvectors of the symmetrised ``cov``, each signed so that
+    its dot product with a fixed irregular positive vector ``g`` is positive.
+    The sign convention makes the factor (and so a posterior draw from given
+    normal deviates) a continuous function of ``cov``: LAPACK's own signs can
+    flip under a change in the last bit of ``cov``, which would turn rounding
+    differences into a different draw. (A "largest component positive" rule
+    is not enough: the eigenvectors over a regular size grid are often
+    symmetric or antisymmetric, with two largest components of equal size.)
+    """
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    g = 2.0 + np.cos(np.sqrt(2.0) * np.arange(v.shape[-1]) + 0.5)
+    v = v * np.where(np.einsum("p,...pk->...k", g, v) < 0.0, -1.0, 1.0)[..., None, :]
+    return v * np.sqrt(np.maximum(w, 0.0))[..., None, :]
+
+
+def _matern(d: np.ndarray, nu: float) -> np.ndarray:
+    """Matern correlation of scaled distances ``d`` (scikit-learn's formulas for nu = 3/2, 5/2)."""
+    if nu == 1.5:
+        k = d * np.sqrt(3.0)
+        return (1.0 + k) * np.exp(-k)
+    k = d * np.sqrt(5.0)
+    return (1.0 + k + k**2 / 3.0) * np.exp(-k)
+
+
+class _Stacked:
+    """Kernel hyperparameters and factors of every fitted GP as arrays over targets (first axis).
+
+    ``alpha`` and ``L_inv`` (the inverse of each Cholesky factor, for the
+    predictive variance) come from the estimators' own factorisation.
+    """
+
+    FIELDS = ("c32", "ls32", "c52", "ls52", "white", "alpha", "L_inv", "y_mean", "y_std")
+
+    def __init__(self, source: Any, X_train: np.ndarray, **arrays: np.ndarray) -> None:
+        self.source = source
+        self.X_train = X_train
+        for k in self.FIELDS:
+            setattr(self, k, arrays[k])
+        self.prior_var = self.c32 + self.c52
+
+    @classmethod
+    def of(cls, gp: SurrogateGP) -> _Stacked:
+        from scipy.linalg import solve_triangular
+
+        hp = gp.hyperparameters()
+        ests = gp.estimators_
+        eye = np.eye(ests[0].X_train_.shape[0])
+        arrays = {
+            "c32": np.array([h["c32"] for h in hp]), "c52": np.array([h["c52"] for h in hp]),
+            "ls32": np.array([np.broadcast_to(h["ls32"], (4,)) for h in hp]),
+            "ls52": np.array([np.broadcast_to(h["ls52"], (4,)) for h in hp]),
+            "white": np.asarray(gp.white_, dtype=float), "alpha": np.array([e.alpha_ for e in ests]),
+            "L_inv": np.array([solve_triangular(e.L_, eye, lower=True) for e in ests]),
+            "y_mean": np.asarray(gp.y_mean_, dtype=float), "y_std": np.asarray(gp.y_std_, dtype=float)}
+        return cls(ests, ests[0].X_train_, **arrays)
+
+    def take(self, idx: np.ndarray) -> _Stacked:
+        """The targets ``idx`` only."""
+        return _Stacked(self.source, self.X_train, **{k: getattr(self, k)[idx] for k in self.FIELDS})
+
+    def latent(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """Latent (noise-free) kernel between unit-cube points ``A`` (P, 4) and ``B`` (Q, 4): (T, P, Q)."""
+        out = 0.0
+        for c, ls, nu in ((self.c32, self.ls32, 1.5), (self.c52, self.ls52, 2.5)):
+            a, b = A[None] / ls[:, None, :], B[None] / ls[:, None, :]
+            d = np.sqrt(np.sum((a[:, :, None, :] - b[:, None, :, :]) ** 2, axis=-1))
+            out = out + c[:, None, None] * _matern(d, nu)
+        return out
+
+    def cross(self, U: np.ndarray) -> np.ndarray:
+        """Kernel between ``U`` (P, 4) and the training inputs: (T, P, R)."""
+        return self.latent(U, self.X_train)

@@ -28,6 +28,20 @@ from msmill.surrogate.stage_model import StageSurrogate
 from msmill.surrogate.targets import count_arrays_from_summary, decode_inlet_destinations
 
 _UNITS = {"size_mm": "mm", "feed_tph": "t/h", "speed_rpm": "rpm", "gate_deg": "deg"}
+#: Sets of target rows decoded together by ``SurrogateProvider._params``.
+DECODE_CHUNK_SETS = 64
+#: Rows per call of :func:`count_arrays_from_summary` (its (rows, 400) work arrays stay in cache:
+#: ~15x faster than one call over a whole band's 64 x 5 x N rows).
+COUNT_CHUNK_ROWS = 256
+
+
+def _count_arrays(mean: np.ndarray, var_ratio: np.ndarray, p_zero: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`count_arrays_from_summary` over arrays of any shape, in chunks of :data:`COUNT_CHUNK_ROWS`."""
+    flat = [np.asarray(a, dtype=float).ravel() for a in (mean, var_ratio, p_zero)]
+    parts = [count_arrays_from_summary(*(a[i:i + COUNT_CHUNK_ROWS] for a in flat))
+             for i in range(0, flat[0].size, COUNT_CHUNK_ROWS)]
+    shape = (*np.shape(mean), -1)
+    return tuple(np.concatenate([p[k] for p in parts]).reshape(shape) for k in (0, 1))
 
 
 class SurrogateProvider:
@@ -111,45 +125,50 @@ class SurrogateProvider:
         if msgs:
             warnings.warn(f"{self.source}: extrapolating: " + "; ".join(msgs), OutOfDomainWarning, stacklevel=3)
 
-    def _params(self, Y: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray) -> StageParameters:
+    def _params(self, Ys: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray) -> list[StageParameters]:
+        """Stage parameters of target rows ``Ys`` (n, S, N, T): the sets decoded in batches of up to 64."""
+        if len(Ys) > DECODE_CHUNK_SETS:  # bounded memory: the decode copies the rows
+            return [p for i in range(0, len(Ys), DECODE_CHUNK_SETS)
+                    for p in self._params(Ys[i:i + DECODE_CHUNK_SETS], sizes_mm, X)]
         m = self.surrogate
-        preds = m.decode(Y)
-        stack = np.stack
-
-        def mix(kind: str) -> MixtureArrays:
-            parts = [getattr(p, kind) for p in preds]
-            return MixtureArrays(*(stack([q[i] for q in parts]) for i in range(3)))
-
+        n, S, N, T = Ys.shape
+        flat = np.swapaxes(Ys, 0, 1).reshape(S, n * N, T)  # every set's rows side by side
+        preds = m.decode(flat)
+        per = lambda a: np.swapaxes(np.reshape(a, (S, n, N, *np.shape(a)[2:])), 0, 1)  # noqa: E731  (n, S, N, ...)
+        get = lambda f: per(np.stack([f(p) for p in preds]))  # noqa: E731
+        mixes = {k: [get(lambda p, k=k, i=i: getattr(p, k)[i]) for i in range(3)]
+                 for k in ("primary_velocity", "secondary_velocity")}
+        streams, hit, lam = get(lambda p: p.streams), get(lambda p: p.hit_probability), get(lambda p: p.secondary_lambda)
         counts = None
         if preds[0].count_var_ratio is not None:  # the runs carried count distributions (schema v2)
-            cw, cm = count_arrays_from_summary(stack([p.secondary_lambda for p in preds]),
-                                               stack([p.count_var_ratio for p in preds]),
-                                               stack([p.count_p_zero for p in preds]))
-            counts = CountArrays(cw, cm)
+            counts = [per(a) for a in _count_arrays(
+                np.stack([p.secondary_lambda for p in preds]), np.stack([p.count_var_ratio for p in preds]),
+                np.stack([p.count_p_zero for p in preds]))]
         tr = None
         if preds[0].destinations is not None:  # the dem_matrix transport: inlet zone row, then every stage's
-            inlet = decode_inlet_destinations(Y[0], m.training_.layout)  # run-level: stage 1's points
-            tr = stack([inlet] + [p.destinations for p in preds])  # (S + 1, N, S + 2)
+            inlet = decode_inlet_destinations(flat[0], m.training_.layout).reshape(n, 1, N, -1)  # stage 1's points
+            tr = np.concatenate([inlet, get(lambda p: p.destinations)], axis=1)  # (n, S + 1, N, S + 2)
         rw = rs = None
         if preds[0].region_weights is not None:
-            rw = stack([p.region_weights for p in preds])
-            rs = stack([p.region_streams for p in preds])
-        return StageParameters(
-            sizes_mm=np.asarray(sizes_mm, dtype=float).copy(),
-            characteristic_time_s=m.characteristic_time_s(Y),
-            streams=stack([p.streams for p in preds]),
-            hit_probability=stack([p.hit_probability for p in preds]),
-            primary_velocity=mix("primary_velocity"),
-            secondary_lambda=stack([p.secondary_lambda for p in preds]),
-            secondary_velocity=mix("secondary_velocity"),
+            rw, rs = get(lambda p: p.region_weights), get(lambda p: p.region_streams)
+        sizes = np.asarray(sizes_mm, dtype=float)
+        extrapolated = m.domain_excess(X)[0, :, 0] > 1e-9  # sizes outside the trained ones
+        lag = np.exp(Ys[:, 0, :, -1])  # each size's matrix was measured at its run's characteristic time
+        return [StageParameters(
+            sizes_mm=sizes.copy(),
+            characteristic_time_s=m.characteristic_time_s(Ys[i]),
+            streams=streams[i], hit_probability=hit[i],
+            primary_velocity=MixtureArrays(*(a[i] for a in mixes["primary_velocity"])),
+            secondary_lambda=lam[i],
+            secondary_velocity=MixtureArrays(*(a[i] for a in mixes["secondary_velocity"])),
             design_stage_speeds_rpm=X[:, 0, 2] * m.speed_factors,
             design_feed_tph=float(X[0, 0, 1]), design_gate_deg=float(X[0, 0, 3]),
-            region_weights=rw, region_streams=rs, source=self.source,
-            velocities_at_requested_speeds=True, secondary_count=counts,
-            extrapolated=m.domain_excess(X)[0, :, 0] > 1e-9,  # sizes outside the trained ones
-            # each size's matrix was measured at its run's characteristic time: the predicted one per size
-            transition=tr, transition_lag_s=None if tr is None else np.exp(Y[0, :, -1]),
-        )
+            region_weights=None if rw is None else rw[i], region_streams=None if rs is None else rs[i],
+            source=self.source, velocities_at_requested_speeds=True,
+            secondary_count=None if counts is None else CountArrays(counts[0][i], counts[1][i]),
+            extrapolated=extrapolated.copy(),
+            transition=None if tr is None else tr[i], transition_lag_s=None if tr is None else lag[i],
+        ) for i in range(n)]
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
         """Posterior-mean stage parameters at ``sizes_mm`` (mm) and the operating point (slice-to-full corrected)."""
@@ -157,7 +176,7 @@ class SurrogateProvider:
         Y = self.surrogate.predict_targets(X)
         if self.correction is not None:
             Y = self.correction.apply(Y)
-        return self._params(Y, sizes_mm, X)
+        return self._params(Y[None], sizes_mm, X)[0]
 
     def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
                                 gate_deg=None, seed: int | None = 0) -> list[StageParameters]:
@@ -170,7 +189,7 @@ class SurrogateProvider:
         Z = self.surrogate.sample_targets(X, n_samples, rng=rng)
         if self.correction is not None:
             Z = self.correction.sample(Z, rng)
-        return [self._params(z, sizes_mm, X) for z in Z]
+        return self._params(Z, sizes_mm, X)
 
     def __repr__(self) -> str:
         return f"SurrogateProvider({self.source}, {self.surrogate!r})"
