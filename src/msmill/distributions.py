@@ -73,9 +73,9 @@ from typing import Any
 import numpy as np
 from scipy import optimize, special, stats
 
-from msmill._threads import one_thread
 from msmill.errors import MsmillInputError
 from msmill.stageparams import CountCandidate, CountDistribution, CountSelection, GaussianMixture
+from msmill.threadpools import single_threaded
 
 __all__ = [
     "COUNT_CANDIDATES",
@@ -576,7 +576,7 @@ class GaussianMixtureKLFit:
 
         k_top = int(min(self.k_max, max(1, np.unique(v).size - 1), max(1, v.size // 5)))
         bics, models = [], []
-        with one_thread():  # k-means initialisation: threads only spin on such small data
+        with single_threaded():  # k-means initialisation: threads only spin on such small data (10x on a busy machine)
             for k in range(1, k_top + 1):
                 gm = SkGM(n_components=k, random_state=self.random_state, n_init=2, reg_covar=sig_floor**2,
                           tol=self.em_tol, max_iter=1000)

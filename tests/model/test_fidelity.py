@@ -232,3 +232,17 @@ def test_matrix_measured_at_another_lag_is_converted_to_the_step():
     Q = np.eye(n + 2)
     Q[: n + 1] = np.array([inlet, *dests])
     assert np.allclose(transport.transition(half).matrix[:, 0, :], (Q @ Q)[: n + 1], atol=1e-9)
+
+
+def test_speed_scaled_impacts_keep_a_predicting_providers_count_mixture():
+    """Parameters predicted at the requested speeds (the surrogate) are used as given, counts included."""
+    import dataclasses
+
+    from msmill.model.submodels import SpeedScaledImpacts
+
+    p = TableProvider(synthetic_table(), source="SYNTHETIC").stage_parameters(np.array([10.0, 20.0]))
+    assert p.secondary_count is not None  # the synthetic runs carry count mixtures
+    at_speed = dataclasses.replace(p, velocities_at_requested_speeds=True)
+    out = SpeedScaledImpacts().impacts(at_speed, np.array([1800.0] * 4 + [3600.0]))
+    assert out.secondary_count is p.secondary_count
+    assert np.array_equal(out.primary_velocity.means_m_s, p.primary_velocity.means_m_s)  # not rescaled again

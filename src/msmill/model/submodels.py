@@ -429,7 +429,7 @@ class SpeedScaledImpacts:
     def impacts(self, params: StageParameters, stage_speeds_rpm: np.ndarray) -> ImpactStatistics:
         if getattr(params, "velocities_at_requested_speeds", False):
             return ImpactStatistics(params.hit_probability, params.primary_velocity,
-                                    params.secondary_lambda, params.secondary_velocity)
+                                    params.secondary_lambda, params.secondary_velocity, params.secondary_count)
         design = params.design_stage_speeds_rpm
         speeds = np.asarray(stage_speeds_rpm, dtype=float) if stage_speeds_rpm is not None else design
         ratio = np.where(design > 0, speeds / np.where(design > 0, design, 1.0), 1.0)

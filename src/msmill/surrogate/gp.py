@@ -71,10 +71,6 @@ def _refactor(gpr: Any, params: dict[str, Any]) -> None:
     gpr.alpha_ = cho_solve((gpr.L_, True), gpr.y_train_, check_finite=False)
 
 
-def _threads_one():
-    return single_threaded()
-
-
 class SurrogateGP:
     """Independent GPs, one per target column, scikit-learn style.
 
@@ -131,7 +127,7 @@ class SurrogateGP:
         U = self.design_space.to_unit(X)
         starts = self.warm_start or [None] * Y.shape[1]
         self.estimators_ = []
-        with _threads_one(), warnings.catch_warnings():
+        with single_threaded(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # convergence chatter at bounds on tiny data sets
             for j in range(Y.shape[1]):
                 gpr = GaussianProcessRegressor(
@@ -196,7 +192,7 @@ class SurrogateGP:
         U = self.design_space.to_unit(np.atleast_2d(X))
         idx = self._outputs(outputs)
         st = self._stacked().take(idx)
-        with _threads_one():
+        with single_threaded():
             Kt = st.cross(U)  # (T, P, R)
             mean = np.einsum("tpr,tr->pt", Kt, st.alpha) * st.y_std + st.y_mean
             if not return_std:
@@ -225,7 +221,7 @@ class SurrogateGP:
         U = self.design_space.to_unit(np.atleast_2d(X))
         idx = self._outputs(outputs)
         st = self._stacked().take(idx)
-        with _threads_one():
+        with single_threaded():
             Kt = st.cross(U)  # (T, P, R)
             mean = np.einsum("tpr,tr->tp", Kt, st.alpha)
             V = st.L_inv @ np.swapaxes(Kt, 1, 2)  # (T, R, P)
