@@ -150,6 +150,9 @@ MUTANTS: list[Mutant] = [
     m("stats-region-of-lower-edge", ST,
       'region=np.clip(np.searchsorted(edges_y, snaps["y_m"].to_numpy(), side="right") - 1,',
       'region=np.clip(np.searchsorted(edges_y, snaps["y_m"].to_numpy(), side="right"),', STATS),
+    m("stats-region-weights-by-area", ST,
+      'vol=4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3)',
+      'vol=4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 2)', STATS),
     # ---- DEM contact laws
     m("dem-hertz-linear", KE, "fel = kh * s * sq", "fel = kh * s", CONTACT),
     m("dem-damping-overlap-exponent", KE, "cn = ch * np.sqrt(sq)", "cn = ch * sq", CONTACT),
