@@ -43,10 +43,12 @@ NUMBA_FILES = ("src/msmill/dem/kernels.py", "src/msmill/dem/contact.py")
 BREAKAGE = ["tests/test_breakage.py", "tests/test_damage.py", "tests/model/test_damage_submodels.py"]
 MODEL = ["tests/model/test_physics.py", "tests/model/test_mass_balance.py",
          "tests/model/test_poisson_series.py", "tests/model/test_damage_submodels.py",
-         "tests/model/test_velocity_quadrature.py", "tests/model/test_count_solvers.py"]
+         "tests/model/test_velocity_quadrature.py", "tests/model/test_count_solvers.py",
+         "tests/model/test_montecarlo_counts.py"]
 PSD = ["tests/test_psd.py", "tests/test_distributions.py", "tests/test_count_families.py"]
 STATS = ["tests/dem/test_mill_stats.py"]
-CONTACT = ["tests/dem/test_chung_ooi.py"]
+CONTACT = ["tests/dem/test_chung_ooi.py", "tests/dem/test_contact_torques.py"]
+TN_CAP_CLI = ["tests/test_cli_core.py::test_breakage_table_caps_tn_at_100"]
 
 
 @dataclass(frozen=True)
@@ -87,7 +89,7 @@ MUTANTS: list[Mutant] = [
       "return _ret(np.minimum(kk * t**ss, 100.0))", "return _ret(kk * t**ss)", BREAKAGE),
     m("breakage-tnconstants-cap-dropped", BK,
       "return np.minimum(np.asarray(self.k) * t ** np.asarray(self.s), 100.0)",
-      "return np.asarray(self.k) * t ** np.asarray(self.s)", BREAKAGE),
+      "return np.asarray(self.k) * t ** np.asarray(self.s)", BREAKAGE + TN_CAP_CLI),
     m("appearance-tail-slope-wrong-segment", BK,
       "tail_slope = np.maximum((y[..., 1] - y[..., 0]) / h[0], 0.0)",
       "tail_slope = np.maximum((y[..., 1] - y[..., 0]) / h[1], 0.0)", BREAKAGE),
@@ -175,9 +177,11 @@ def _copy_checkout(dst: Path) -> None:
     shutil.copy2(ROOT / "pyproject.toml", dst / "pyproject.toml")
 
 
-def _run_pytest(work: Path, tests: tuple[str, ...], cache_dir: Path, timeout_s: float) -> tuple[int, str, float]:
+def _run_pytest(work: Path, tests: tuple[str, ...], cache_dir: Path, timeout_s: float,
+                timeout_scale: float) -> tuple[int, str, float]:
     env = dict(os.environ, PYTHONPATH=str(work / "src"), NUMBA_CACHE_DIR=str(cache_dir),
-               NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
+               NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1",
+               MSMILL_TIMEOUT_SCALE=str(timeout_scale))
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", *tests]
     t0 = time.perf_counter()
     try:
@@ -197,7 +201,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", default="", help="run the mutants whose name contains this text")
     ap.add_argument("--list", action="store_true", help="list the mutants and exit")
-    ap.add_argument("--timeout", type=float, default=900.0, help="limit per test subset (s)")
+    ap.add_argument("--timeout", type=float, default=900.0, help="limit per mutant's test subset (s)")
+    ap.add_argument("--baseline-timeout", type=float, default=2700.0,
+                    help="limit of the baseline run of every subset used (s)")
+    ap.add_argument("--timeout-scale", type=float, default=5.0,
+                    help="factor on the per-test limits of tests/conftest.py (MSMILL_TIMEOUT_SCALE): "
+                         "a test timing out on a loaded machine must not count as a kill")
     ap.add_argument("--keep", action="store_true", help="keep the scratch directory")
     args = ap.parse_args(argv)
     mutants = [x for x in MUTANTS if args.only in x.name]
@@ -212,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"scratch copy: {work}")
     # baseline: every subset used must pass unmutated
     subsets = sorted({t for x in mutants for t in x.tests})
-    rc, tail, secs = _run_pytest(work, tuple(subsets), shared_cache, args.timeout)
+    rc, tail, secs = _run_pytest(work, tuple(subsets), shared_cache, args.baseline_timeout, args.timeout_scale)
     print(f"baseline: rc={rc} ({secs:.0f} s) {tail}")
     if rc != 0:
         print("baseline fails: fix the tests first")
@@ -229,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         cache = scratch / f"numba-{x.name}" if x.file in NUMBA_FILES else shared_cache
         try:
             path.write_text(text.replace(x.original, x.mutated))
-            rc, tail, secs = _run_pytest(work, x.tests, cache, args.timeout)
+            rc, tail, secs = _run_pytest(work, x.tests, cache, args.timeout, args.timeout_scale)
         finally:
             path.write_text(text)
             os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # keep the shared cache valid
