@@ -1,6 +1,7 @@
 """Mutation check: plant plausible physics bugs one at a time and see which the tests miss.
 
-Run on demand (not in CI; CPU-heavy, about 15-25 min on one free core)::
+Run on demand (not in CI; CPU-heavy: about 25 min of one core, 60-70 min wall on a
+loaded shared machine)::
 
     nice -n 5 python scripts/mutation_check.py               # every mutant
     nice -n 5 python scripts/mutation_check.py --only dem    # names containing "dem"
@@ -16,7 +17,10 @@ the scratch ``src`` and restores the file. A mutant is *killed* when pytest
 reports failing tests (exit code 1), *survived* when the subset passes, and an
 *error* for any other outcome (collection error, stale snippet, time-out of the
 whole subset). Mutants of numba-compiled files get their own ``NUMBA_CACHE_DIR``
-so they never overwrite the compiled unmutated kernels.
+so they never overwrite the compiled unmutated kernels. The per-test limits of
+``tests/conftest.py`` are multiplied by ``--timeout-scale`` (default 5, through
+``MSMILL_TIMEOUT_SCALE``): on a loaded machine a 10 s test can take 90 s of wall
+time, and a time-out would otherwise count as a kill, or fail the baseline.
 
 The last line is ``key=value`` (``killed=.. survived=.. errors=..``); the exit
 status is 0 only if every mutant was killed. When a snippet changes in the
