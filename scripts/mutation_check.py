@@ -88,7 +88,8 @@ MUTANTS: list[Mutant] = [
     # ---- breakage law, t_n family, appearance, damage
     m("breakage-eq11-drops-damage", BK,
       "x = bb * e * size / (lref * (1.0 - d))", "x = bb * e * size / lref", BREAKAGE + MODEL),
-    m("breakage-t10-squared", BK, "return _ret(a * p)", "return _ret(a * p * p)", BREAKAGE),
+    m("breakage-t10-squared", BK, "return _ret(a * p)", "return _ret(a * p * p)",
+      BREAKAGE + ["tests/test_cli_core.py::test_breakage_table"]),
     m("breakage-tn-cap-dropped", BK,
       "return _ret(np.minimum(kk * t**ss, 100.0))", "return _ret(kk * t**ss)", BREAKAGE),
     m("breakage-tnconstants-cap-dropped", BK,
