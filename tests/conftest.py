@@ -14,6 +14,10 @@ minutes. Tests without an explicit ``@pytest.mark.timeout`` get:
 mutation check (``scripts/mutation_check.py``) runs niced on a shared machine,
 where a test that takes 15 s alone can take 80 s, and a time-out there would
 count as a kill (or fail the baseline) for a reason that is not the mutant.
+
+The hypothesis profile ``mutation`` (``--hypothesis-profile=mutation``, used by
+the mutation check) skips shrinking: a planted bug makes property tests fail,
+and shrinking their counterexamples costs minutes that tell the check nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +26,10 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import Phase, settings
+
+settings.register_profile("mutation", phases=[Phase.explicit, Phase.reuse, Phase.generate],
+                          report_multiple_bugs=False)
 
 FAST_TIMEOUT_S = 60
 SLOW_TIMEOUT_S = 900
