@@ -190,15 +190,19 @@ def _run_pytest(work: Path, tests: tuple[str, ...], cache_dir: Path, timeout_s: 
     env = dict(os.environ, PYTHONPATH=str(work / "src"), NUMBA_CACHE_DIR=str(cache_dir),
                NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1",
                MSMILL_TIMEOUT_SCALE=str(timeout_scale))
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+    cmd = [sys.executable, "-m", "pytest", "-q", "-rf", "-p", "no:cacheprovider", "-o", "addopts=",
            "--hypothesis-profile=mutation", *tests]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return -1, "subset timed out", time.perf_counter() - t0
-    tail = (proc.stdout.strip().splitlines() or [""])[-1]
-    return proc.returncode, tail, time.perf_counter() - t0
+    lines = proc.stdout.strip().splitlines() or [""]
+    if proc.returncode != 0:
+        for line in lines:
+            if line.startswith(("FAILED", "ERROR")):
+                print(f"    {line[:160]}", flush=True)
+    return proc.returncode, lines[-1], time.perf_counter() - t0
 
 
 def _n_failed(summary: str) -> int:
