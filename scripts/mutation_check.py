@@ -240,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"baseline: rc={rc} ({secs:.0f} s) {tail}")
     if rc != 0:
         print("baseline fails: fix the tests first")
+        if not args.keep:
+            shutil.rmtree(scratch, ignore_errors=True)
         return 2
     rows = []
     for x in mutants:
