@@ -9,13 +9,27 @@ minutes. Tests without an explicit ``@pytest.mark.timeout`` get:
 - everything else (DEM, whose first test pays the cold numba compile;
   surrogate, store, campaign, browser tests): the ini default ``timeout`` of
   pyproject.toml.
+
+``MSMILL_TIMEOUT_SCALE`` (environment, default 1) multiplies all three: the
+mutation check (``scripts/mutation_check.py``) runs niced on a shared machine,
+where a test that takes 15 s alone can take 80 s, and a time-out there would
+count as a kill (or fail the baseline) for a reason that is not the mutant.
+
+The hypothesis profile ``mutation`` (``--hypothesis-profile=mutation``, used by
+the mutation check) skips shrinking: a planted bug makes property tests fail,
+and shrinking their counterexamples costs minutes that tell the check nothing.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+from hypothesis import Phase, settings
+
+settings.register_profile("mutation", phases=[Phase.explicit, Phase.reuse, Phase.generate],
+                          report_multiple_bugs=False)
 
 FAST_TIMEOUT_S = 60
 SLOW_TIMEOUT_S = 900
@@ -31,11 +45,26 @@ def _is_fast(path: Path) -> bool:
     return path.parent == _HERE and path.name in _FAST_FILES
 
 
+def _timeout_scale() -> float:
+    raw = os.environ.get("MSMILL_TIMEOUT_SCALE", "1")
+    try:
+        scale = float(raw)
+    except ValueError:
+        raise pytest.UsageError(f"MSMILL_TIMEOUT_SCALE={raw!r}: a number >= 1") from None
+    if not scale >= 1.0:
+        raise pytest.UsageError(f"MSMILL_TIMEOUT_SCALE={raw!r}: a number >= 1")
+    return scale
+
+
 def pytest_collection_modifyitems(config, items):
+    scale = _timeout_scale()
+    default_s = float(config.getini("timeout") or 0)
     for item in items:
         if item.get_closest_marker("timeout") is not None:
             continue
         if item.get_closest_marker("slow") is not None:
-            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S))
+            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S * scale))
         elif _is_fast(Path(str(item.fspath))):
-            item.add_marker(pytest.mark.timeout(FAST_TIMEOUT_S))
+            item.add_marker(pytest.mark.timeout(FAST_TIMEOUT_S * scale))
+        elif scale != 1.0 and default_s > 0:
+            item.add_marker(pytest.mark.timeout(default_s * scale))

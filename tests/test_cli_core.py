@@ -94,6 +94,25 @@ def test_breakage_table(capsys):
     assert "t75" in out and "fragment PSD" in out and "DEFAULT" in out
 
 
+def test_breakage_table_caps_tn_at_100(capsys):
+    """A hard impact: t10 = 71.8 % gives t2 = 19.6 t10^0.425 = 121 % and t4 = 3.75 t10^0.803 = 116 %.
+
+    Both are shown capped at 100 %; t25 = 0.469 t10^1.027 = 37.8 % is below the cap.
+    (200 m/s -> 20 kJ/kg = 5.556 kWh/t; P_b = 1 - exp(-1.67 x 5.556 x 40 / 29) = 1 - 3e-6.)
+    """
+    out = _ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "40", "--velocity", "200"])
+    rows = {}
+    for line in out.splitlines():
+        cells = [c.strip() for c in line.strip("│ ").split("│")]
+        if len(cells) == 2:
+            rows[cells[0]] = cells[1]
+    assert rows["t10 = A P_b (Eq. 12)"] == "71.8 %"
+    assert 19.6 * 71.8**0.425 > 120 and 3.75 * 71.8**0.803 > 115
+    assert rows["t2"] == "100 %" and rows["t4"] == "100 %"
+    # the packaged fit's constants agree with the rounded (0.469, 1.027) to 5e-3
+    assert float(rows["t25"].removesuffix(" %")) == pytest.approx(0.469 * 71.8**1.027, rel=5e-3)
+
+
 def test_breakage_table_custom_grid(capsys):
     out = _ok(capsys, ["breakage", "table", "--ore", "platreef", "--size-mm", "20", "--velocity", "60",
                        "--grid-min-mm", "0.5", "--grid-max-mm", "40"])

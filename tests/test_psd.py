@@ -231,6 +231,24 @@ def test_rebin_conserves_mass(weights, lo, hi, ratio):
         np.testing.assert_allclose(q.passing_at(s), p.passing_at(s), atol=1e-9)
 
 
+def test_rebin_by_hand():
+    """Cumulative passing read at the new upper edges (log interpolation), by hand.
+
+    Feed on edges 1, 2, 4, 8 mm: 20 %, 30 %, 50 %. Passing 0, 20, 50, 100 % at the edges.
+    """
+    p = PSD(SizeGrid([1.0, 2.0, 4.0, 8.0]), [0.2, 0.3, 0.5])
+    np.testing.assert_allclose(p.rebin(SizeGrid([1.0, 4.0, 8.0])).fractions, [0.5, 0.5], atol=1e-12)
+    np.testing.assert_allclose(p.rebin(SizeGrid([1.0, 2.0, 8.0])).fractions, [0.2, 0.8], atol=1e-12)
+    # sqrt(2) mm is half-way between 1 and 2 mm in log size: 10 % passing
+    fine = SizeGrid([1.0, math.sqrt(2.0), 2.0, 4.0, 8.0])
+    np.testing.assert_allclose(p.rebin(fine).fractions, [0.1, 0.1, 0.3, 0.5], atol=1e-12)
+    # a wider grid: class 0 takes everything below 2 mm, the top class is empty
+    wide = SizeGrid([0.5, 2.0, 8.0, 16.0])
+    np.testing.assert_allclose(p.rebin(wide).fractions, [0.2, 0.8, 0.0], atol=1e-12)
+    # a narrower one: 4 mm and coarser lumped into the top class
+    np.testing.assert_allclose(p.rebin(SizeGrid([1.5, 2.0, 4.0])).fractions, [0.2, 0.8], atol=1e-12)
+
+
 def test_rebin_same_grid_is_identity():
     g = SizeGrid([1.0, 2.0, 4.0])
     p = PSD(g, [0.3, 0.7])

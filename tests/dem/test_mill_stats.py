@@ -151,15 +151,17 @@ def test_destinations_refine_the_streams_and_tag_the_inlet_zone():
 Y_OF_ROCK = {1: 0.05, 2: 0.05, 3: 0.25, 4: 0.45, 5: 0.55}  # A, B: region 0; C: 2; D: 4; E: 5
 
 
-def _run_full():
+def _run_full(y_of_rock=Y_OF_ROCK, radius_of_rock=None):
     snaps = _snaps()
-    snaps["y_m"] = snaps["particle_id"].map(Y_OF_ROCK)
+    snaps["y_m"] = snaps["particle_id"].map(y_of_rock)
+    if radius_of_rock is not None:
+        snaps["radius_m"] = snaps["particle_id"].map(radius_of_rock)
     removed = pd.DataFrame({"particle_id": [5], "time_s": [0.13], "radius_m": [R], "mass_kg": [1.0],
                             "tag": ["outlet"]})
     ts = pd.DataFrame({"time_s": TIMES, "n_particles": 5, "mass_kg": 2.0})
     design = DesignPoint(size_mm=10, feed_tph=30, speed_rpm=1500, gate_deg=40, stage_speeds_rpm=[1500, 3000])
     return compute_statistics(M2, design, _events(), removed, ts, snaps, window_s=(0.0, 0.2), mode="full",
-                              characteristic_time_s=0.05, size_edges_m=np.array([0.0, 0.004, 0.01]),
+                              characteristic_time_s=0.05, size_edges_m=np.array([0.0, 0.004, 0.02]),
                               rock_density_kg_m3=3000.0)
 
 
@@ -175,7 +177,7 @@ def test_raw_transport_counts_and_masses_by_hand():
     assert (s1.n_transport_samples, s2.n_transport_samples) == (54, 19)
     m_rock = 3000.0 * 4.0 / 3.0 * np.pi * R**3
     by = st.streams_by_size.set_index("stage_from")
-    assert list(by["size_class"]) == [1, 1]  # r = 5 mm falls in the (4, 10) mm radius class
+    assert list(by["size_class"]) == [1, 1]  # r = 5 mm falls in the (4, 20) mm radius class
     np.testing.assert_allclose(by.loc[[1, 2], "mass_kg"], [54 * m_rock, 19 * m_rock], rtol=1e-12)
     # kickback: D tagged at 0.07-0.11 s (5); pass-through: C at 0.05-0.09 s (5), E at 0.08-0.12 s (5)
     np.testing.assert_allclose(by.loc[1, ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float),
@@ -197,6 +199,36 @@ def test_region_weights_and_streams_by_hand():
     want2 = [avg2, avg2, [0, 1, 0], avg2, avg2, [0, 8 / 13, 5 / 13]]
     np.testing.assert_allclose(s1.region_streams, want1, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(s2.region_streams, want2, rtol=1e-12, atol=1e-15)
+
+
+def test_region_weights_are_solid_volumes_by_hand():
+    """Two rock sizes: A has twice the radius (8 x the volume) of B, C, D and E.
+
+    Rocks at y = 0.15 (A, region 1), 0.05 (B, region 0), 0.25 (C, region 2),
+    0.45 (D, region 4), 0.55 (E, region 5); regions are 0.1 m wide from y = 0.
+    Stage 1, rock-snapshots x volume (units of B's volume): A 21 x 8 = 168,
+    B 21, C 10, D 12 of 211. Stage 2: C 11, E 13 of 24.
+    """
+    s1, s2 = _run_full({1: 0.15, 2: 0.05, 3: 0.25, 4: 0.45, 5: 0.55},
+                       {1: 2 * R, 2: R, 3: R, 4: R, 5: R}).run.stages
+    np.testing.assert_allclose(s1.region_weights, np.array([21, 168, 10, 0, 12, 0]) / 211, rtol=1e-12)
+    np.testing.assert_allclose(s2.region_weights, np.array([0, 0, 11, 0, 0, 13]) / 24, rtol=1e-12)
+
+
+def test_hit_window_edges_by_hand():
+    """A tag at t counts as hit when a primary impact of its stage falls in (t, t + tau].
+
+    tau = 0.05 s, stage-1 tags every 0.01 s from 0.00 to 0.15 s (54 in all). A's
+    primary at 0.100 s is in the windows of the tags at 0.05-0.09 s (5: the tag at
+    0.10 s itself is not, the one at 0.05 s is, at the closed end); B's at 0.155 s
+    in those of the tags at 0.11-0.15 s (5). 10 of 54.
+    """
+    rows = [(0.100, 1, 1, 10, 20.0, 1.05, "flinger", 0), (0.155, 2, 1, 11, 20.0, 1.05, "flinger", 1)]
+    events = pd.DataFrame(rows, columns=_events().columns)
+    s1, s2 = _run(events).run.stages
+    assert s1.n_primary_impacts == 2
+    assert s1.primary_hit_probability == pytest.approx(10 / 54, rel=1e-12)
+    assert s2.primary_hit_probability == 0.0
 
 
 def test_characteristic_time_hand_table():
