@@ -98,13 +98,13 @@ def kl_by_sample_size(model) -> pd.DataFrame:
         rows += [("primary", st.n_primary_impacts, p.kl_primary_velocity, p.representation_kl_primary),
                  ("secondary", st.n_secondary_impacts, p.kl_secondary_velocity, p.representation_kl_secondary)]
     d = pd.DataFrame(rows, columns=["impacts", "n", "kl", "representation_kl"])
-    d["impacts per stage"] = pd.cut(d["n"], IMPACT_BINS, right=False).astype(str)
-    g = d.groupby(["impacts per stage"], sort=False, observed=True)
-    out = g.agg(distributions=("kl", "size"), kl_velocity=("kl", "mean"),
-                representation_kl=("representation_kl", "mean")).reset_index()
-    out["share_of_total_kl"] = g["kl"].sum().to_numpy() / d["kl"].sum()
-    order = np.argsort([float(str(b).strip("[(").split(",")[0]) for b in out["impacts per stage"]])
-    return out.iloc[order].round(4)
+    d["impacts per stage"] = pd.cut(d["n"], IMPACT_BINS, right=False)
+    out = d.groupby("impacts per stage", observed=True).agg(
+        distributions=("kl", "size"), kl_velocity=("kl", "mean"),
+        representation_kl=("representation_kl", "mean"), share_of_total_kl=("kl", "sum")).reset_index()
+    out["share_of_total_kl"] /= d["kl"].sum()
+    out["impacts per stage"] = out["impacts per stage"].astype(str)
+    return out.round(4)
 
 
 def markdown_table(df: pd.DataFrame) -> list[str]:

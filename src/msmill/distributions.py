@@ -493,6 +493,10 @@ def count_batch_stderr(candidate: str, batches: list[np.ndarray]) -> dict[str, f
     return {k: float(np.std([r[k] for r in rows], ddof=1) / np.sqrt(len(rows))) for k in keys}
 
 
+#: Default EM convergence tolerance of :class:`GaussianMixtureKLFit` (see its ``em_tol``).
+EM_TOL = 1e-5
+
+
 class GaussianMixtureKLFit:
     """1-D Gaussian mixture fitted by minimum KL divergence (paper Eq. 14, 15).
 
@@ -538,7 +542,7 @@ class GaussianMixtureKLFit:
         max_bins: int = 80,
         refine: bool = True,
         random_state: int = 0,
-        em_tol: float = 1e-5,
+        em_tol: float = EM_TOL,
     ) -> None:
         self.k_max = k_max
         self.min_bins = min_bins

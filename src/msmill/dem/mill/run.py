@@ -480,10 +480,10 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
     feed_scale = res.get("feed_scale")
     outcome = res.get("outcome")
     if outcome is None:  # saved before outcomes existed: today's criterion on the saved time series
-        feed_scale = _saved_feed_scale(raw)
-        verdict = _verdict(raw["timeseries"], op.feed_tph * 1000.0 / 3600.0 * feed_scale, RunSettings().criterion())
+        feed_scale, today = _saved_feed_scale(raw), RunSettings()
+        verdict = _verdict(raw["timeseries"], op.feed_tph * 1000.0 / 3600.0 * feed_scale, today.criterion())
         outcome = retrospective_outcome(verdict.outcome, float(raw["timeseries"]["time_s"].max()),
-                                        RunSettings().time_limit_s(d["size_mm"]))
+                                        today.time_limit_s(d["size_mm"]))
     return mark_statistics(ms, outcome, feed_scale)
 
 

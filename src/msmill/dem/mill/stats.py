@@ -68,7 +68,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from msmill.distributions import CountFamilySelection, GaussianMixtureKLFit, count_batch_stderr
+from msmill.distributions import (
+    EM_TOL,
+    CountFamilySelection,
+    GaussianMixtureKLFit,
+    count_batch_stderr,
+)
 from msmill.errors import MsmillError, MsmillInputError
 from msmill.machine import Machine
 from msmill.stageparams import (
@@ -657,7 +662,7 @@ def compute_statistics(
     prov.setdefault("stats", {}).update({
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
         "count_criterion": s_.count_criterion, "velocity_fit": s_.velocity_fit,
-        "velocity_em_tol": GaussianMixtureKLFit().em_tol,
+        "velocity_em_tol": EM_TOL,
         "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
         "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
         "n_events_blow_up": int(bad_ev.sum()), "n_touch_events_vn_le_0": n_touch,
