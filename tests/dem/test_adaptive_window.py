@@ -25,7 +25,7 @@ def _run(**targets):
 @pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
 def test_window_length_follows_the_targets(target, length_s):
     run = _run(target_streams_se=target, target_hit_probability_se=target, target_velocity_rel_se=target,
-               target_count_mean_rel_se=target)
+               target_count_mean_rel_se=target, target_velocity_sampling_kl=target)
     assert run.outcome == "steady"
     t0, t1 = run.window_s
     assert t1 - t0 == pytest.approx(length_s, abs=0.011)  # whole chunks and steps
@@ -34,3 +34,16 @@ def test_window_length_follows_the_targets(target, length_s):
     assert all(v is None or v > 1e-9 for v in reached.values())  # a real, positive figure or no sample
     assert RunStatistics.from_json(run.stats.run.to_json()).sampling_error_reached == reached
     assert run.stats.run.provenance["adaptive_targets"]["streams"] == target
+
+
+def test_sampling_kl_follows_the_fewest_impacts():
+    """The expected sampling KL is p / (2 n) at the fewest velocity samples of any stage and kind."""
+    from msmill.dem.mill.run import VELOCITY_FIT_PARAMETERS
+
+    run = _run(target_streams_se=math.inf, target_hit_probability_se=math.inf, target_velocity_rel_se=math.inf,
+               target_count_mean_rel_se=math.inf, target_velocity_sampling_kl=math.inf)
+    n = min(len(run.stats.samples[st.stage][key]) for st in run.stats.run.stages
+            for key in ("primary_velocity_m_s", "secondary_velocity_m_s"))
+    assert n >= 3
+    reached = run.stats.run.sampling_error_reached["velocity_sampling_kl"]
+    assert reached == pytest.approx(VELOCITY_FIT_PARAMETERS / (2 * n))
