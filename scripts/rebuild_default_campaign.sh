@@ -8,17 +8,38 @@
 # RUNS holds: batch0/pt_* (scripts/design_batch.py, Sobol batch), stage_table_v3/size_*mm (the stage
 # table's runs), full/size_*mm (full-mill runs paired with slice runs), campaign_raw/run* (folders the
 # campaign runner saved with --raw-dir), capacity/pt_*, capacity2/pt_* (scripts/design_batch.py batches at high feed
-# and narrow gates, issue 20; capacity3, feeds of 60-120 t/h outside the design space, is not training data). Every folder's statistics are recomputed with this checkout's
+# and narrow gates, issue 20), capacity3/pt_*, choke*/pt_* (feeds of 60-600 t/h, outside the design space: they
+# feed the operating envelope, not the surrogate, msmill.surrogate.campaign_export.split_runs),
+# rerun*/ (scripts/rerun_undersampled.py: under-sampled runs measured for longer, in place of the originals). Every folder's statistics are recomputed with this checkout's
 # code first (`msmill dem stats`), so outcomes follow today's steady-state criterion; not-steady and
 # choked runs are stored with their outcome (the surrogate trains on steady slice runs only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-RUNS="${RUNS:?set RUNS to the folder of saved run folders}"
+export RUNS="${RUNS:?set RUNS to the folder of saved run folders}"
 STORE="${STORE:-$RUNS/final.sqlite}"
 export MSMILL_DB="sqlite:///$STORE"
 rm -f "$STORE"
 folders=("$RUNS"/batch0/pt_* "$RUNS"/stage_table_v3/size_*mm "$RUNS"/full/size_*mm "$RUNS"/campaign_raw/run*
-         "$RUNS"/capacity/pt_* "$RUNS"/capacity2/pt_*)
+         "$RUNS"/capacity/pt_* "$RUNS"/capacity2/pt_* "$RUNS"/capacity3/pt_* "$RUNS"/choke*/pt_*)
+# re-runs of under-sampled runs (scripts/rerun_undersampled.py, RUNS/rerun*/<hash>/) take the place of the
+# runs they re-measure: one run per mode and design point
+mapfile -t folders < <(python - "${folders[@]}" <<'PY'
+import glob, json, os, sys
+from pathlib import Path
+
+def key(folder):
+    if not (Path(folder) / "statistics.json").exists():
+        return None
+    st = json.loads((Path(folder) / "statistics.json").read_text(encoding="utf-8"))
+    d = st["design"]
+    return st["mode"], *(round(float(d[k]), 6) for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg"))
+
+reruns = {key(f): f for f in sorted(glob.glob(os.environ["RUNS"] + "/rerun*/*/")) if key(f) is not None}
+kept = [f for f in sys.argv[1:] if key(f) not in reruns]
+print("\n".join(kept + sorted(f.rstrip("/") for f in reruns.values())))
+print(f"{len(reruns)} re-runs replace {len(sys.argv) - 1 - len(kept)} runs", file=sys.stderr)
+PY
+)
 if [ "${RESTAT:-1}" = 1 ]; then
     for d in "${folders[@]}"; do python -m msmill dem stats "$d" >/dev/null; done
 fi

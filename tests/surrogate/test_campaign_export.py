@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import warnings
 
+from dataclasses import replace
+
 import pytest
 
 from msmill.machine import Machine
@@ -108,3 +110,16 @@ def test_missing_shipped_surrogate_falls_back_to_the_table_with_a_note(monkeypat
         prov = providers.load_provider("default")
     assert isinstance(prov, providers.TableProvider)
     assert any("shipped default surrogate" in str(x.message) and "'table'" in str(x.message) for x in w)
+
+
+def test_runs_outside_the_design_space_do_not_train(exported):
+    """A steady capacity probe at 100 t/h stays in the export (for the envelope) but is not training data."""
+    folder, _, _ = exported
+    got = read_export(folder)
+    probe = replace(got[0], statistics=got[0].statistics.model_copy(
+        update={"design": got[0].statistics.design.model_copy(update={"feed_tph": 100.0})}))
+    slices, _ = split_runs([probe, *got[1:]])
+    assert probe not in slices and len(slices) == 1
+    edge = replace(got[0], statistics=got[0].statistics.model_copy(
+        update={"design": got[0].statistics.design.model_copy(update={"feed_tph": 60.0, "gate_deg": 0.0})}))
+    assert edge in split_runs([edge])[0]  # the bounds belong to the design space

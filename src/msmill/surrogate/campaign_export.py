@@ -26,13 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from msmill.errors import MsmillInputError
+from msmill.machine import DESIGN_SPACE
 from msmill.stageparams import DesignPoint, RunStatistics
 from msmill.surrogate.store import Store
 from msmill.surrogate.store.hashing import read_statistics
 from msmill.surrogate.store.transfer import EXPORT_KIND, export_runs
 
-__all__ = ["CAMPAIGNS_FILE", "ExportedRun", "default_export_dir", "export_campaign", "read_export",
-           "restore_campaigns", "split_runs"]
+__all__ = ["CAMPAIGNS_FILE", "ExportedRun", "default_export_dir", "export_campaign", "in_design_space",
+           "read_export", "restore_campaigns", "split_runs"]
 
 CAMPAIGNS_FILE = "campaigns.json"
 
@@ -114,10 +115,21 @@ def read_export(folder: str | Path) -> list[ExportedRun]:
     return out
 
 
+def in_design_space(design: DesignPoint) -> bool:
+    """Whether a run's point lies in the surrogate's design space (:data:`msmill.machine.DESIGN_SPACE`)."""
+    return all(lo - 1e-9 <= getattr(design, k) <= hi + 1e-9 for k, (lo, hi) in DESIGN_SPACE.items())
+
+
 def split_runs(runs: list[ExportedRun]) -> tuple[list[ExportedRun], list[ExportedRun]]:
-    """Steady slice runs (training) and steady full-mill runs (slice-to-full bias), each sorted by hash."""
+    """Steady slice runs in the design space (training) and steady full-mill runs (slice-to-full bias).
+
+    Steady runs outside the design space (capacity probes at feeds far above
+    60 t/h, issue 20) stay in the export for the operating envelope but do not
+    train the surrogate. Each list keeps the export's order (sorted by hash).
+    """
     steady = [r for r in runs if r.outcome == "steady"]
-    return [r for r in steady if r.mode == "slice"], [r for r in steady if r.mode == "full"]
+    return ([r for r in steady if r.mode == "slice" and in_design_space(r.statistics.design)],
+            [r for r in steady if r.mode == "full"])
 
 
 def _done_points(store: Store, machine_hash: str) -> set[tuple[float, ...]]:
