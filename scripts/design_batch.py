@@ -61,6 +61,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--max-time-s", type=float, default=9.0)
     ap.add_argument("--measure-s", type=float, default=1.0)
+    ap.add_argument("--adaptive", action="store_true",
+                    help="measure until the sampling targets are met (RunSettings defaults) instead of --measure-s")
     args = ap.parse_args()
     box = {"size_mm": tuple(args.size_mm), "feed_tph": tuple(args.feed_tph), "speed_rpm": tuple(args.speed_rpm),
            "gate_deg": tuple(args.gate_deg)}
@@ -68,12 +70,12 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     meta = {"command": shlex.join([sys.executable, *sys.argv]), "msmill_version": __version__,
             "git_commit": git_commit(), "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-            "design": "scrambled Sobol", "seed": args.seed,
+            "design": "scrambled Sobol", "seed": args.seed, "adaptive": args.adaptive,
             "bounds": box,
             "points": pts.tolist()}
     (args.out / "design.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     machine = Machine.default()
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s)
+    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s, adaptive=args.adaptive)
     # expected cost ~ feed / size^4: cheapest first so a partial batch covers the most points
     order = np.argsort(pts[:, 1] / pts[:, 0] ** 4)
     for i in order:
