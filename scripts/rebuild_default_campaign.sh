@@ -10,7 +10,7 @@
 # campaign runner saved with --raw-dir), capacity/pt_*, capacity2/pt_* (scripts/design_batch.py batches at high feed
 # and narrow gates, issue 20), capacity3/pt_*, choke*/pt_* (feeds of 60-600 t/h, outside the design space: they
 # feed the operating envelope, not the surrogate, msmill.surrogate.campaign_export.split_runs),
-# rerun*/ (scripts/rerun_undersampled.py: under-sampled runs measured for longer, in place of the originals). Every folder's statistics are recomputed with this checkout's
+# fine*/pt_* (scripts/design_batch.py --adaptive, rock below 6 mm), rerun*/ (scripts/rerun_undersampled.py: under-sampled runs measured for longer, in place of the originals). Every folder's statistics are recomputed with this checkout's
 # code first (`msmill dem stats`), so outcomes follow today's steady-state criterion; not-steady and
 # choked runs are stored with their outcome (the surrogate trains on steady slice runs only).
 set -euo pipefail
@@ -20,9 +20,10 @@ STORE="${STORE:-$RUNS/final.sqlite}"
 export MSMILL_DB="sqlite:///$STORE"
 rm -f "$STORE"
 folders=("$RUNS"/batch0/pt_* "$RUNS"/stage_table_v3/size_*mm "$RUNS"/full/size_*mm "$RUNS"/campaign_raw/run*
-         "$RUNS"/capacity/pt_* "$RUNS"/capacity2/pt_* "$RUNS"/capacity3/pt_* "$RUNS"/choke*/pt_*)
+         "$RUNS"/capacity/pt_* "$RUNS"/capacity2/pt_* "$RUNS"/capacity3/pt_* "$RUNS"/choke*/pt_*
+         "$RUNS"/fine*/pt_*)
 # re-runs of under-sampled runs (scripts/rerun_undersampled.py, RUNS/rerun*/<hash>/) take the place of the
-# runs they re-measure: one run per mode and design point
+# runs they re-measure: one run per mode and design point. Folders without statistics are left out.
 mapfile -t folders < <(python - "${folders[@]}" <<'PY'
 import glob, json, os, sys
 from pathlib import Path
@@ -35,9 +36,11 @@ def key(folder):
     return st["mode"], *(round(float(d[k]), 6) for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg"))
 
 reruns = {key(f): f for f in sorted(glob.glob(os.environ["RUNS"] + "/rerun*/*/")) if key(f) is not None}
-kept = [f for f in sys.argv[1:] if key(f) not in reruns]
+done = [f for f in sys.argv[1:] if key(f) is not None]  # a run still going (or a pattern matching nothing) waits
+kept = [f for f in done if key(f) not in reruns]
 print("\n".join(kept + sorted(f.rstrip("/") for f in reruns.values())))
-print(f"{len(reruns)} re-runs replace {len(sys.argv) - 1 - len(kept)} runs", file=sys.stderr)
+print(f"{len(reruns)} re-runs replace {len(done) - len(kept)} runs; {len(sys.argv) - 1 - len(done)} folders "
+      "without statistics skipped", file=sys.stderr)
 PY
 )
 if [ "${RESTAT:-1}" = 1 ]; then
