@@ -16,7 +16,8 @@ folder layout ``msmill db ingest`` reads) and a line goes to
 ``scripts/rebuild_default_campaign.sh`` ingests the re-run in place of the old
 run (two runs at one design point would make the leave-one-out figures
 optimistic). Resumable: a folder whose ``statistics.json`` exists is skipped.
-``--shard I/N`` runs every N-th run (one process per core). Cheapest first.
+``--shard I/N`` runs every N-th run (one process per core). The runs that remove the
+most sampling KL per CPU second go first (fewest impacts, cheapest).
 
 Run: ``NUMBA_NUM_THREADS=1 python scripts/rerun_undersampled.py --out runs/rerun1 --shard 0/2``
 """
@@ -52,8 +53,9 @@ def undersampled(export: Path, target_kl: float) -> list[dict]:
     docs = [json.loads(p.read_text(encoding="utf-8")) for p in sorted(export.glob("run-*.json"))]
     out = [d for d in docs if d["statistics"].get("outcome") == "steady" and d["run"]["mode"] == "slice"
            and fewest_impacts(d) < n_needed]
-    # wall time grows about as the window: the old wall times the window factor still needed
-    return sorted(out, key=lambda d: d["run"]["wall_s"] * n_needed / max(fewest_impacts(d), 1))
+    # most sampling KL removed per CPU second first: the gain p/2n - p/2N over a cost ~ old wall x N/n
+    # is proportional to (1 - n/N) / old wall, so the fewest impacts and the cheapest runs go first
+    return sorted(out, key=lambda d: d["run"]["wall_s"] / max(1.0 - fewest_impacts(d) / n_needed, 1e-6))
 
 
 def settings_for(doc: dict, target_kl: float, max_measure_s: float) -> RunSettings:
