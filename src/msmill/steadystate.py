@@ -28,6 +28,16 @@ measured product rate is the throughput the mill passes. Anything else is
 **not steady** (still filling, emptying, or fluctuating beyond the
 tolerances).
 
+A choke is only called when the mill could be fed at all: given the
+cumulative mass fed (``fed_cum``, the DEM source's inserted mass), a record
+whose fed rate over its *first* window already falls short of
+``(1 - balance_tol) F`` is **not steady** (feed-limited), never choked. In
+the first window no rock can have backed up from the mill into the feed
+region, so the shortfall is the feed source's own limit (the rate is beyond
+what it can place), and a product rate below the nominal feed then says
+nothing about the mill's capacity. A shortfall that appears later is rock
+backing up into the feed: a choke.
+
 Everything is a pure function of arrays (hold-up, cumulative product mass,
 time), so the criterion is tested on hand-made series and used by both
 :mod:`msmill.dem.mill.run` (hold-up and product mass out of the engine's time
@@ -53,6 +63,7 @@ __all__ = [
     "SteadyStateVerdict",
     "assess",
     "expected_residence_time_s",
+    "fed_ratio",
     "first_steady",
     "flow_windows",
 ]
@@ -213,10 +224,12 @@ def first_steady(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
 
 
 def assess(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_rate: float,
-           crit: SteadyStateCriterion | None = None) -> SteadyStateVerdict:
+           crit: SteadyStateCriterion | None = None, fed_cum: np.ndarray | None = None) -> SteadyStateVerdict:
     """Outcome of a record: steady (ever reached), choked or not steady at its end.
 
-    The figures are those of the last two windows of the record.
+    The figures are those of the last two windows of the record. ``fed_cum``
+    (cumulative mass fed, optional): a record fed short of the nominal rate
+    over its first window is not steady (feed-limited), never choked.
     """
     c = crit or SteadyStateCriterion()
     fw = flow_windows(time_s, holdup, product_cum, feed_rate, c.window_s)
@@ -232,10 +245,29 @@ def assess(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed
         return SteadyStateVerdict("steady", found[0], found[1], ratio, ratio * feed_rate, tr,
                                   f"steady from {found[0]:.2f} s (detected {found[1]:.2f} s)")
     low = 1.0 - c.balance_tol
+    t0 = float(np.asarray(time_s)[0])
+    fed = fed_ratio(time_s, fed_cum, feed_rate, t0, t0 + c.window_s) if fed_cum is not None else 1.0
+    if fed < low:
+        return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_rate, tr,
+                                  f"not steady, feed-limited: the feed source placed only {100 * fed:.0f} % of the "
+                                  f"nominal feed in the first {c.window_s:g} s, before any rock could back up "
+                                  f"(the rate is beyond what the source can place; lower the feed rate); {figures}")
     if pa < low and pb < low and pb - pa < c.balance_tol:
         return SteadyStateVerdict("choked", None, None, ratio, ratio * feed_rate, tr,
                                   f"choked: {figures}; it passes {100 * ratio:.0f} % of the feed")
     return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_rate, tr, f"not steady: {figures}")
+
+
+def fed_ratio(time_s: np.ndarray, fed_cum: np.ndarray, feed_rate: float, t_from_s: float, t_to_s: float) -> float:
+    """Mass fed between two times of a record / (``feed_rate`` x their interval); 1 for an empty interval."""
+    t = np.asarray(time_s, dtype=float)
+    f = np.asarray(fed_cum, dtype=float)
+    if f.shape != t.shape:
+        raise MsmillInputError("fed_cum", f"shape {f.shape}", f"one value per time (shape {t.shape})")
+    a, b = max(float(t[0]), t_from_s), min(float(t[-1]), t_to_s)
+    if b <= a:
+        return 1.0
+    return float((np.interp(b, t, f) - np.interp(a, t, f)) / (feed_rate * (b - a)))
 
 
 def expected_residence_time_s(kickback: np.ndarray, refeed: np.ndarray, pass_through: np.ndarray,

@@ -114,6 +114,8 @@ def test_source_mass_flow_and_no_overlap():
     assert set(np.round(a["rad"], 6)) == {0.004, 0.006}
     ts = sim.timeseries()
     assert ts.mass_kg.is_monotonic_increasing
+    # nothing leaves: the mass the source placed is the mass in the box at every record
+    np.testing.assert_allclose(ts.mass_in_kg, ts.mass_kg, rtol=1e-12)
 
 
 def test_sink_removal_times_and_lost_particles():

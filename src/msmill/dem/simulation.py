@@ -937,7 +937,7 @@ class Simulation:
         ke = float(0.5 * np.sum(p["mass"] * np.sum(p["vel"] ** 2, axis=1))
                    + 0.5 * np.sum(np.sum(p["omg"] ** 2, axis=1) / p["invi"]))
         self._ts.append((self._time, self.n_particles, float(p["mass"].sum()), ke,
-                         self._mass_out, self._n_lost))
+                         self._mass_out, self._n_lost, sum(s["inserted_kg"] for s in self._sources)))
 
     # ------------------------------------------------------------------ outputs
     @property
@@ -1008,9 +1008,13 @@ class Simulation:
         return pd.DataFrame({c: np.concatenate([r[c] for r in self._removed]) for c in cols})
 
     def timeseries(self) -> pd.DataFrame:
-        """``time_s, n_particles, mass_kg, kinetic_energy_j, mass_out_kg, n_lost``."""
+        """``time_s, n_particles, mass_kg, kinetic_energy_j, mass_out_kg, n_lost, mass_in_kg``.
+
+        ``mass_out_kg`` is the cumulative mass removed by sinks, ``mass_in_kg``
+        the cumulative mass the sources placed (kg).
+        """
         return pd.DataFrame(self._ts, columns=["time_s", "n_particles", "mass_kg",
-                                               "kinetic_energy_j", "mass_out_kg", "n_lost"])
+                                               "kinetic_energy_j", "mass_out_kg", "n_lost", "mass_in_kg"])
 
     def snapshot(self) -> pd.DataFrame:
         """Particles now: id, position (m), velocity (m/s), angular velocity (rad/s), radius (m)."""

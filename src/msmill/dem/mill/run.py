@@ -340,8 +340,10 @@ def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion
 
 
 def _verdict(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> SteadyStateVerdict:
+    # the mass the source placed (saved runs before 2026-12-02 do not record it): a feed-limited run is never choked
+    fed = ts["mass_in_kg"].to_numpy() if "mass_in_kg" in ts.columns else None
     return assess(ts["time_s"].to_numpy(), ts["mass_kg"].to_numpy(), ts["mass_out_kg"].to_numpy(), feed_kg_s,
-                  crit)
+                  crit, fed_cum=fed)
 
 
 def mark_statistics(ms: MillStatistics, outcome: str | None, feed_scale: float | None) -> MillStatistics:
