@@ -402,9 +402,10 @@ class Mill:
         prod, held, err = [], [], []
         cum_fed = cum_out = 0.0
         min_steps = 5 * (lm.n_stages + 1)
+        steady_t = float(lm.steady_state(f).sum()) if lm.fill_dependent else 1.0
         for t in range(max_steps):
-            out = float((lm.out_op @ x).sum())
-            x = lm.M @ x + f
+            x, out = lm.step(x, float(x.sum()) / steady_t)
+            x = x + f
             cum_fed += fs
             cum_out += out
             h = float(x.sum())
