@@ -350,6 +350,9 @@ class Mill:
         tonnes_per_step = op.feed_tph * dt / 3600.0
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
         notes += [streams.note] if streams.note else []
+        if self.solver != "expected_value" and getattr(streams, "filling", None) is not None:
+            notes.append("transport: the Monte-Carlo solver moves rock by the steady matrix throughout "
+                         "(the fill-dependent speed is the expected-value march's)")
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
             res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
