@@ -18,7 +18,14 @@ from msmill.machine import Machine, OperatingPoint
 from msmill.model import Mill, RunProvider
 from msmill.model.expected_value import assemble
 from msmill.model.providers import pooled_filling
-from msmill.model.submodels import SUBMODELS, FillingMatrixTransport, MatrixTransport, NoDamage, Transition, resolve
+from msmill.model.submodels import (
+    SUBMODELS,
+    FillingMatrixTransport,
+    MatrixTransport,
+    NoDamage,
+    Transition,
+    resolve,
+)
 from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import FillingTransport, RunStatistics
 
@@ -76,12 +83,12 @@ def test_a_faster_step_divides_the_time_per_visit_and_keeps_the_destinations():
     for g in (0.5, 1.3, 50.0):
         P = tr.at_speed(g)
         assert np.all(P >= -1e-15) and np.allclose(P.sum(axis=-1), 1.0)
-        gs = np.minimum(g, tr.max_speed())
+        gs = np.minimum(g, tr.max_speed())[:, None]
         assert np.allclose(1.0 / (1.0 - P[c, :, c]), 1.0 / (gs * (1.0 - T[c, :, c])))  # visits g times shorter
         leave_t, leave_p = T.copy(), P.copy()
         leave_t[c, :, c] = leave_p[c, :, c] = 0.0
         assert np.allclose(leave_p / leave_p.sum(-1, keepdims=True), leave_t / leave_t.sum(-1, keepdims=True))
-    assert np.allclose(tr.at_speed(50.0)[c, :, c], 0.0)  # capped where nothing would stay
+    assert np.allclose(tr.at_speed(50.0)[c, :, c].min(axis=1), 0.0)  # capped where nothing would stay
 
 
 def test_hand_recursion_of_a_two_compartment_mill():
@@ -101,7 +108,7 @@ def test_hand_recursion_of_a_two_compartment_mill():
     for _ in range(60):
         h = y.sum() / x_ss.sum()
         r = np.interp(min(h, 1.0), [0.1, 0.5, 1.0], [0.3, 0.7, 1.0])
-        g = np.minimum(1.0 / r, 1.0 / (1.0 - np.array([0.5, 0.6])))
+        g = np.minimum(1.0 / r, 1.0 / (1.0 - np.array([0.5, 0.6])))  # one class: its own cap
         P = q + (g - 1.0)[:, None] * (q - np.eye(2))
         out_hand = float(y @ (g * T[:, 0, 2]))
         y = y @ P + np.array([1.0, 0.0])
@@ -109,6 +116,27 @@ def test_hand_recursion_of_a_two_compartment_mill():
         x = x + f
         assert out == pytest.approx(out_hand, rel=1e-12, abs=1e-15)
         assert np.allclose(x, y, rtol=1e-12)
+
+
+@pytest.mark.parametrize("impacted", ["refeed", "all"])
+@pytest.mark.parametrize("ratio", [0.3, 0.8, 1.5])
+def test_a_step_at_speed_g_is_the_mill_assembled_from_the_matrix_at_speed_g(impacted, ratio):
+    """Linearity in the transport: ``step`` at fill 0 (speed 1 / ratio) = the operator built from ``at_speed``."""
+    rng = np.random.default_rng(11)
+    grid = SizeGrid.geometric(1.0, 16.0)
+    T = rng.dirichlet(np.ones(N_ST + 2), size=(N_ST + 1, grid.n_classes))
+    tr = Transition(T, feed_compartment=0, filling=(np.array([0.5]), np.array([ratio])))
+    mill = Mill("UG2", RunProvider(synthetic_run(8.0, n_stages=N_ST)), grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, stats, _, _ = mill.prepare(grid, OP)
+    lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 2, 4, impacted)
+    ref = assemble(grid.edges_mm, Transition(tr.at_speed(1.0 / ratio), feed_compartment=0), stats, mill.breakage,
+                   NoDamage(), 2, 4, impacted)
+    x = rng.random(lm.n_state)
+    y, out = lm.step(x, 0.0)
+    assert np.allclose(y, ref.M @ x, rtol=1e-12, atol=1e-15)
+    assert out == pytest.approx(float((ref.out_op @ x).sum()), rel=1e-12)
 
 
 # ------------------------------------------------------------------ anchor at steady state
@@ -250,6 +278,10 @@ def test_filling_measurement_finds_faster_rock_in_the_emptier_mill_and_none_when
     assert ft.fill[k] == pytest.approx(12 / 26, abs=0.05)
     assert ft.residence_ratio[k] == pytest.approx(sum(fast) / sum(slow), rel=0.15)
     assert np.allclose(np.delete(ft.residence_ratio, k), 1.0)  # few tags there: the window's destinations
+    t0 = 0.45  # a window that opens while the mill still fills: its tags at fills below 1 stay out
+    early = filling_transport(m, snaps, rem, (t0, win[1]), lag=1)
+    rock_kg = 2700.0 * 4.0 / 3.0 * np.pi * 0.004**3
+    assert sum(early.tag_mass_kg) <= (snaps["time_s"] < t0 - 1e-9).sum() * rock_kg * (1 + 1e-9)
     m, snaps, rem, win = _record(0.0, slow, fast)
     same = filling_transport(m, snaps, rem, win, lag=1)
     assert np.allclose(same.residence_ratio, 1.0, atol=0.02)

@@ -463,8 +463,8 @@ class LinearMill:
         """One step of the mill without feed at mill fill ``fill``: the new state and the mass put out (t).
 
         At speed ``g`` (:meth:`Transition.speed_at`, capped per state by
-        ``max_speed``) the transport of compartment ``c`` is ``g P_c + (1 - g) I``,
-        so the step is ``M x + (M - stay) ((g - 1) x)`` and the product
+        ``max_speed``, one speed per compartment) the transport of compartment ``c``
+        is ``g P_c + (1 - g) I``, so the step is ``M x + (M - stay) ((g - 1) x)`` and the product
         ``out_op (g x)`` (both linear in the transport; ``g = 1``: ``M x``).
         """
         if not self.fill_dependent:
@@ -537,7 +537,7 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
         c = np.arange(T.shape[0])
         eye[c, :, c] = 1.0
         stay = _step_matrices(eye, batch.G, n, nd, impacted)[0]
-        max_speed = np.repeat(tr.max_speed(), nd, axis=1).ravel()  # state order (compartment, class, damage)
+        max_speed = np.repeat(tr.max_speed(), n * nd)  # state order (compartment, class, damage)
     return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops, n_stages=n_st, n_sizes=n, n_damage=nd,
                       feed_compartment=tr.feed_compartment, transition=tr, stay=stay, max_speed=max_speed)
 

@@ -246,14 +246,19 @@ class Transition:
         return 1.0 / float(np.interp(min(float(fill), 1.0), [*h, 1.0], [*r, 1.0]))
 
     def max_speed(self) -> np.ndarray:
-        """Largest speed (C, N) that keeps each row non-negative: ``1 / (1 - matrix[c, i, c])`` (inf if 1)."""
+        """Largest speed per compartment (C,) that keeps its rows non-negative: ``1 / (1 - min_i matrix[c, i, c])``.
+
+        One speed for all size classes of a compartment, so that a step at speed
+        ``g`` stays linear in the state whether impacts come before or after the
+        move (``impacted``); ``inf`` where the rock always moves.
+        """
         c = np.arange(self.matrix.shape[0])
-        leave = 1.0 - self.matrix[c, :, c]
+        leave = 1.0 - self.matrix[c, :, c].min(axis=1)
         return np.where(leave > 1e-12, 1.0 / np.maximum(leave, 1e-12), np.inf)
 
     def at_speed(self, g: float) -> np.ndarray:
-        """The one-step matrix at speed ``g`` (each row's speed capped by :meth:`max_speed`)."""
-        gs = np.minimum(g, self.max_speed())[..., None]
+        """The one-step matrix at speed ``g`` (each compartment's speed capped by :meth:`max_speed`)."""
+        gs = np.minimum(g, self.max_speed())[:, None, None]
         eye = np.zeros_like(self.matrix)
         c = np.arange(self.matrix.shape[0])
         eye[c, :, c] = 1.0
