@@ -3,7 +3,7 @@
 Run::
 
     python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix] [--runs-dir DIR]
-                                          [--campaign DIR|none] [--scatter N]
+                                          [--campaign DIR|none] [--scatter N] [--filling table|own]
 
 For every run of the stage-parameter table (default: the packaged
 ``msmill/data/stage_parameters/default.json``), and for every steady run of
@@ -42,6 +42,14 @@ out of the maximum and counted in ``runs_without_dem_steady_state``).
 the model's transport with the DEM run's number of rocks moving independently
 (multinomial per compartment and step): the scatter a single DEM realisation
 has from rock-count noise alone (collective pulsations add to it).
+
+With ``--transport dem_matrix_fill`` (the transport's speed depends on the
+mill's fill, docs/model.md section 7.3) every run gets the filling curve
+(``RunStatistics.filling_transport``) of ``--filling``: ``table`` (default)
+the table runs' curves pooled (:func:`msmill.model.providers.pooled_filling`,
+as a table provider gives it), ``own`` the run's own; a run without the field
+is measured from its saved DEM folder
+(:func:`msmill.dem.mill.run.saved_run_filling_transport`).
 
 Nothing is fitted here: the model reads the run's measured transport
 (destinations one characteristic time later) and nothing else. The table's
