@@ -3,7 +3,7 @@
 Run::
 
     python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix] [--runs-dir DIR]
-                                          [--campaign DIR|none] [--scatter N]
+                                          [--campaign DIR|none] [--scatter N] [--filling table|own]
 
 For every run of the stage-parameter table (default: the packaged
 ``msmill/data/stage_parameters/default.json``), and for every steady run of
@@ -43,6 +43,14 @@ the model's transport with the DEM run's number of rocks moving independently
 (multinomial per compartment and step): the scatter a single DEM realisation
 has from rock-count noise alone (collective pulsations add to it).
 
+With ``--transport dem_matrix_fill`` (the transport's speed depends on the
+mill's fill, docs/model.md section 7.3) every run gets the filling curve
+(``RunStatistics.filling_transport``) of ``--filling``: ``table`` (default)
+the table runs' curves pooled (:func:`msmill.model.providers.pooled_filling`,
+as a table provider gives it), ``own`` the run's own; a run without the field
+is measured from its saved DEM folder
+(:func:`msmill.dem.mill.run.saved_run_filling_transport`).
+
 Nothing is fitted here: the model reads the run's measured transport
 (destinations one characteristic time later) and nothing else. The table's
 summary is the line ``runs=<n> residence_rel_err_max=<x> tss_abs_err_max_s=<y> ...``,
@@ -59,15 +67,20 @@ from pathlib import Path
 
 import numpy as np
 
-from msmill.dem.mill.run import RunSettings, saved_run_feed_kg_s, saved_run_verdict
+from msmill.dem.mill.run import (
+    RunSettings,
+    saved_run_feed_kg_s,
+    saved_run_filling_transport,
+    saved_run_verdict,
+)
 from msmill.dem.mill.stats import detect_steady_state
 from msmill.machine import OperatingPoint
 from msmill.model import Mill
-from msmill.model.providers import RunProvider, default_table_path
+from msmill.model.providers import RunProvider, default_table_path, pooled_filling
 from msmill.model.result import time_to_steady_state
 from msmill.model.submodels import BreakageParameters
 from msmill.psd import PSD, SizeGrid
-from msmill.stageparams import RunStatistics, StageParameterTable
+from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
 from msmill.steadystate import SteadyStateCriterion, first_steady
 
 #: Ore parameters are irrelevant with breakage="none"; any valid set.
@@ -182,9 +195,31 @@ def scatter_onsets(matrix: np.ndarray, rocks_per_step: float, tau_s: float, crit
     return np.array([f[0] if f else _NAN for f in found])
 
 
-def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int) -> Row:
-    """Model against DEM for one run."""
+def with_filling(run: RunStatistics, runs_dir: Path | None) -> RunStatistics:
+    """The run with its filling transport, measured from its saved DEM folder if it has none (and the folder is here)."""
+    d = dem_run_dir(run, runs_dir)
+    if run.filling_transport is not None or d is None:
+        return run
+    return run.model_copy(update={"filling_transport": saved_run_filling_transport(d, run.characteristic_time_s)})
+
+
+def pooled_curve(runs: list[RunStatistics]) -> FillingTransport | None:
+    """The runs' filling curves pooled (:func:`msmill.model.providers.pooled_filling`), as one curve."""
+    pooled = pooled_filling([r for r in runs if r.filling_transport is not None])
+    if pooled is None:
+        return None
+    total = sum(sum(r.filling_transport.tag_mass_kg) for r in runs if r.filling_transport is not None)
+    return FillingTransport(fill=list(pooled[0]), residence_ratio=list(pooled[1]),
+                            tag_mass_kg=[total / pooled[0].size] * pooled[0].size)
+
+
+def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int,
+            curve: FillingTransport | None = None) -> Row:
+    """Model against DEM for one run (``curve``: the filling transport to use instead of the run's own)."""
     crit = RunSettings().criterion()
+    d = dem_run_dir(run, runs_dir)
+    if transport == "dem_matrix_fill":
+        run = run.model_copy(update={"filling_transport": curve}) if curve else with_filling(run, runs_dir)
     mill, feed, grid, op = _mill(run, transport)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -200,7 +235,6 @@ def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter
     rec_model = recorded_onset(t0, np.concatenate([[0.0], held]), cum, op.feed_tph / 3600.0,
                                (run.provenance or {}).get("run_settings", {}))
     rec_dem = run.steady_state_time_s if run.steady_state_time_s is not None else _NAN
-    d = dem_run_dir(run, runs_dir)
     today = d is not None
     tss_dem = _NAN
     if today:
@@ -263,6 +297,9 @@ def main() -> None:
                     help="folder of the table's saved DEM runs (size_<d>mm); default: the runs' provenance")
     ap.add_argument("--campaign", default=None,
                     help="campaign export folder (default: the packaged one); 'none' to skip")
+    ap.add_argument("--filling", choices=("own", "table"), default="table",
+                    help="dem_matrix_fill only: each run's own filling curve, or the table runs' pooled curve "
+                         "for every run (default)")
     ap.add_argument("--scatter", type=int, default=0, help="rock-count scatter simulations per table run (0: none)")
     args = ap.parse_args()
     path = args.table or default_table_path()
@@ -274,7 +311,16 @@ def main() -> None:
     if args.transport == "dem_matrix" and n_dest < len(table.runs):
         print(f"note: {len(table.runs) - n_dest} of {len(table.runs)} runs have no one-lag destinations: "
               "dem_matrix falls back to their three streams there")
-    summary = report([compare(r, args.transport, args.runs_dir, args.scatter) for r in table.runs])
+    curve = None
+    if args.transport == "dem_matrix_fill":
+        n_fill = sum(r.filling_transport is not None for r in table.runs)
+        print(f"filling transport: {args.filling} ({n_fill} of {len(table.runs)} table runs carry one; "
+              "the others are measured from their saved DEM folders)")
+        if args.filling == "table":
+            curve = pooled_curve([with_filling(r, args.runs_dir) for r in table.runs])
+            print(f"  table's pooled curve: fill {np.round(curve.fill, 2).tolist()} "
+                  f"ratio {np.round(curve.residence_ratio, 3).tolist()}")
+    summary = report([compare(r, args.transport, args.runs_dir, args.scatter, curve) for r in table.runs])
     summary += f" runs_with_destinations={n_dest}"
     if (args.campaign or "").lower() != "none":
         from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
@@ -283,7 +329,7 @@ def main() -> None:
         if folder.is_dir():
             slices, full = split_runs(read_export(folder))
             print(f"\ncampaign export: {folder} ({len(slices)} steady slice runs, {len(full)} steady full-mill runs)")
-            rows = [compare(e.statistics, args.transport, export_raw_dir(e.path), 0) for e in slices + full]
+            rows = [compare(e.statistics, args.transport, export_raw_dir(e.path), 0, curve) for e in slices + full]
             summary += " " + report(rows, prefix="campaign_")
     print(summary)
 

@@ -134,6 +134,10 @@ class StageParameters:
     transition_lag_s : ndarray, shape (N,) or None
         Lag (s) at which each class's ``transition`` was measured (the runs'
         characteristic times, interpolated); the transport converts it to the step.
+    filling_fill, filling_residence_ratio : ndarray, shape (K,) or None
+        The transport's mean residence while the mill fills, over its steady one, at
+        mill fills ``filling_fill`` (share of the steady hold-up; the runs'
+        ``filling_transport``, pooled); used by the ``dem_matrix_fill`` transport.
     """
 
     sizes_mm: np.ndarray
@@ -154,6 +158,8 @@ class StageParameters:
     transition: np.ndarray | None = None
     extrapolated: np.ndarray | None = None
     transition_lag_s: np.ndarray | None = None
+    filling_fill: np.ndarray | None = None
+    filling_residence_ratio: np.ndarray | None = None
 
     @property
     def n_stages(self) -> int:

@@ -34,6 +34,13 @@ Conventions (schema version 1)
   dynamics (fresh feed enters the inlet zone); the ``dem_matrix`` transport of
   the mill model uses them (docs/model.md). ``kickback``, ``refeed`` and
   ``pass_through`` are their sums above, at and below the stage.
+* ``filling_transport`` (optional, run level): how fast the transport runs
+  while the mill fills. Tags taken before the measurement window are binned by
+  the mill's hold-up as a share ``fill`` of its window mean; each bin's
+  one-lag destinations (the window's for compartments without tags in the bin)
+  make a chain whose mean residence, over the window chain's, is
+  ``residence_ratio`` (``msmill.dem.mill.stats.filling_transport``; the
+  ``dem_matrix_fill`` transport, docs/model.md).
 * All quantities are SI (m, s, kg, m/s), except ``size_mm``, ``feed_tph``,
   ``speed_rpm`` and ``gate_deg`` which carry their unit in their name.
 
@@ -61,6 +68,7 @@ Schema version 2 (secondary-impact count families)
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -441,6 +449,42 @@ class DesignPoint(_Frozen):
         return v
 
 
+class FillingTransport(_Frozen):
+    """The DEM's transport while the mill fills (optional part of :class:`RunStatistics`).
+
+    Attributes
+    ----------
+    fill : list of float
+        Mill hold-up at the bin's tags, as a share of the measurement window's mean (0-1, ascending).
+    residence_ratio : list of float
+        Mean residence of the chain made by the bin's one-lag destinations over that of the
+        window's destinations (> 0; below 1: the transport runs faster than at steady state).
+    tag_mass_kg : list of float
+        Tagged rock mass of the bin (its weight).
+    """
+
+    fill: list[float] = Field(min_length=1)
+    residence_ratio: list[float] = Field(min_length=1)
+    tag_mass_kg: list[float] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> FillingTransport:
+        if not len(self.fill) == len(self.residence_ratio) == len(self.tag_mass_kg):
+            raise ValueError("fill, residence_ratio and tag_mass_kg must have the same length")
+        if any(not 0.0 <= h < 1.0 for h in self.fill) or list(self.fill) != sorted(self.fill):
+            raise ValueError("fill must be ascending shares in [0, 1)")
+        if any(not (r > 0.0 and math.isfinite(r)) for r in self.residence_ratio):
+            raise ValueError("residence_ratio must be finite and > 0")
+        if any(m <= 0.0 for m in self.tag_mass_kg):
+            raise ValueError("tag_mass_kg must be > 0")
+        return self
+
+    def ratio_at(self, fill: np.ndarray) -> np.ndarray:
+        """Residence ratio at mill fills ``fill``: linear between the bins and ``(1, 1)``, 1 above, the first below."""
+        return np.interp(np.minimum(np.asarray(fill, dtype=float), 1.0), [*self.fill, 1.0],
+                         [*self.residence_ratio, 1.0])
+
+
 class RunStatistics(_JsonDocument):
     """All per-stage statistics of one DEM run, with run-level figures and provenance."""
 
@@ -468,6 +512,9 @@ class RunStatistics(_JsonDocument):
     # adaptive measurement window (issue 12): largest sampling error reached per statistic family
     # (msmill.dem.mill.run.sampling_errors_reached); None: some stage had no sample of that family
     sampling_error_reached: dict[str, float | None] = Field(default_factory=dict)
+    # transport while the mill fills (issue 15): None = not measured
+    filling_transport: FillingTransport | None = Field(
+        default=None, description="residence ratio of the one-lag transport by mill fill, before the window")
 
     def require_steady(self, allow_not_steady: bool = False, source: str = "statistics") -> RunStatistics:
         """Return self if the run reached steady state; else raise (unless ``allow_not_steady``).

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -431,6 +432,14 @@ class LinearMill:
         Mass impacted during a step (diagonal).
     stages : list of StageOperator
     n_stages, n_sizes, n_damage : int
+    transition : Transition or None
+        The transport it was built from; when it depends on the mill's fill
+        (``transition.filling``) :meth:`step` uses ``stay`` and ``max_speed``.
+    stay : scipy.sparse.csr_matrix or None
+        Step operator of a transport that moves nothing (every compartment's
+        rock stays and is impacted as staying rock), for fill-dependent speeds.
+    max_speed : ndarray (n,) or None
+        Largest transport speed per state that keeps the step non-negative.
     """
 
     M: sp.csr_matrix
@@ -441,6 +450,28 @@ class LinearMill:
     n_sizes: int
     n_damage: int
     feed_compartment: int = 1
+    transition: Any = None
+    stay: sp.csr_matrix | None = None
+    max_speed: np.ndarray | None = None
+
+    @property
+    def fill_dependent(self) -> bool:
+        """Whether the transport's speed depends on the mill's fill."""
+        return self.stay is not None and self.transition is not None and self.transition.filling is not None
+
+    def step(self, x: np.ndarray, fill: float = 1.0) -> tuple[np.ndarray, float]:
+        """One step of the mill without feed at mill fill ``fill``: the new state and the mass put out (t).
+
+        At speed ``g`` (:meth:`Transition.speed_at`, capped per state by
+        ``max_speed``, one speed per compartment) the transport of compartment ``c``
+        is ``g P_c + (1 - g) I``, so the step is ``M x + (M - stay) ((g - 1) x)`` and the product
+        ``out_op (g x)`` (both linear in the transport; ``g = 1``: ``M x``).
+        """
+        if not self.fill_dependent:
+            return self.M @ x, float((self.out_op @ x).sum())
+        g = np.minimum(self.transition.speed_at(fill), self.max_speed)
+        dx = (g - 1.0) * x
+        return self.M @ x + (self.M @ dx - self.stay @ dx), float((self.out_op @ (g * x)).sum())
 
     @property
     def n_state(self) -> int:
@@ -500,8 +531,15 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
         raise ValueError(impacted)
 
     M, out_op, imp = _step_matrices(T, batch.G, n, nd, impacted)
-    return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops,
-                      n_stages=n_st, n_sizes=n, n_damage=nd, feed_compartment=tr.feed_compartment)
+    stay = max_speed = None
+    if tr.filling is not None:
+        eye = np.zeros_like(T)
+        c = np.arange(T.shape[0])
+        eye[c, :, c] = 1.0
+        stay = _step_matrices(eye, batch.G, n, nd, impacted)[0]
+        max_speed = np.repeat(tr.max_speed(), n * nd)  # state order (compartment, class, damage)
+    return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops, n_stages=n_st, n_sizes=n, n_damage=nd,
+                      feed_compartment=tr.feed_compartment, transition=tr, stay=stay, max_speed=max_speed)
 
 
 def _step_matrices(T: np.ndarray, G: np.ndarray, n: int, nd: int, impacted: str) -> tuple[sp.csr_matrix, ...]:

@@ -350,6 +350,9 @@ class Mill:
         tonnes_per_step = op.feed_tph * dt / 3600.0
         notes = [*self.ore.notes, f"stage parameters: {params.source}"]
         notes += [streams.note] if streams.note else []
+        if self.solver != "expected_value" and getattr(streams, "filling", None) is not None:
+            notes.append("transport: the Monte-Carlo solver moves rock by the steady matrix throughout "
+                         "(the fill-dependent speed is the expected-value march's)")
         notes += [str(m) for m, _ in caught]
         if self.solver == "expected_value":
             res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
@@ -402,9 +405,10 @@ class Mill:
         prod, held, err = [], [], []
         cum_fed = cum_out = 0.0
         min_steps = 5 * (lm.n_stages + 1)
+        steady_t = float(lm.steady_state(f).sum()) if lm.fill_dependent else 1.0
         for t in range(max_steps):
-            out = float((lm.out_op @ x).sum())
-            x = lm.M @ x + f
+            x, out = lm.step(x, float(x.sum()) / steady_t)
+            x = x + f
             cum_fed += fs
             cum_out += out
             h = float(x.sum())

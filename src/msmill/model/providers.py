@@ -146,6 +146,27 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     return out
 
 
+def pooled_filling(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The runs' filling curves (``filling_transport``) pooled: fills (K,) and residence ratios (K,).
+
+    One point per fill bin (:data:`msmill.dem.mill.stats.FILLING_BINS`) that some run has a
+    point in: the runs' tag-mass-weighted mean fill there, and the mean of the runs'
+    curves (:meth:`~msmill.stageparams.FillingTransport.ratio_at`) at that fill,
+    weighted by the runs' tagged masses. None unless every run has a curve.
+    """
+    from msmill.dem.mill.stats import FILLING_BINS
+
+    curves = [r.filling_transport for r in runs]
+    if not curves or any(c is None for c in curves):
+        return None
+    h = np.concatenate([c.fill for c in curves])
+    m = np.concatenate([c.tag_mass_kg for c in curves])
+    b = np.searchsorted(FILLING_BINS, h, side="right") - 1
+    fill = np.array([np.average(h[b == k], weights=m[b == k]) for k in np.unique(b)])
+    w = np.array([sum(c.tag_mass_kg) for c in curves])
+    return fill, np.average([c.ratio_at(fill) for c in curves], axis=0, weights=w)
+
+
 def _count_rows(runs: list[RunStatistics]) -> np.ndarray:
     """Secondary-count mixtures stacked as (2, R, S, C): weights, means (padding weight 0)."""
     counts = [[s.secondary_count or CountDistribution.poisson(s.secondary_lambda) for s in r.stages] for r in runs]
@@ -251,6 +272,7 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
                       stacklevel=3)
     d = runs[0].design
     lam = np.maximum(lin(a["lam"]), 0.0)
+    filling = pooled_filling(runs)
     return StageParameters(
         sizes_mm=sizes.copy(),
         characteristic_time_s=float(times.mean()),
@@ -269,6 +291,8 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
         transition=tr,
         extrapolated=outside,
         transition_lag_s=None if tr is None else (1 - w) * times[j] + w * times[j1],
+        filling_fill=None if filling is None else filling[0],
+        filling_residence_ratio=None if filling is None else filling[1],
     )
 
 

@@ -221,11 +221,48 @@ class Transition:
         Compartment the fresh feed of a step enters at the end of the step.
     note : str
         Remark for the result's notes (e.g. a fallback), or empty.
+    filling : (ndarray (K,), ndarray (K,)) or None
+        Mill fills (share of the steady hold-up) and the transport's mean residence
+        there over its steady one (:meth:`speed_at`); None: the transport does not
+        depend on the fill (``matrix`` at every step).
     """
 
     matrix: np.ndarray
     feed_compartment: int = 1
     note: str = ""
+    filling: tuple[np.ndarray, np.ndarray] | None = None
+
+    def speed_at(self, fill: float) -> float:
+        """How many times faster than at steady state the rock moves at mill fill ``fill`` (1 at and above 1).
+
+        ``1 / ratio``, the ratio linear in the fill between the ``filling`` points and
+        ``(1, 1)``, the first point's below them. A step at speed ``g`` moves a
+        compartment's rock by ``g (matrix - I)``: the time spent per visit divided by
+        ``g``, the destinations of the rock that leaves kept (docs/model.md).
+        """
+        if self.filling is None:
+            return 1.0
+        h, r = self.filling
+        return 1.0 / float(np.interp(min(float(fill), 1.0), [*h, 1.0], [*r, 1.0]))
+
+    def max_speed(self) -> np.ndarray:
+        """Largest speed per compartment (C,) that keeps its rows non-negative: ``1 / (1 - min_i matrix[c, i, c])``.
+
+        One speed for all size classes of a compartment, so that a step at speed
+        ``g`` stays linear in the state whether impacts come before or after the
+        move (``impacted``); ``inf`` where the rock always moves.
+        """
+        c = np.arange(self.matrix.shape[0])
+        leave = 1.0 - self.matrix[c, :, c].min(axis=1)
+        return np.where(leave > 1e-12, 1.0 / np.maximum(leave, 1e-12), np.inf)
+
+    def at_speed(self, g: float) -> np.ndarray:
+        """The one-step matrix at speed ``g`` (each compartment's speed capped by :meth:`max_speed`)."""
+        gs = np.minimum(g, self.max_speed())[:, None, None]
+        eye = np.zeros_like(self.matrix)
+        c = np.arange(self.matrix.shape[0])
+        eye[c, :, c] = 1.0
+        return self.matrix + (gs - 1.0) * (self.matrix - eye)
 
     @property
     def n_stages(self) -> int:
@@ -358,6 +395,51 @@ class MatrixTransport:
 
     def __repr__(self) -> str:
         return "MatrixTransport()"
+
+
+class FillingMatrixTransport:
+    """``dem_matrix`` whose speed depends on how full the mill is, as the DEM measured while it filled.
+
+    At steady state (mill hold-up at or above its steady value) this is
+    :class:`MatrixTransport` exactly, so the steady hold-ups, residence times and
+    products are the same. While the mill fills, a step at mill fill ``h``
+    (hold-up over the steady hold-up) moves every compartment's rock by
+    ``g(h) (P - I)`` instead of ``P - I``, ``g = 1 / ratio(h)`` with ``ratio`` the
+    DEM's mean residence of the chain measured at that fill over the steady one
+    (``RunStatistics.filling_transport``; a table's runs pooled): rock leaves a
+    compartment ``g`` times as often, to the same destinations. The expected-value
+    march uses it; the steady solve and the Monte-Carlo solver use ``P``.
+    A point with ``ratio <= h`` is left out (with a note): there the mill could
+    not fill past ``h`` (its quasi-steady hold-up ``ratio`` times the steady one),
+    which the DEM run it was measured in did; without such points every fill
+    below 1 has ``ratio > h`` (linear segments up to ``(1, 1)``), so the march
+    reaches the steady state. Stage parameters without filling data give
+    ``dem_matrix`` (with a note).
+    """
+
+    name = "dem_matrix_fill"
+    requires = ("transition", "filling_transport")
+
+    def transition(self, params: StageParameters) -> Transition:
+        tr = MatrixTransport().transition(params)
+        if params.filling_fill is None or params.filling_residence_ratio is None:
+            note = "transport: the stage parameters have no filling transport; used the steady matrix throughout"
+            return dataclasses.replace(tr, note="; ".join(n for n in (tr.note, note) if n))
+        h = np.asarray(params.filling_fill, dtype=float)
+        r = np.asarray(params.filling_residence_ratio, dtype=float)
+        ok = r > h  # at r <= h the mill could not fill past h: it did in the DEM, so such a point is noise
+        note = tr.note
+        if not ok.all():
+            note = "; ".join(n for n in (note, "transport: filling points with residence ratio <= fill left out "
+                                         f"(fills {np.round(h[~ok], 2).tolist()})") if n)
+        return dataclasses.replace(tr, note=note, filling=(h[ok], r[ok]) if ok.any() else None)
+
+    def streams(self, params: StageParameters) -> np.ndarray:
+        """The steady streams (as ``dem_matrix``)."""
+        return MatrixTransport().streams(params)
+
+    def __repr__(self) -> str:
+        return "FillingMatrixTransport()"
 
 
 class RegionWeightedTransport:
@@ -734,7 +816,8 @@ class NoDamage:
 #: One lookup table per step: name -> factory. Factories of breakage and damage
 #: models take the :class:`BreakageParameters`; the others take nothing.
 SUBMODELS: dict[str, dict[str, Any]] = {
-    "transport": {"dem_matrix": MatrixTransport, "regions": RegionWeightedTransport, "bulk": BulkTransport},
+    "transport": {"dem_matrix": MatrixTransport, "regions": RegionWeightedTransport, "bulk": BulkTransport,
+                  "dem_matrix_fill": FillingMatrixTransport},
     "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
                 "primary_only": NoSecondaryImpacts},
     "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "none": NoBreakage},

@@ -49,6 +49,7 @@ from msmill.dem.mill.stats import (
     MillStatistics,
     StatsSettings,
     compute_statistics,
+    filling_transport,
     snapshots_frame,
 )
 from msmill.dem.mill.warmstart import WarmStart, place_warm_start
@@ -546,6 +547,28 @@ def saved_run_verdict(run_dir: str | Path, criterion: SteadyStateCriterion | Non
     d = Path(run_dir)
     ts = pd.read_parquet(d / "timeseries.parquet", columns=["time_s", "mass_kg", "mass_out_kg"])
     return _verdict(ts, saved_run_feed_kg_s(d), criterion or RunSettings().criterion())
+
+
+def saved_run_filling_transport(run_dir: str | Path, characteristic_time_s: float | None = None) -> Any:
+    """The filling transport (:func:`msmill.dem.mill.stats.filling_transport`) of a saved run, or None.
+
+    Tags over the run's snapshots, lag = ``characteristic_time_s`` (default: the run's
+    ``statistics.json``) in whole snapshot intervals, window from ``run.toml``.
+    """
+    import json
+
+    from msmill.validate import read_toml
+
+    d = Path(run_dir)
+    s = read_toml(d / "run.toml", "run_dir/run.toml", "run.toml of a DEM run")
+    if characteristic_time_s is None:
+        characteristic_time_s = json.loads((d / "statistics.json").read_text(encoding="utf-8"))["characteristic_time_s"]
+    snaps = pd.read_parquet(d / "snapshots.parquet", columns=["particle_id", "time_s", "y_m", "z_m", "radius_m"])
+    times = np.sort(snaps["time_s"].unique())
+    lag = max(1, round(float(characteristic_time_s) / float(np.median(np.diff(times)))))
+    res = s["result"]
+    return filling_transport(Machine.from_toml(d / "machine.toml"), snaps, pd.read_parquet(d / "removed.parquet"),
+                             (res["window_start_s"], res["window_end_s"]), lag, s["rock"]["density_kg_m3"])
 
 
 def saved_run_feed_kg_s(run_dir: str | Path) -> float:

@@ -62,6 +62,7 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,6 +80,7 @@ from msmill.machine import Machine
 from msmill.stageparams import (
     N_REGIONS,
     DesignPoint,
+    FillingTransport,
     GaussianMixture,
     RunStatistics,
     StageStatistics,
@@ -96,6 +98,7 @@ __all__ = [
     "compute_statistics",
     "destination_matrix",
     "detect_steady_state",
+    "filling_transport",
     "identify_impacts",
     "snapshots_frame",
     "stage_of_z",
@@ -430,6 +433,79 @@ def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
     return out
 
 
+#: Mill-fill bin edges (share of the window's mean hold-up) of :func:`filling_transport`.
+FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+#: Fewest tags of a compartment in a fill bin for its destinations to replace the window's.
+FILLING_MIN_TAGS = 20
+
+
+def chain_residence_steps(p: np.ndarray) -> float:
+    """Mean number of steps rock fed to compartment 0 spends in the chain ``p`` (C, C+1; last column out).
+
+    ``inf`` when some rock never leaves (a singular ``I - Q``).
+    """
+    q = np.asarray(p, dtype=float)[:, :-1]
+    try:
+        v = float(np.linalg.solve(np.eye(q.shape[0]) - q, np.ones(q.shape[0]))[0])
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return v if np.isfinite(v) and v > 0 else float("inf")
+
+
+def filling_transport(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
+    bins: tuple[float, ...] = FILLING_BINS,
+) -> FillingTransport | None:
+    """How fast the one-lag transport runs while the mill fills, by the mill's fill (None: no tags before the window).
+
+    The mill's fill at a snapshot is its hold-up (inlet zone and stages) over the
+    window's mean. Tags (:func:`tagged_moves`) taken before the window are binned
+    by the fill at their tag time; in each bin, every compartment with at least
+    :data:`FILLING_MIN_TAGS` tags gets its bin destinations, the others keep the
+    window's. ``residence_ratio`` is that chain's mean residence
+    (:func:`chain_residence_steps`) over the window chain's; bins whose chain
+    never empties are left out.
+    """
+    snaps = snapshots_frame(snapshots)
+    n = machine.n_stages
+    t0, t1 = map(float, window_s)
+    c = stage_of_z(machine, snaps["z_m"].to_numpy())
+    inside = (c >= 0) & (c <= n)
+    mass = rock_density_kg_m3 * 4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3
+    held = pd.Series(mass * inside).groupby(snaps["time_s"].to_numpy()).sum()
+    in_win = (held.index >= t0 - 1e-9) & (held.index <= t1 + 1e-9)
+    if not in_win.any() or held[in_win].mean() <= 0 or held.index.min() >= t0 - 1e-9:
+        return None
+    fill = held / held[in_win].mean()
+    moves = tagged_moves(machine, snaps, removed, lag, rock_density_kg_m3)
+    t = moves["time_s"].to_numpy()
+    steady = destination_matrix(moves[(t >= t0 - 1e-9) & (t <= t1 + 1e-9)], n)
+    if not np.isfinite(steady).all():
+        return None
+    base = chain_residence_steps(steady)
+    h = moves["time_s"].map(fill).to_numpy()
+    frm = moves["stage_from"].to_numpy()
+    w = moves["mass_kg"].to_numpy()
+    out: dict[str, list[float]] = {"fill": [], "residence_ratio": [], "tag_mass_kg": []}
+    for a, b in itertools.pairwise(bins):
+        sel = (t < t0 - 1e-9) & (h >= a) & (h < b)
+        if not sel.any():
+            continue
+        p = steady.copy()
+        got = destination_matrix(moves[sel], n)
+        counts = np.bincount(frm[sel], minlength=n + 1)[: n + 1]
+        ok = np.isfinite(got).all(axis=1) & (counts >= FILLING_MIN_TAGS)
+        p[ok] = got[ok]
+        r = chain_residence_steps(p) / base
+        if not np.isfinite(r):
+            continue
+        out["fill"].append(float(np.average(h[sel], weights=w[sel])))
+        out["residence_ratio"].append(float(r))
+        out["tag_mass_kg"].append(float(w[sel].sum()))
+    return FillingTransport(**out) if out["fill"] else None
+
+
 def _batch_se(values: np.ndarray) -> float:
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
@@ -677,6 +753,7 @@ def compute_statistics(
         steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
         mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
         inlet_destinations=dest.get(0), inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
+        filling_transport=filling_transport(machine, snaps_all, removed, (t0, t1), lag, rock_density_kg_m3),
     )
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
 

@@ -1,0 +1,287 @@
+"""The fill-dependent transport ``dem_matrix_fill`` (issue 15): its definition, its steady-state anchor,
+mass conservation of the march, the filling measurement of the DEM statistics, and the schema field."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from synthetic import synthetic_run
+
+from msmill.dem.mill.stats import chain_residence_steps, filling_transport
+from msmill.errors import MsmillInputError
+from msmill.machine import Machine, OperatingPoint
+from msmill.model import Mill, RunProvider
+from msmill.model.expected_value import assemble
+from msmill.model.providers import pooled_filling
+from msmill.model.submodels import (
+    SUBMODELS,
+    FillingMatrixTransport,
+    MatrixTransport,
+    NoDamage,
+    Transition,
+    resolve,
+)
+from msmill.psd import PSD, SizeGrid
+from msmill.stageparams import FillingTransport, RunStatistics
+
+N_ST = 3
+OP = OperatingPoint(feed_tph=30.0, stage_speeds_rpm=[1500.0] * (N_ST - 1) + [3000.0], gate_deg=40.0)
+
+
+def _destinations(n_stages: int) -> tuple[list[float], list[list[float]]]:
+    """SYNTHETIC one-lag destinations: the inlet zone holds half, a stage keeps 40 % and passes most on."""
+    inlet = [0.5, 0.5] + [0.0] * n_stages
+    dests = []
+    for s in range(1, n_stages + 1):
+        d = np.zeros(n_stages + 2)
+        d[s - 1], d[s], d[s + 1] = (0.0 if s == 1 else 0.1), 0.4, (0.6 if s == 1 else 0.5)
+        dests.append(d.tolist())
+    return inlet, dests
+
+
+def _run(filling: FillingTransport | None, size_mm: float = 8.0) -> RunStatistics:
+    run = synthetic_run(size_mm, n_stages=N_ST)
+    inlet, dests = _destinations(N_ST)
+    stages = [s.model_copy(update={"destinations": d}) for s, d in zip(run.stages, dests, strict=True)]
+    return run.model_copy(update={"stages": stages, "inlet_destinations": inlet, "filling_transport": filling})
+
+
+def _curve(fill, ratio) -> FillingTransport:
+    return FillingTransport(fill=list(fill), residence_ratio=list(ratio), tag_mass_kg=[1.0] * len(fill))
+
+
+def _mill_run(run: RunStatistics, transport: str, ore: str = "UG2"):
+    grid = SizeGrid.geometric(1.0, 16.0)
+    feed = PSD(grid, np.eye(grid.n_classes)[-1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return Mill(ore, RunProvider(run), transport=transport, grid=grid, damage_classes=2).run(feed, OP)
+
+
+# ------------------------------------------------------------------ definition
+def test_speed_is_the_inverse_ratio_linear_up_to_one_at_the_steady_hold_up():
+    tr = Transition(np.zeros((1, 1, 2)), filling=(np.array([0.2, 0.6]), np.array([0.4, 0.8])))
+    assert tr.speed_at(0.0) == pytest.approx(1 / 0.4)  # the first point's below it
+    assert tr.speed_at(0.2) == pytest.approx(1 / 0.4)
+    assert tr.speed_at(0.4) == pytest.approx(1 / 0.6)
+    assert tr.speed_at(0.8) == pytest.approx(1 / 0.9)  # halfway from (0.6, 0.8) to (1, 1)
+    assert tr.speed_at(1.0) == 1.0
+    assert tr.speed_at(1.7) == 1.0
+    assert Transition(np.zeros((1, 1, 2))).speed_at(0.1) == 1.0
+
+
+def test_a_faster_step_divides_the_time_per_visit_and_keeps_the_destinations():
+    rng = np.random.default_rng(1)
+    T = rng.dirichlet(np.ones(5), size=(4, 3))
+    tr = Transition(T, feed_compartment=0)
+    c = np.arange(4)
+    for g in (0.5, 1.3, 50.0):
+        P = tr.at_speed(g)
+        assert np.all(P >= -1e-15) and np.allclose(P.sum(axis=-1), 1.0)
+        gs = np.minimum(g, tr.max_speed())[:, None]
+        assert np.allclose(1.0 / (1.0 - P[c, :, c]), 1.0 / (gs * (1.0 - T[c, :, c])))  # visits g times shorter
+        leave_t, leave_p = T.copy(), P.copy()
+        leave_t[c, :, c] = leave_p[c, :, c] = 0.0
+        assert np.allclose(leave_p / leave_p.sum(-1, keepdims=True), leave_t / leave_t.sum(-1, keepdims=True))
+    assert np.allclose(tr.at_speed(50.0)[c, :, c].min(axis=1), 0.0)  # capped where nothing would stay
+
+
+def test_hand_recursion_of_a_two_compartment_mill():
+    """One stage, one size class, no breakage: the march is x' = x P(g(h)) + f, h = x.sum() / x_ss.sum()."""
+    T = np.array([[[0.5, 0.5, 0.0]], [[0.1, 0.6, 0.3]]])
+    curve = (np.array([0.1, 0.5]), np.array([0.3, 0.7]))
+    tr = Transition(T, feed_compartment=0, filling=curve)
+    grid = SizeGrid(np.array([9.0, 11.0]))
+    params = RunProvider(synthetic_run(10.0, n_stages=1)).stage_parameters(grid.mids_mm)
+    stats = resolve("impacts", "dem", None).impacts(params, None)
+    lm = assemble(grid.edges_mm, tr, stats, SUBMODELS["breakage"]["none"](None), NoDamage(), 1, 4)
+    f = lm.feed_vector(np.array([1.0]), 1.0)
+    x_ss = lm.steady_state(f)
+    q = T[:, 0, :2]
+    assert np.allclose(x_ss, np.linalg.solve(np.eye(2) - q.T, [1.0, 0.0]))  # the steady chain's
+    x, y = np.zeros(2), np.zeros(2)
+    for _ in range(60):
+        h = y.sum() / x_ss.sum()
+        r = np.interp(min(h, 1.0), [0.1, 0.5, 1.0], [0.3, 0.7, 1.0])
+        g = np.minimum(1.0 / r, 1.0 / (1.0 - np.array([0.5, 0.6])))  # one class: its own cap
+        P = q + (g - 1.0)[:, None] * (q - np.eye(2))
+        out_hand = float(y @ (g * T[:, 0, 2]))
+        y = y @ P + np.array([1.0, 0.0])
+        x, out = lm.step(x, float(x.sum()) / x_ss.sum())
+        x = x + f
+        assert out == pytest.approx(out_hand, rel=1e-12, abs=1e-15)
+        assert np.allclose(x, y, rtol=1e-12)
+
+
+@pytest.mark.parametrize("impacted", ["refeed", "all"])
+@pytest.mark.parametrize("ratio", [0.3, 0.8, 1.5])
+def test_a_step_at_speed_g_is_the_mill_assembled_from_the_matrix_at_speed_g(impacted, ratio):
+    """Linearity in the transport: ``step`` at fill 0 (speed 1 / ratio) = the operator built from ``at_speed``."""
+    rng = np.random.default_rng(11)
+    grid = SizeGrid.geometric(1.0, 16.0)
+    T = rng.dirichlet(np.ones(N_ST + 2), size=(N_ST + 1, grid.n_classes))
+    tr = Transition(T, feed_compartment=0, filling=(np.array([0.5]), np.array([ratio])))
+    mill = Mill("UG2", RunProvider(synthetic_run(8.0, n_stages=N_ST)), grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, stats, _, _ = mill.prepare(grid, OP)
+    lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 2, 4, impacted)
+    ref = assemble(grid.edges_mm, Transition(tr.at_speed(1.0 / ratio), feed_compartment=0), stats, mill.breakage,
+                   NoDamage(), 2, 4, impacted)
+    x = rng.random(lm.n_state)
+    y, out = lm.step(x, 0.0)
+    assert np.allclose(y, ref.M @ x, rtol=1e-12, atol=1e-15)
+    assert out == pytest.approx(float((ref.out_op @ x).sum()), rel=1e-12)
+
+
+# ------------------------------------------------------------------ anchor at steady state
+def test_ratio_one_everywhere_is_dem_matrix_exactly():
+    a = _mill_run(_run(_curve([0.3, 0.7], [1.0, 1.0])), "dem_matrix")
+    b = _mill_run(_run(_curve([0.3, 0.7], [1.0, 1.0])), "dem_matrix_fill")
+    assert np.array_equal(a.timeseries["holdup_t"].to_numpy(), b.timeseries["holdup_t"].to_numpy())
+    assert np.array_equal(a.timeseries["product_tph"].to_numpy(), b.timeseries["product_tph"].to_numpy())
+    assert np.array_equal(a.product_psd.fractions, b.product_psd.fractions)
+
+
+def test_steady_state_is_dem_matrix_and_a_faster_empty_mill_fills_later():
+    run = _run(_curve([0.15, 0.5, 0.8], [0.35, 0.6, 0.9]))
+    a, b = _mill_run(run, "dem_matrix"), _mill_run(run, "dem_matrix_fill")
+    assert np.allclose(a.product_psd.fractions, b.product_psd.fractions, rtol=1e-12, atol=1e-15)
+    assert b.p80_mm == pytest.approx(a.p80_mm, rel=1e-12)
+    hold_a, hold_b = a.timeseries["holdup_t"].to_numpy(), b.timeseries["holdup_t"].to_numpy()
+    assert hold_b[-1] == pytest.approx(hold_a[-1], rel=1e-4)  # the march reaches the same steady state
+    k = min(hold_a.size, hold_b.size) // 3
+    assert np.all(hold_b[:k] <= hold_a[:k] * (1 + 1e-12))  # rock moving faster in an emptier mill
+    assert hold_b[k - 1] < 0.9 * hold_a[k - 1]  # ... holds less once some has left
+    assert b.time_to_steady_state_s > a.time_to_steady_state_s
+    assert b.mass_balance_error < 1e-10
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), n_st=st.integers(1, 3), n_cls=st.integers(1, 3),
+       fills=st.lists(st.floats(0.0, 0.95), min_size=1, max_size=4, unique=True),
+       ratios=st.lists(st.floats(0.05, 2.0), min_size=4, max_size=4))
+def test_the_march_conserves_mass_and_stays_non_negative(seed, n_st, n_cls, fills, ratios):
+    rng = np.random.default_rng(seed)
+    T = rng.dirichlet(np.ones(n_st + 2), size=(n_st + 1, n_cls))
+    T[-1, :, -1] += 0.2
+    T /= T.sum(axis=-1, keepdims=True)
+    h = np.sort(np.array(fills))
+    tr = Transition(T, feed_compartment=0, filling=(h, np.array(ratios[: h.size])))
+    grid = SizeGrid.geometric(2.0, 2.0 * 2.0 ** (n_cls / 2))
+    mill = Mill("UG2", RunProvider(synthetic_run(8.0, n_stages=n_st)), grid=grid)
+    op = OperatingPoint(feed_tph=30.0, stage_speeds_rpm=[1500.0] * n_st, gate_deg=40.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, stats, _, _ = mill.prepare(grid, op)
+    lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 1, 4)
+    f = lm.feed_vector(np.full(n_cls, 1.0 / n_cls), 1.0)
+    steady = float(lm.steady_state(f).sum())
+    x, fed, out = np.zeros(lm.n_state), 0.0, 0.0
+    for _ in range(40):
+        x, o = lm.step(x, float(x.sum()) / steady)
+        x = x + f
+        fed, out = fed + 1.0, out + o
+        assert np.all(x >= -1e-14)
+        assert fed == pytest.approx(float(x.sum()) + out, rel=1e-12)
+
+
+# ------------------------------------------------------------------ the sub-model
+def test_submodel_leaves_out_points_where_the_mill_could_not_fill_and_notes_it():
+    params = RunProvider(_run(_curve([0.2, 0.5, 0.8], [0.4, 0.45, 0.9]))).stage_parameters(np.array([8.0]))
+    tr = FillingMatrixTransport().transition(params)
+    assert np.allclose(tr.filling[0], [0.2, 0.8]) and np.allclose(tr.filling[1], [0.4, 0.9])
+    assert "0.5" in tr.note
+    assert np.array_equal(tr.matrix, MatrixTransport().transition(params).matrix)
+
+
+def test_submodel_without_filling_data_is_the_steady_matrix_with_a_note():
+    params = RunProvider(_run(None)).stage_parameters(np.array([8.0]))
+    tr = FillingMatrixTransport().transition(params)
+    assert tr.filling is None and "no filling transport" in tr.note
+    assert np.array_equal(tr.matrix, MatrixTransport().transition(params).matrix)
+
+
+def test_table_pools_the_runs_curves_by_tagged_mass():
+    r1 = _run(FillingTransport(fill=[0.1, 0.5], residence_ratio=[0.2, 0.6], tag_mass_kg=[1.0, 2.0]))
+    r2 = _run(FillingTransport(fill=[0.3, 0.7], residence_ratio=[0.5, 0.9], tag_mass_kg=[3.0, 3.0]))
+    fill, ratio = pooled_filling([r1, r2])
+    # bins [0, 0.2), [0.2, 0.4), [0.4, 0.6), [0.6, 0.8): one run's point each
+    assert np.allclose(fill, [0.1, 0.3, 0.5, 0.7])
+    own1 = np.interp(fill, [0.1, 0.5, 1.0], [0.2, 0.6, 1.0])
+    own2 = np.interp(fill, [0.3, 0.7, 1.0], [0.5, 0.9, 1.0])
+    assert np.allclose(ratio, (3.0 * own1 + 6.0 * own2) / 9.0)
+    assert pooled_filling([r1, _run(None)]) is None
+
+
+# ------------------------------------------------------------------ schema
+def test_filling_transport_is_optional_and_round_trips():
+    run = _run(None)
+    assert run.filling_transport is None
+    again = RunStatistics.from_json(_run(_curve([0.2, 0.6], [0.5, 0.8])).to_json())
+    assert again.filling_transport.residence_ratio == [0.5, 0.8]
+    assert again.filling_transport.ratio_at(np.array([1.2]))[0] == 1.0
+
+
+@pytest.mark.parametrize("bad", [dict(fill=[0.2, 1.0]), dict(fill=[0.6, 0.2]), dict(residence_ratio=[0.5, 0.0]),
+                                 dict(tag_mass_kg=[1.0])])
+def test_bad_filling_transport_is_refused(bad):
+    doc = {"fill": [0.2, 0.6], "residence_ratio": [0.5, 0.8], "tag_mass_kg": [1.0, 1.0], **bad}
+    data = _run(None).model_dump(mode="json")
+    data["filling_transport"] = doc
+    with pytest.raises(MsmillInputError):
+        RunStatistics.from_dict(data)
+
+
+# ------------------------------------------------------------------ the DEM measurement
+def test_chain_residence_of_a_compartment_that_keeps_p_is_one_over_one_minus_p():
+    assert chain_residence_steps(np.array([[0.75, 0.25]])) == pytest.approx(4.0)
+    assert chain_residence_steps(np.array([[0.5, 0.5, 0.0], [0.0, 0.8, 0.2]])) == pytest.approx(2.0 + 5.0)
+    assert chain_residence_steps(np.array([[1.0, 0.0]])) == np.inf
+
+
+def _record(fast_until_s: float, slow: tuple[int, ...], fast: tuple[int, ...], n_rocks: int = 400):
+    """SYNTHETIC record: rock fed one per snapshot walks inlet -> stages -> out, ``slow[c]`` snapshots in
+    compartment ``c`` (``fast`` for rock fed before ``fast_until_s``)."""
+    m = Machine.default()
+    edges = m.stage_edges_z_m()
+    mid = [edges[-1] + 0.05] + [0.5 * (edges[m.n_stages - s] + edges[m.n_stages - s + 1]) for s in range(1, m.n_stages + 1)]
+    dt = 0.005
+    rows, removed = [], []
+    for p in range(n_rocks):
+        t_in = p * dt
+        path = fast if t_in < fast_until_s else slow
+        k = p
+        for c, d in enumerate(path):
+            for _ in range(d):
+                rows.append((p, k * dt, 0.1, mid[c], 0.004))
+                k += 1
+        removed.append((p, k * dt - 1e-6, "outlet"))
+    snaps = pd.DataFrame(rows, columns=["particle_id", "time_s", "y_m", "z_m", "radius_m"])
+    snaps["time_s"] = np.round(snaps["time_s"], 9)
+    rem = pd.DataFrame(removed, columns=["particle_id", "time_s", "tag"])
+    end = (n_rocks - 1) * dt
+    return m, snaps[snaps["time_s"] <= end], rem[rem["time_s"] <= end], (end - 0.3, end)
+
+
+def test_filling_measurement_finds_faster_rock_in_the_emptier_mill_and_none_when_alike():
+    slow = (6, 4, 4, 4, 4, 4)
+    fast = (2, 2, 2, 2, 2, 2)
+    m, snaps, rem, win = _record(0.4, slow, fast)
+    ft = filling_transport(m, snaps, rem, win, lag=1)
+    k = int(np.argmax(ft.tag_mass_kg))  # the fast rock's fill: its hold-up 12 of the steady 26 rocks
+    assert ft.fill[k] == pytest.approx(12 / 26, abs=0.05)
+    assert ft.residence_ratio[k] == pytest.approx(sum(fast) / sum(slow), rel=0.15)
+    assert np.allclose(np.delete(ft.residence_ratio, k), 1.0)  # few tags there: the window's destinations
+    t0 = 0.45  # a window that opens while the mill still fills: its tags at fills below 1 stay out
+    early = filling_transport(m, snaps, rem, (t0, win[1]), lag=1)
+    rock_kg = 2700.0 * 4.0 / 3.0 * np.pi * 0.004**3
+    assert sum(early.tag_mass_kg) <= (snaps["time_s"] < t0 - 1e-9).sum() * rock_kg * (1 + 1e-9)
+    m, snaps, rem, win = _record(0.0, slow, fast)
+    same = filling_transport(m, snaps, rem, win, lag=1)
+    assert np.allclose(same.residence_ratio, 1.0, atol=0.02)
