@@ -189,3 +189,14 @@ def test_destinations_are_regressed_and_reach_the_dem_matrix_transport(fitted, t
     se = 3 * np.sqrt(want * (1 - want) / r.stages[0].n_transport_samples) + 0.05  # at a training run
     assert np.all(np.abs(T[:, 0] - want) <= se)
     assert sp.transition_lag_s[0] == pytest.approx(r.characteristic_time_s, rel=0.1)
+
+
+def test_a_layout_with_other_quantile_levels_is_refused_in_one_line():
+    """A surrogate file written with another number of levels (12 before 2026-12-02) fails with a clear error."""
+    from msmill.errors import MsmillInputError
+
+    doc = tg.TargetLayout(5, True, True).to_dict()
+    assert tg.TargetLayout.from_dict(doc).to_dict() == doc
+    doc["levels"] = [(j + 0.5) / 12 for j in range(12)]
+    with pytest.raises(MsmillInputError, match="12 quantile levels.*retrain"):
+        tg.TargetLayout.from_dict(doc)

@@ -139,8 +139,8 @@ class CostModel:
 def group_weights(names: Sequence[str]) -> np.ndarray:
     """Acquisition weights giving every target group (``s<stage>.<group>``) the same total weight.
 
-    Without them the 12 quantile targets of a velocity distribution would
-    outweigh a stage's single hit probability twelve to one.
+    Without them the ``N_LEVELS`` quantile targets of a velocity distribution
+    would outweigh a stage's single hit probability ``N_LEVELS`` to one.
     """
     groups = [n.rsplit(".", 1)[0] for n in names]
     size = {g: groups.count(g) for g in set(groups)}

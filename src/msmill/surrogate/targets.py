@@ -54,7 +54,7 @@ from msmill.errors import MsmillInputError
 from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics
 
 #: Number of quantile levels per velocity distribution.
-N_LEVELS = 12
+N_LEVELS = 20
 #: Probability levels of the velocity quantiles, ``(j - 1/2) / M``.
 LEVELS = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
 #: Floor of fractions and probabilities before log-ratio / logit transforms.
@@ -367,8 +367,11 @@ class TargetLayout:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TargetLayout:
         """Inverse of :meth:`to_dict` (checks the quantile levels match this version)."""
-        if not np.allclose(d.get("levels", LEVELS), LEVELS):
-            raise MsmillInputError("surrogate.targets.levels", d.get("levels"), f"{list(LEVELS)}")
+        got = np.asarray(d.get("levels", LEVELS), dtype=float)
+        if got.shape != LEVELS.shape or not np.allclose(got, LEVELS):
+            raise MsmillInputError("surrogate.targets.levels", f"{got.size} quantile levels",
+                                   f"the {N_LEVELS} levels (j - 1/2)/{N_LEVELS} of this version "
+                                   "(a surrogate file from another version: retrain it)")
         return cls(int(d["n_stages"]), bool(d["with_dispersion"]), bool(d["with_regions"]),
                    bool(d.get("with_destinations", False)))
 
