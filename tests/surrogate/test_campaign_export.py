@@ -114,11 +114,14 @@ def test_missing_shipped_surrogate_falls_back_to_the_table_with_a_note(monkeypat
 def test_runs_outside_the_design_space_do_not_train(exported):
     """A steady capacity probe at 100 t/h stays in the export (for the envelope) but is not training data."""
     folder, _, _ = exported
-    got = read_export(folder)
-    probe = replace(got[0], statistics=got[0].statistics.model_copy(
-        update={"design": got[0].statistics.design.model_copy(update={"feed_tph": 100.0})}))
-    slices, _ = split_runs([probe, *got[1:]])
-    assert probe not in slices and len(slices) == 1
-    edge = replace(got[0], statistics=got[0].statistics.model_copy(
-        update={"design": got[0].statistics.design.model_copy(update={"feed_tph": 60.0, "gate_deg": 0.0})}))
-    assert edge in split_runs([edge])[0]  # the bounds belong to the design space
+    slices, fulls = split_runs(read_export(folder))
+    one, other = slices
+
+    def moved(run, **design):
+        return replace(run, statistics=run.statistics.model_copy(
+            update={"design": run.statistics.design.model_copy(update=design)}))
+
+    probe = moved(one, feed_tph=100.0)
+    assert split_runs([probe, other, *fulls]) == ([other], fulls)
+    edge = moved(one, feed_tph=60.0, gate_deg=0.0)
+    assert split_runs([edge])[0] == [edge]  # the bounds belong to the design space
