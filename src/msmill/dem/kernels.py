@@ -877,60 +877,77 @@ def _neighbour_cell(q, n, periodic_axis):
     return q, 0, True
 
 
-@njit(cache=True, fastmath=False, inline='always')
-def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    pos.shape[0]
-    nx, ny, nz = ncell[0], ncell[1], ncell[2]
-    ci = cell[i]
-    cx = ci % nx
-    cy = (ci // nx) % ny
-    cz = ci // (nx * ny)
-    xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
-    ri = rad[i]
-    idi = pid[i]
-    cnt = 0
-    maxn = pad_j.shape[1]
-    for oz in range(-1, 2):
-        qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
-        if not ok:
-            continue
-        for oy in range(-1, 2):
-            qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
-            if not ok:
-                continue
-            for ox in range(-1, 2):
-                qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
-                if not ok:
-                    continue
-                q = (qz * ny + qy) * nx + qx
-                for p in range(start[q], start[q + 1]):
-                    j = order[p]
-                    if pid[j] <= idi:
-                        continue
-                    dx = pos[j, 0] + sx * box_len[0] - xi
-                    dy = pos[j, 1] + sy * box_len[1] - yi
-                    dz = pos[j, 2] + sz * box_len[2] - zi
-                    cut = ri + rad[j] + skin
-                    if dx * dx + dy * dy + dz * dz < cut * cut:
-                        if cnt < maxn:
-                            pad_j[i, cnt] = j
-                            pad_sh[i, cnt, 0] = sx
-                            pad_sh[i, cnt, 1] = sy
-                            pad_sh[i, cnt, 2] = sz
-                        cnt += 1
-    counts[i] = cnt
-
-
-@njit(cache=True, fastmath=False, parallel=True)
-def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    for i in prange(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
+#: row blocks of the threaded rebuild sweeps (one call of the row function each)
+SWEEP_BLOCKS = 64
 
 
 @njit(cache=True, fastmath=False)
-def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    for i in range(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
+def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                     box_len, pad_j, pad_sh, counts):
+    """Half-list candidates of particles ``i0 <= i < i1`` into their padded rows.
+
+    Candidates are read from ``cxyzr`` (x, y, z, r) and ``cpid``, copies of
+    the particle data in cell order, so a cell's particles are contiguous.
+    A loop over a block of rows, not an inlined per-particle helper: numba
+    wraps every entry of an inlined helper with array arguments in atomic
+    reference counting (~100 ns per particle here, docs/dem.md, Performance).
+    """
+    nx, ny, nz = ncell[0], ncell[1], ncell[2]
+    for i in range(i0, i1):
+        ci = cell[i]
+        cx = ci % nx
+        cy = (ci // nx) % ny
+        cz = ci // (nx * ny)
+        xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+        ri = rad[i]
+        idi = pid[i]
+        cnt = 0
+        maxn = pad_j.shape[1]
+        for oz in range(-1, 2):
+            qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
+            if not ok:
+                continue
+            for oy in range(-1, 2):
+                qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
+                if not ok:
+                    continue
+                for ox in range(-1, 2):
+                    qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
+                    if not ok:
+                        continue
+                    q = (qz * ny + qy) * nx + qx
+                    for p in range(start[q], start[q + 1]):
+                        if cpid[p] <= idi:
+                            continue
+                        dx = cxyzr[p, 0] + sx * box_len[0] - xi
+                        dy = cxyzr[p, 1] + sy * box_len[1] - yi
+                        dz = cxyzr[p, 2] + sz * box_len[2] - zi
+                        cut = ri + cxyzr[p, 3] + skin
+                        if dx * dx + dy * dy + dz * dz < cut * cut:
+                            if cnt < maxn:
+                                pad_j[i, cnt] = order[p]
+                                pad_sh[i, cnt, 0] = sx
+                                pad_sh[i, cnt, 1] = sy
+                                pad_sh[i, cnt, 2] = sz
+                            cnt += 1
+        counts[i] = cnt
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic, box_len,
+                         pad_j, pad_sh, counts):
+    n = pos.shape[0]
+    for c in prange(SWEEP_BLOCKS):
+        i0, i1 = chunk_bounds(n, SWEEP_BLOCKS, c)
+        _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                         box_len, pad_j, pad_sh, counts)
+
+
+@njit(cache=True, fastmath=False)
+def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic, box_len,
+                         pad_j, pad_sh, counts):
+    _neighbours_rows(0, pos.shape[0], pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                     box_len, pad_j, pad_sh, counts)
 
 
 @njit(cache=True, fastmath=False)
@@ -966,14 +983,23 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
     maxn = max(maxn_hint, 1)
+    cxyzr = np.empty((n, 4))
+    cpid = np.empty(n, np.int64)
+    for p in range(n):
+        j = order[p]
+        cxyzr[p, 0] = pos[j, 0]
+        cxyzr[p, 1] = pos[j, 1]
+        cxyzr[p, 2] = pos[j, 2]
+        cxyzr[p, 3] = rad[j]
+        cpid[p] = pid[j]
     while True:
         pad_j = np.empty((n, maxn), np.int32)
         pad_sh = np.empty((n, maxn, 3), np.int8)
         if parallel:
-            _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+            _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
                                  box_len, pad_j, pad_sh, counts)
         else:
-            _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+            _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
                                  box_len, pad_j, pad_sh, counts)
         top = _widest_row(counts)
         if top <= maxn:
@@ -1034,10 +1060,10 @@ def _image_useful(p, s, L, lo, hi, m):
     return q >= lo - m and q <= hi + m
 
 
-@njit(cache=True, fastmath=False, inline='always')
-def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                   gcl, gnc, grid_start, grid_list, pad, counts):
-    """Candidates of particle ``i``: keys ``g * KEY_STRIDE + code`` of primitives and periodic images.
+@njit(cache=True, fastmath=False)
+def _geom_rows(i0, i1, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+               gcl, gnc, grid_start, grid_list, pad, counts):
+    """Candidates of particles ``i0 <= i < i1``: keys ``g * KEY_STRIDE + code`` of primitives and images.
 
     Along a periodic axis the particle is also tested shifted by one box
     length either way against every primitive that does not span that axis
@@ -1045,58 +1071,60 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
     only tried if the shifted position comes within ``r + skin`` of
     ``img_box`` (lo 0:3, hi 3:6), the bounding box of those primitives.
     Keys go to row ``i`` of ``pad`` as far as it reaches; ``counts[i]`` gets
-    their number.
+    their number. A loop over a block of rows (see :func:`_neighbours_rows`).
     """
-    cnt = 0
-    width = pad.shape[1]
-    m = rad[i] + skin
-    px = 1 if periodic[0] != 0 else 0
-    py = 1 if periodic[1] != 0 else 0
-    pz = 1 if periodic[2] != 0 else 0
-    for sx in range(-px, px + 1):
-        if sx != 0 and not _image_useful(pos[i, 0], sx, box_len[0], img_box[0], img_box[3], m):
-            continue
-        for sy in range(-py, py + 1):
-            if sy != 0 and not _image_useful(pos[i, 1], sy, box_len[1], img_box[1], img_box[4], m):
+    for i in range(i0, i1):
+        cnt = 0
+        width = pad.shape[1]
+        m = rad[i] + skin
+        px = 1 if periodic[0] != 0 else 0
+        py = 1 if periodic[1] != 0 else 0
+        pz = 1 if periodic[2] != 0 else 0
+        for sx in range(-px, px + 1):
+            if sx != 0 and not _image_useful(pos[i, 0], sx, box_len[0], img_box[0], img_box[3], m):
                 continue
-            for sz in range(-pz, pz + 1):
-                if sz != 0 and not _image_useful(pos[i, 2], sz, box_len[2], img_box[2], img_box[5], m):
+            for sy in range(-py, py + 1):
+                if sy != 0 and not _image_useful(pos[i, 1], sy, box_len[1], img_box[1], img_box[4], m):
                     continue
-                x = pos[i, 0] + sx * box_len[0]
-                y = pos[i, 1] + sy * box_len[1]
-                z = pos[i, 2] + sz * box_len[2]
-                code = _image_code(sx, sy, sz)
-                cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
-                cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
-                cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
-                cell = (cz * gnc[1] + cy) * gnc[0] + cx
-                for q in range(grid_start[cell], grid_start[cell + 1]):
-                    g = grid_list[q]
-                    # a spanning primitive is met unshifted only (it is its own image)
-                    if ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
-                            or (sz != 0 and gspan[g, 2] != 0)):
+                for sz in range(-pz, pz + 1):
+                    if sz != 0 and not _image_useful(pos[i, 2], sz, box_len[2], img_box[2], img_box[5], m):
                         continue
-                    if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
-                        if cnt < width:
-                            pad[i, cnt] = g * KEY_STRIDE + code
-                        cnt += 1
-    counts[i] = cnt
+                    x = pos[i, 0] + sx * box_len[0]
+                    y = pos[i, 1] + sy * box_len[1]
+                    z = pos[i, 2] + sz * box_len[2]
+                    code = _image_code(sx, sy, sz)
+                    cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
+                    cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
+                    cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
+                    cell = (cz * gnc[1] + cy) * gnc[0] + cx
+                    for q in range(grid_start[cell], grid_start[cell + 1]):
+                        g = grid_list[q]
+                        # a spanning primitive is met unshifted only (it is its own image)
+                        if ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
+                                or (sz != 0 and gspan[g, 2] != 0)):
+                            continue
+                        if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
+                            if cnt < width:
+                                pad[i, cnt] = g * KEY_STRIDE + code
+                            cnt += 1
+        counts[i] = cnt
 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
                    gnc, grid_start, grid_list, pad, counts):
-    for i in prange(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, pad, counts)
+    n = pos.shape[0]
+    for c in prange(SWEEP_BLOCKS):
+        i0, i1 = chunk_bounds(n, SWEEP_BLOCKS, c)
+        _geom_rows(i0, i1, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                   gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
 def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
                    gnc, grid_start, grid_list, pad, counts):
-    for i in range(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, pad, counts)
+    _geom_rows(0, pos.shape[0], pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box,
+               glo, gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
