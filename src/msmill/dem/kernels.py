@@ -80,7 +80,7 @@ KEY_STRIDE = 4096
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_key_frame(key, x, y, z, box_len):
+def _geom_key_frame(key, x, y, z, lx, ly, lz):
     """Decode a geometry candidate key ``g * KEY_STRIDE + code``.
 
     Returns the primitive ``g`` and the particle position moved into the
@@ -92,8 +92,8 @@ def _geom_key_frame(key, x, y, z, box_len):
     code = key % KEY_STRIDE
     if code == 0:
         return g, x, y, z
-    return (g, x + _image_shift(code, 0) * box_len[0], y + _image_shift(code, 1) * box_len[1],
-            z + _image_shift(code, 2) * box_len[2])
+    return (g, x + _image_shift(code, 0) * lx, y + _image_shift(code, 1) * ly,
+            z + _image_shift(code, 2) * lz)
 
 
 @njit(cache=True, fastmath=False)
@@ -328,31 +328,6 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
 
 # --------------------------------------------------------------------------- force pass
 @njit(cache=True, fastmath=False, inline='always')
-def _history_slot(keys, n, st, ev, pk, ds, i, key, smax):
-    """Slot of partner ``key`` in particle ``i``'s contact history; a new contact opens one.
-
-    Returns ``(slot, new)``; ``slot`` is -1 when the history is full (counted
-    as an overflow by the caller). The same layout serves particle partners
-    (keyed by particle id) and geometry partners (keyed by geom id).
-    """
-    for q in range(n[i]):
-        if keys[i, q] == key:
-            return q, False
-    if n[i] >= smax:
-        return -1, True
-    q = n[i]
-    n[i] += 1
-    keys[i, q] = key
-    st[i, q, 0] = 0.0
-    st[i, q, 1] = 0.0
-    st[i, q, 2] = 0.0
-    ev[i, q] = -1
-    pk[i, q] = 0.0
-    ds[i, q] = 0.0
-    return q, True
-
-
-@njit(cache=True, fastmath=False, inline='always')
 def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
     row = evn[c]
     if row >= evf.shape[1]:
@@ -387,14 +362,22 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 
-@njit(cache=True, fastmath=False, inline='always')
-def _close_untouched(keys, n, st, ev, pk, ds, tch, i, evf, t):
-    """End particle ``i``'s contacts whose slot was not touched this step.
+@njit(cache=True, fastmath=False)
+def _close_untouched_rows(i0, i1, keys, n, st, ev, pk, ds, tch, evf, t):
+    """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
     Serves particle and geometry partners alike.
     """
+    for i in range(i0, i1):
+        if n[i] > 0:
+            _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t):
+    """:func:`_close_untouched_rows` for row ``i``."""
     q = 0
     while q < n[i]:
         if tch[i, q] == 1:
@@ -491,8 +474,27 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] - vel[j, 0] + (wy * nz - wz * ny)
             vy = vel[i, 1] - vel[j, 1] + (wz * nx - wx * nz)
             vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
-            # history slot
-            slot, new = _history_slot(h_pid, h_n, h_st, h_ev, h_pk, h_ds, i, idj, smax)
+            # history slot (written out here: an inlined helper with array arguments costs
+            # numba's atomic reference counting on every entry, docs/dem.md, Performance)
+            slot = -1
+            new = False
+            hn = h_n[i]
+            for q in range(hn):
+                if h_pid[i, q] == idj:
+                    slot = q
+                    break
+            if slot < 0:
+                new = True
+                if hn < smax:
+                    slot = hn
+                    h_n[i] = hn + 1
+                    h_pid[i, slot] = idj
+                    h_st[i, slot, 0] = 0.0
+                    h_st[i, slot, 1] = 0.0
+                    h_st[i, slot, 2] = 0.0
+                    h_ev[i, slot] = -1
+                    h_pk[i, slot] = 0.0
+                    h_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
             if slot >= 0:
@@ -547,7 +549,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
         for k in range(gc_start[i], gc_start[i + 1]):
             key = gc_g[k]
-            g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, box_len)
+            g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, lx, ly, lz)
             ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
@@ -569,7 +571,25 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] + li * (omg[i, 1] * nz - omg[i, 2] * ny) - wvx
             vy = vel[i, 1] + li * (omg[i, 2] * nx - omg[i, 0] * nz) - wvy
             vz = vel[i, 2] + li * (omg[i, 0] * ny - omg[i, 1] * nx) - wvz
-            slot, new = _history_slot(g_gid, g_n, g_st, g_ev, g_pk, g_ds, i, key, sgmax)
+            slot = -1
+            new = False
+            hn = g_n[i]
+            for q in range(hn):
+                if g_gid[i, q] == key:
+                    slot = q
+                    break
+            if slot < 0:
+                new = True
+                if hn < sgmax:
+                    slot = hn
+                    g_n[i] = hn + 1
+                    g_gid[i, slot] = key
+                    g_st[i, slot, 0] = 0.0
+                    g_st[i, slot, 1] = 0.0
+                    g_st[i, slot, 2] = 0.0
+                    g_ev[i, slot] = -1
+                    g_pk[i, slot] = 0.0
+                    g_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
             if slot >= 0:
@@ -608,21 +628,20 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
-        # ---- end of contacts: slots not touched this step. Only particles with contacts
-        # enter the helper: numba wraps the inlined helper's array arguments in atomic
-        # reference counting that cost ~30 ns per particle and call even with nothing to
-        # close (docs/dem.md, Performance); for the same reason the event helpers it and
-        # the contact loops call are inlined
-        if h_n[i] > 0:
-            _close_untouched(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
-        if g_n[i] > 0:
-            _close_untouched(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
         frc[i, 0] = fx
         frc[i, 1] = fy
         frc[i, 2] = fz
         trq[i, 0] = tx
         trq[i, 1] = ty
         trq[i, 2] = tz
+    # ---- end of contacts: slots not touched this step, once per chunk after its forces
+    # (a row's history is only read and written by its own particle, so this is the same
+    # as closing after each particle). Once per chunk, not per particle: numba wraps every
+    # entry of a helper with array arguments, inlined or not, in atomic reference counting
+    # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
+    # look-ups above are written out
+    _close_untouched_rows(i0, i1, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(i0, i1, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
@@ -1264,7 +1283,8 @@ def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len,
                 rstar = rad[i] * rad[j] / (rad[i] + rad[j])
                 e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
         for k in range(gc_start[i], gc_start[i + 1]):
-            g, xg, yg, zg = _geom_key_frame(gc_g[k], pos[i, 0], pos[i, 1], pos[i, 2], box_len)
+            g, xg, yg, zg = _geom_key_frame(gc_g[k], pos[i, 0], pos[i, 1], pos[i, 2], box_len[0],
+                                            box_len[1], box_len[2])
             ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, rad[i])
             if ok:
                 e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5
