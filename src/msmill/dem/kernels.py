@@ -900,6 +900,28 @@ def _neighbour_cell(q, n, periodic_axis):
 SWEEP_BLOCKS = 64
 
 
+@njit(cache=True, fastmath=False, inline='always')
+def _candidates(i, p0, p1, sx, sy, sz, idi, xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
+                pad_sh, cnt):
+    """Add the candidates ``p0 <= p < p1`` (cell order) within the cut-off to row ``i``."""
+    maxn = pad_j.shape[1]
+    for p in range(p0, p1):
+        if cpid[p] <= idi:
+            continue
+        dx = cxyzr[p, 0] + sx * box_len[0] - xi
+        dy = cxyzr[p, 1] + sy * box_len[1] - yi
+        dz = cxyzr[p, 2] + sz * box_len[2] - zi
+        cut = ri + cxyzr[p, 3] + skin
+        if dx * dx + dy * dy + dz * dz < cut * cut:
+            if cnt < maxn:
+                pad_j[i, cnt] = order[p]
+                pad_sh[i, cnt, 0] = sx
+                pad_sh[i, cnt, 1] = sy
+                pad_sh[i, cnt, 2] = sz
+            cnt += 1
+    return cnt
+
+
 @njit(cache=True, fastmath=False)
 def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
                      box_len, pad_j, pad_sh, counts):
@@ -921,7 +943,6 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
         ri = rad[i]
         idi = pid[i]
         cnt = 0
-        maxn = pad_j.shape[1]
         for oz in range(-1, 2):
             qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
             if not ok:
@@ -930,25 +951,21 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
                 qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
                 if not ok:
                     continue
+                row = (qz * ny + qy) * nx
+                if 0 < cx < nx - 1:
+                    # the three cells along x are contiguous in cell order and unshifted:
+                    # one run of candidates, visited in the same order as cell by cell
+                    cnt = _candidates(i, start[row + cx - 1], start[row + cx + 2], 0, sy, sz, idi,
+                                      xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
+                                      pad_sh, cnt)
+                    continue
                 for ox in range(-1, 2):
                     qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
                     if not ok:
                         continue
-                    q = (qz * ny + qy) * nx + qx
-                    for p in range(start[q], start[q + 1]):
-                        if cpid[p] <= idi:
-                            continue
-                        dx = cxyzr[p, 0] + sx * box_len[0] - xi
-                        dy = cxyzr[p, 1] + sy * box_len[1] - yi
-                        dz = cxyzr[p, 2] + sz * box_len[2] - zi
-                        cut = ri + cxyzr[p, 3] + skin
-                        if dx * dx + dy * dy + dz * dz < cut * cut:
-                            if cnt < maxn:
-                                pad_j[i, cnt] = order[p]
-                                pad_sh[i, cnt, 0] = sx
-                                pad_sh[i, cnt, 1] = sy
-                                pad_sh[i, cnt, 2] = sz
-                            cnt += 1
+                    q = row + qx
+                    cnt = _candidates(i, start[q], start[q + 1], sx, sy, sz, idi, xi, yi, zi, ri,
+                                      skin, cxyzr, cpid, order, box_len, pad_j, pad_sh, cnt)
         counts[i] = cnt
 
 
