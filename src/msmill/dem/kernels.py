@@ -420,7 +420,7 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 @njit(cache=True, fastmath=False)
 def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
@@ -456,7 +456,6 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             dz = pos[j, 2] - zi + nb_sh[k, 2] * lz
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs or d2 == 0.0:
-                pc[k] = 0
                 continue
             idj = pid[j]
             d = np.sqrt(d2)
@@ -517,13 +516,17 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             tx += la * cx_
             ty += la * cy_
             tz += la * cz_
-            pc[k] = 1
-            pf[k, 0] = cfx
-            pf[k, 1] = cfy
-            pf[k, 2] = cfz
-            pt[k, 0] = lb * cx_
-            pt[k, 1] = lb * cy_
-            pt[k, 2] = lb * cz_
+            # the partner's share, stored in its reverse-list order and stamped with this
+            # step: the integration pass reads its shares contiguously and no entry
+            # without contact is written
+            q = rv_pos[k]
+            pc[q] = stamp
+            pf[q, 0] = cfx
+            pf[q, 1] = cfy
+            pf[q, 2] = cfz
+            pt[q, 0] = lb * cx_
+            pt[q, 1] = lb * cy_
+            pt[q, 2] = lb * cz_
             rmin = min(ri, rj)
             if s > ovmax * rmin:
                 ovmax = s / rmin
@@ -647,30 +650,30 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
 def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -684,14 +687,13 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
         f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
         t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
         for q in range(rv_start[i], rv_start[i + 1]):
-            k = rv_k[q]
-            if pc[k] != 0:  # contact owned by a partner with a smaller id
-                f0 -= pf[k, 0]
-                f1 -= pf[k, 1]
-                f2 -= pf[k, 2]
-                t0 += pt[k, 0]
-                t1 += pt[k, 1]
-                t2 += pt[k, 2]
+            if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                f0 -= pf[q, 0]
+                f1 -= pf[q, 1]
+                f2 -= pf[q, 2]
+                t0 += pt[q, 0]
+                t1 += pt[q, 1]
+                t2 += pt[q, 2]
         frc[i, 0] = f0
         frc[i, 1] = f1
         frc[i, 2] = f2
@@ -744,48 +746,51 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
 def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_k, pc, pf, pt, box_len, gc_start,
+            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
     """Run up to ``nsteps`` steps from time ``t0``; return (steps done, reason).
 
     ``parallel`` selects the threaded passes (worth it from a few thousand
-    particles; below that the thread wake-up per pass dominates).
+    particles; below that the thread wake-up per pass dominates). Step
+    ``stamp0 + step`` stamps the partner shares it writes to ``pc`` (step
+    numbers are unique over the run, so the array needs no clearing).
     """
     half_skin = 0.5 * skin
     ev_limit = evf.shape[1] // 2
     for step in range(nsteps):
         t = t0 + step * dt
         update_geometry(gref, grot, gkind, t, gcur)
+        stamp = stamp0 + step
         if parallel:
             force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0
@@ -1013,8 +1018,9 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     One cell sweep fills padded rows of width ``maxn_hint`` (widened and
     redone if a row overflows), then rows are packed. Returns ``(start,
     partner index, periodic shift, reverse start, reverse entry)``: entries
-    ``rv_k[rv_start[j]:rv_start[j+1]]`` are the list entries whose partner
-    is ``j``.
+    ``rv_start[j] <= q < rv_start[j+1]`` are the reverse positions of the
+    entries whose partner is ``j`` and ``rv_pos[k]`` is entry ``k``'s (entries
+    of a partner in list order).
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
@@ -1058,12 +1064,12 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     for i in range(n):
         rv_start[i + 1] += rv_start[i]
     fill = rv_start[:-1].copy()
-    rv_k = np.empty(m, np.int64)
+    rv_pos = np.empty(m, np.int64)
     for k in range(m):
         j = nb_j[k]
-        rv_k[fill[j]] = k
+        rv_pos[k] = fill[j]
         fill[j] += 1
-    return nb_start, nb_j, nb_sh, rv_start, rv_k, top
+    return nb_start, nb_j, nb_sh, rv_start, rv_pos, top
 
 
 @njit(cache=True, fastmath=False, inline='always')

@@ -170,6 +170,7 @@ class Simulation:
         self._disp = np.zeros(1)  # displacement bound since the last neighbour build (m)
         self._warned: set[str] = set()
         self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
+        self._stamp = 0  # steps run, stamps the partner shares (kernels.advance)
 
     # ------------------------------------------------------------------ declaration
     def add_material(self, name: str, *, youngs_modulus_pa: float, poisson_ratio: float,
@@ -589,7 +590,8 @@ class Simulation:
                                       par, self._maxn)
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
-        self._pair = (np.zeros(m, np.uint8), np.zeros((m, 3)), np.zeros((m, 3)))
+        # partner shares in reverse-list order, stamped with the step that wrote them
+        self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
         margin = self._rmax_cells + self._skin
         if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
@@ -862,7 +864,8 @@ class Simulation:
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
                     p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
-                    self._nb[3], self._nb[4], self._pair[0], self._pair[1], self._pair[2],
+                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[1],
+                    self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
                     self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
                     self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
@@ -873,6 +876,7 @@ class Simulation:
                 self.stats["loop_time_s"] += elapsed
                 self._tune(use_par, elapsed, k)
                 self.stats["steps"] += k
+                self._stamp += k
                 done += k
                 self._time = t_start + done * dt
                 self._check_diag(diag, dt, max_overlap_fraction, travel_fraction, lmin, wall_v)
