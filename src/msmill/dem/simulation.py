@@ -918,22 +918,24 @@ class Simulation:
         self._rec.flush([self._p["h_ev"], self._p["g_ev"]])
 
     def _check_diag(self, diag, dt, max_over, travel_fraction, lmin, wall_v) -> None:
-        over = float(diag[:, K.D_OVER].max())
+        top = diag.max(axis=0)  # two reductions per call instead of five (called per kernel call)
+        total = diag.sum(axis=0)
+        over = float(top[K.D_OVER])
         if over > max_over:
             self._warn_once("overlap", f"peak overlap {over:.3g} of the smaller radius exceeds "
                             f"{max_over} at t = {self._time:.6g} s: the material is too soft "
                             "for the impact speed or dt_s is too large")
-        vmax = math.sqrt(float(diag[:, K.D_SPEED2].max()))
+        vmax = math.sqrt(float(top[K.D_SPEED2]))
         if (vmax + wall_v) * dt > travel_fraction * lmin * 1.0001:
             self._warn_once("travel", f"particle speed {vmax:.3g} m/s (+ wall {wall_v:.3g} m/s) "
                             f"moves {(vmax + wall_v) * dt:.3g} m per step, more than "
                             f"{travel_fraction} of the smallest radius/plate: raise "
                             "max_relative_speed_m_s or lower dt_s")
-        if diag[:, K.D_HOVF].sum() > 0:
+        if total[K.D_HOVF] > 0:
             self._warn_once("slots", "contact-history slots overflowed; raise "
                             "max_contacts_per_particle / max_geometry_contacts")
-        if diag[:, K.D_EVOVF].sum() > 0:
-            self._rec.lost += int(diag[:, K.D_EVOVF].sum())
+        if total[K.D_EVOVF] > 0:
+            self._rec.lost += int(total[K.D_EVOVF])
             self._warn_once("events", "event buffer overflowed; some events were not recorded")
 
     def _record_ts(self) -> None:
