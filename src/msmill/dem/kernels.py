@@ -80,7 +80,7 @@ KEY_STRIDE = 4096
 
 
 @njit(cache=True, fastmath=False, inline='always')
-def _geom_key_frame(key, x, y, z, box_len):
+def _geom_key_frame(key, x, y, z, lx, ly, lz):
     """Decode a geometry candidate key ``g * KEY_STRIDE + code``.
 
     Returns the primitive ``g`` and the particle position moved into the
@@ -92,8 +92,8 @@ def _geom_key_frame(key, x, y, z, box_len):
     code = key % KEY_STRIDE
     if code == 0:
         return g, x, y, z
-    return (g, x + _image_shift(code, 0) * box_len[0], y + _image_shift(code, 1) * box_len[1],
-            z + _image_shift(code, 2) * box_len[2])
+    return (g, x + _image_shift(code, 0) * lx, y + _image_shift(code, 1) * ly,
+            z + _image_shift(code, 2) * lz)
 
 
 @njit(cache=True, fastmath=False)
@@ -328,31 +328,6 @@ def contact_law(s, nx, ny, nz, vx, vy, vz, rstar, mstar, kfac, etah, etat, mu, s
 
 # --------------------------------------------------------------------------- force pass
 @njit(cache=True, fastmath=False, inline='always')
-def _history_slot(keys, n, st, ev, pk, ds, i, key, smax):
-    """Slot of partner ``key`` in particle ``i``'s contact history; a new contact opens one.
-
-    Returns ``(slot, new)``; ``slot`` is -1 when the history is full (counted
-    as an overflow by the caller). The same layout serves particle partners
-    (keyed by particle id) and geometry partners (keyed by geom id).
-    """
-    for q in range(n[i]):
-        if keys[i, q] == key:
-            return q, False
-    if n[i] >= smax:
-        return -1, True
-    q = n[i]
-    n[i] += 1
-    keys[i, q] = key
-    st[i, q, 0] = 0.0
-    st[i, q, 1] = 0.0
-    st[i, q, 2] = 0.0
-    ev[i, q] = -1
-    pk[i, q] = 0.0
-    ds[i, q] = 0.0
-    return q, True
-
-
-@njit(cache=True, fastmath=False, inline='always')
 def _record_onset(evf, evi, evn, c, t, owner_pid, kind, partner, r, pr, cx, cy, cz, vn, vt, diag):
     row = evn[c]
     if row >= evf.shape[1]:
@@ -387,14 +362,22 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 
-@njit(cache=True, fastmath=False, inline='always')
-def _close_untouched(keys, n, st, ev, pk, ds, tch, i, evf, t):
-    """End particle ``i``'s contacts whose slot was not touched this step.
+@njit(cache=True, fastmath=False)
+def _close_untouched_rows(i0, i1, keys, n, st, ev, pk, ds, tch, evf, t):
+    """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
     Serves particle and geometry partners alike.
     """
+    for i in range(i0, i1):
+        if n[i] > 0:
+            _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t):
+    """:func:`_close_untouched_rows` for row ``i``."""
     q = 0
     while q < n[i]:
         if tch[i, q] == 1:
@@ -437,7 +420,7 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 @njit(cache=True, fastmath=False)
 def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
@@ -473,7 +456,6 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             dz = pos[j, 2] - zi + nb_sh[k, 2] * lz
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs or d2 == 0.0:
-                pc[k] = 0
                 continue
             idj = pid[j]
             d = np.sqrt(d2)
@@ -491,8 +473,27 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] - vel[j, 0] + (wy * nz - wz * ny)
             vy = vel[i, 1] - vel[j, 1] + (wz * nx - wx * nz)
             vz = vel[i, 2] - vel[j, 2] + (wx * ny - wy * nx)
-            # history slot
-            slot, new = _history_slot(h_pid, h_n, h_st, h_ev, h_pk, h_ds, i, idj, smax)
+            # history slot (written out here: an inlined helper with array arguments costs
+            # numba's atomic reference counting on every entry, docs/dem.md, Performance)
+            slot = -1
+            new = False
+            hn = h_n[i]
+            for q in range(hn):
+                if h_pid[i, q] == idj:
+                    slot = q
+                    break
+            if slot < 0:
+                new = True
+                if hn < smax:
+                    slot = hn
+                    h_n[i] = hn + 1
+                    h_pid[i, slot] = idj
+                    h_st[i, slot, 0] = 0.0
+                    h_st[i, slot, 1] = 0.0
+                    h_st[i, slot, 2] = 0.0
+                    h_ev[i, slot] = -1
+                    h_pk[i, slot] = 0.0
+                    h_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
             if slot >= 0:
@@ -515,13 +516,17 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             tx += la * cx_
             ty += la * cy_
             tz += la * cz_
-            pc[k] = 1
-            pf[k, 0] = cfx
-            pf[k, 1] = cfy
-            pf[k, 2] = cfz
-            pt[k, 0] = lb * cx_
-            pt[k, 1] = lb * cy_
-            pt[k, 2] = lb * cz_
+            # the partner's share, stored in its reverse-list order and stamped with this
+            # step: the integration pass reads its shares contiguously and no entry
+            # without contact is written
+            q = rv_pos[k]
+            pc[q] = stamp
+            pf[q, 0] = cfx
+            pf[q, 1] = cfy
+            pf[q, 2] = cfz
+            pt[q, 0] = lb * cx_
+            pt[q, 1] = lb * cy_
+            pt[q, 2] = lb * cz_
             rmin = min(ri, rj)
             if s > ovmax * rmin:
                 ovmax = s / rmin
@@ -547,7 +552,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
         for k in range(gc_start[i], gc_start[i + 1]):
             key = gc_g[k]
-            g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, box_len)
+            g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, lx, ly, lz)
             ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
@@ -569,7 +574,25 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             vx = vel[i, 0] + li * (omg[i, 1] * nz - omg[i, 2] * ny) - wvx
             vy = vel[i, 1] + li * (omg[i, 2] * nx - omg[i, 0] * nz) - wvy
             vz = vel[i, 2] + li * (omg[i, 0] * ny - omg[i, 1] * nx) - wvz
-            slot, new = _history_slot(g_gid, g_n, g_st, g_ev, g_pk, g_ds, i, key, sgmax)
+            slot = -1
+            new = False
+            hn = g_n[i]
+            for q in range(hn):
+                if g_gid[i, q] == key:
+                    slot = q
+                    break
+            if slot < 0:
+                new = True
+                if hn < sgmax:
+                    slot = hn
+                    g_n[i] = hn + 1
+                    g_gid[i, slot] = key
+                    g_st[i, slot, 0] = 0.0
+                    g_st[i, slot, 1] = 0.0
+                    g_st[i, slot, 2] = 0.0
+                    g_ev[i, slot] = -1
+                    g_pk[i, slot] = 0.0
+                    g_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
             if slot >= 0:
@@ -608,50 +631,49 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
-        # ---- end of contacts: slots not touched this step. Only particles with contacts
-        # enter the helper: numba wraps the inlined helper's array arguments in atomic
-        # reference counting that cost ~30 ns per particle and call even with nothing to
-        # close (docs/dem.md, Performance); for the same reason the event helpers it and
-        # the contact loops call are inlined
-        if h_n[i] > 0:
-            _close_untouched(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
-        if g_n[i] > 0:
-            _close_untouched(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
         frc[i, 0] = fx
         frc[i, 1] = fy
         frc[i, 2] = fz
         trq[i, 0] = tx
         trq[i, 1] = ty
         trq[i, 2] = tz
+    # ---- end of contacts: slots not touched this step, once per chunk after its forces
+    # (a row's history is only read and written by its own particle, so this is the same
+    # as closing after each particle). Once per chunk, not per particle: numba wraps every
+    # entry of a helper with array arguments, inlined or not, in atomic reference counting
+    # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
+    # look-ups above are written out
+    _close_untouched_rows(i0, i1, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(i0, i1, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
 def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -665,14 +687,13 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
         f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
         t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
         for q in range(rv_start[i], rv_start[i + 1]):
-            k = rv_k[q]
-            if pc[k] != 0:  # contact owned by a partner with a smaller id
-                f0 -= pf[k, 0]
-                f1 -= pf[k, 1]
-                f2 -= pf[k, 2]
-                t0 += pt[k, 0]
-                t1 += pt[k, 1]
-                t2 += pt[k, 2]
+            if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                f0 -= pf[q, 0]
+                f1 -= pf[q, 1]
+                f2 -= pf[q, 2]
+                t0 += pt[q, 0]
+                t1 += pt[q, 1]
+                t2 += pt[q, 2]
         frc[i, 0] = f0
         frc[i, 1] = f1
         frc[i, 2] = f2
@@ -725,48 +746,51 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, 
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
 def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_k, pc, pf, pt, box_len, gc_start,
+            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
     """Run up to ``nsteps`` steps from time ``t0``; return (steps done, reason).
 
     ``parallel`` selects the threaded passes (worth it from a few thousand
-    particles; below that the thread wake-up per pass dominates).
+    particles; below that the thread wake-up per pass dominates). Step
+    ``stamp0 + step`` stamps the partner shares it writes to ``pc`` (step
+    numbers are unique over the run, so the array needs no clearing).
     """
     half_skin = 0.5 * skin
     ev_limit = evf.shape[1] // 2
     for step in range(nsteps):
         t = t0 + step * dt
         update_geometry(gref, grot, gkind, t, gcur)
+        stamp = stamp0 + step
         if parallel:
             force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, rv_k, pc, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0
@@ -877,60 +901,94 @@ def _neighbour_cell(q, n, periodic_axis):
     return q, 0, True
 
 
+#: row blocks of the threaded rebuild sweeps (one call of the row function each)
+SWEEP_BLOCKS = 64
+
+
 @njit(cache=True, fastmath=False, inline='always')
-def _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    pos.shape[0]
-    nx, ny, nz = ncell[0], ncell[1], ncell[2]
-    ci = cell[i]
-    cx = ci % nx
-    cy = (ci // nx) % ny
-    cz = ci // (nx * ny)
-    xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
-    ri = rad[i]
-    idi = pid[i]
-    cnt = 0
+def _candidates(i, p0, p1, sx, sy, sz, idi, xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
+                pad_sh, cnt):
+    """Add the candidates ``p0 <= p < p1`` (cell order) within the cut-off to row ``i``."""
     maxn = pad_j.shape[1]
-    for oz in range(-1, 2):
-        qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
-        if not ok:
+    for p in range(p0, p1):
+        if cpid[p] <= idi:
             continue
-        for oy in range(-1, 2):
-            qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
-            if not ok:
-                continue
-            for ox in range(-1, 2):
-                qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
-                if not ok:
-                    continue
-                q = (qz * ny + qy) * nx + qx
-                for p in range(start[q], start[q + 1]):
-                    j = order[p]
-                    if pid[j] <= idi:
-                        continue
-                    dx = pos[j, 0] + sx * box_len[0] - xi
-                    dy = pos[j, 1] + sy * box_len[1] - yi
-                    dz = pos[j, 2] + sz * box_len[2] - zi
-                    cut = ri + rad[j] + skin
-                    if dx * dx + dy * dy + dz * dz < cut * cut:
-                        if cnt < maxn:
-                            pad_j[i, cnt] = j
-                            pad_sh[i, cnt, 0] = sx
-                            pad_sh[i, cnt, 1] = sy
-                            pad_sh[i, cnt, 2] = sz
-                        cnt += 1
-    counts[i] = cnt
-
-
-@njit(cache=True, fastmath=False, parallel=True)
-def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    for i in prange(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
+        dx = cxyzr[p, 0] + sx * box_len[0] - xi
+        dy = cxyzr[p, 1] + sy * box_len[1] - yi
+        dz = cxyzr[p, 2] + sz * box_len[2] - zi
+        cut = ri + cxyzr[p, 3] + skin
+        if dx * dx + dy * dy + dz * dz < cut * cut:
+            if cnt < maxn:
+                pad_j[i, cnt] = order[p]
+                pad_sh[i, cnt, 0] = sx
+                pad_sh[i, cnt, 1] = sy
+                pad_sh[i, cnt, 2] = sz
+            cnt += 1
+    return cnt
 
 
 @njit(cache=True, fastmath=False)
-def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts):
-    for i in range(pos.shape[0]):
-        _neighbours_pass_one(i, pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, pad_j, pad_sh, counts)
+def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                     box_len, pad_j, pad_sh, counts):
+    """Half-list candidates of particles ``i0 <= i < i1`` into their padded rows.
+
+    Candidates are read from ``cxyzr`` (x, y, z, r) and ``cpid``, copies of
+    the particle data in cell order, so a cell's particles are contiguous.
+    A loop over a block of rows, not an inlined per-particle helper: numba
+    wraps every entry of an inlined helper with array arguments in atomic
+    reference counting (~100 ns per particle here, docs/dem.md, Performance).
+    """
+    nx, ny, nz = ncell[0], ncell[1], ncell[2]
+    for i in range(i0, i1):
+        ci = cell[i]
+        cx = ci % nx
+        cy = (ci // nx) % ny
+        cz = ci // (nx * ny)
+        xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+        ri = rad[i]
+        idi = pid[i]
+        cnt = 0
+        for oz in range(-1, 2):
+            qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
+            if not ok:
+                continue
+            for oy in range(-1, 2):
+                qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
+                if not ok:
+                    continue
+                row = (qz * ny + qy) * nx
+                if 0 < cx < nx - 1:
+                    # the three cells along x are contiguous in cell order and unshifted:
+                    # one run of candidates, visited in the same order as cell by cell
+                    cnt = _candidates(i, start[row + cx - 1], start[row + cx + 2], 0, sy, sz, idi,
+                                      xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
+                                      pad_sh, cnt)
+                    continue
+                for ox in range(-1, 2):
+                    qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
+                    if not ok:
+                        continue
+                    q = row + qx
+                    cnt = _candidates(i, start[q], start[q + 1], sx, sy, sz, idi, xi, yi, zi, ri,
+                                      skin, cxyzr, cpid, order, box_len, pad_j, pad_sh, cnt)
+        counts[i] = cnt
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic, box_len,
+                         pad_j, pad_sh, counts):
+    n = pos.shape[0]
+    for c in prange(SWEEP_BLOCKS):
+        i0, i1 = chunk_bounds(n, SWEEP_BLOCKS, c)
+        _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                         box_len, pad_j, pad_sh, counts)
+
+
+@njit(cache=True, fastmath=False)
+def _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic, box_len,
+                         pad_j, pad_sh, counts):
+    _neighbours_rows(0, pos.shape[0], pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
+                     box_len, pad_j, pad_sh, counts)
 
 
 @njit(cache=True, fastmath=False)
@@ -960,20 +1018,30 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     One cell sweep fills padded rows of width ``maxn_hint`` (widened and
     redone if a row overflows), then rows are packed. Returns ``(start,
     partner index, periodic shift, reverse start, reverse entry)``: entries
-    ``rv_k[rv_start[j]:rv_start[j+1]]`` are the list entries whose partner
-    is ``j``.
+    ``rv_start[j] <= q < rv_start[j+1]`` are the reverse positions of the
+    entries whose partner is ``j`` and ``rv_pos[k]`` is entry ``k``'s (entries
+    of a partner in list order).
     """
     n = pos.shape[0]
     counts = np.zeros(n, np.int64)
     maxn = max(maxn_hint, 1)
+    cxyzr = np.empty((n, 4))
+    cpid = np.empty(n, np.int64)
+    for p in range(n):
+        j = order[p]
+        cxyzr[p, 0] = pos[j, 0]
+        cxyzr[p, 1] = pos[j, 1]
+        cxyzr[p, 2] = pos[j, 2]
+        cxyzr[p, 3] = rad[j]
+        cpid[p] = pid[j]
     while True:
         pad_j = np.empty((n, maxn), np.int32)
         pad_sh = np.empty((n, maxn, 3), np.int8)
         if parallel:
-            _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+            _neighbours_pass_par(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
                                  box_len, pad_j, pad_sh, counts)
         else:
-            _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, ncell, periodic,
+            _neighbours_pass_ser(pid, pos, rad, skin, cell, start, order, cxyzr, cpid, ncell, periodic,
                                  box_len, pad_j, pad_sh, counts)
         top = _widest_row(counts)
         if top <= maxn:
@@ -996,12 +1064,12 @@ def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, b
     for i in range(n):
         rv_start[i + 1] += rv_start[i]
     fill = rv_start[:-1].copy()
-    rv_k = np.empty(m, np.int64)
+    rv_pos = np.empty(m, np.int64)
     for k in range(m):
         j = nb_j[k]
-        rv_k[fill[j]] = k
+        rv_pos[k] = fill[j]
         fill[j] += 1
-    return nb_start, nb_j, nb_sh, rv_start, rv_k, top
+    return nb_start, nb_j, nb_sh, rv_start, rv_pos, top
 
 
 @njit(cache=True, fastmath=False, inline='always')
@@ -1034,10 +1102,10 @@ def _image_useful(p, s, L, lo, hi, m):
     return q >= lo - m and q <= hi + m
 
 
-@njit(cache=True, fastmath=False, inline='always')
-def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                   gcl, gnc, grid_start, grid_list, pad, counts):
-    """Candidates of particle ``i``: keys ``g * KEY_STRIDE + code`` of primitives and periodic images.
+@njit(cache=True, fastmath=False)
+def _geom_rows(i0, i1, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+               gcl, gnc, grid_start, grid_list, pad, counts):
+    """Candidates of particles ``i0 <= i < i1``: keys ``g * KEY_STRIDE + code`` of primitives and images.
 
     Along a periodic axis the particle is also tested shifted by one box
     length either way against every primitive that does not span that axis
@@ -1045,58 +1113,60 @@ def _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic
     only tried if the shifted position comes within ``r + skin`` of
     ``img_box`` (lo 0:3, hi 3:6), the bounding box of those primitives.
     Keys go to row ``i`` of ``pad`` as far as it reaches; ``counts[i]`` gets
-    their number.
+    their number. A loop over a block of rows (see :func:`_neighbours_rows`).
     """
-    cnt = 0
-    width = pad.shape[1]
-    m = rad[i] + skin
-    px = 1 if periodic[0] != 0 else 0
-    py = 1 if periodic[1] != 0 else 0
-    pz = 1 if periodic[2] != 0 else 0
-    for sx in range(-px, px + 1):
-        if sx != 0 and not _image_useful(pos[i, 0], sx, box_len[0], img_box[0], img_box[3], m):
-            continue
-        for sy in range(-py, py + 1):
-            if sy != 0 and not _image_useful(pos[i, 1], sy, box_len[1], img_box[1], img_box[4], m):
+    for i in range(i0, i1):
+        cnt = 0
+        width = pad.shape[1]
+        m = rad[i] + skin
+        px = 1 if periodic[0] != 0 else 0
+        py = 1 if periodic[1] != 0 else 0
+        pz = 1 if periodic[2] != 0 else 0
+        for sx in range(-px, px + 1):
+            if sx != 0 and not _image_useful(pos[i, 0], sx, box_len[0], img_box[0], img_box[3], m):
                 continue
-            for sz in range(-pz, pz + 1):
-                if sz != 0 and not _image_useful(pos[i, 2], sz, box_len[2], img_box[2], img_box[5], m):
+            for sy in range(-py, py + 1):
+                if sy != 0 and not _image_useful(pos[i, 1], sy, box_len[1], img_box[1], img_box[4], m):
                     continue
-                x = pos[i, 0] + sx * box_len[0]
-                y = pos[i, 1] + sy * box_len[1]
-                z = pos[i, 2] + sz * box_len[2]
-                code = _image_code(sx, sy, sz)
-                cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
-                cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
-                cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
-                cell = (cz * gnc[1] + cy) * gnc[0] + cx
-                for q in range(grid_start[cell], grid_start[cell + 1]):
-                    g = grid_list[q]
-                    # a spanning primitive is met unshifted only (it is its own image)
-                    if ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
-                            or (sz != 0 and gspan[g, 2] != 0)):
+                for sz in range(-pz, pz + 1):
+                    if sz != 0 and not _image_useful(pos[i, 2], sz, box_len[2], img_box[2], img_box[5], m):
                         continue
-                    if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
-                        if cnt < width:
-                            pad[i, cnt] = g * KEY_STRIDE + code
-                        cnt += 1
-    counts[i] = cnt
+                    x = pos[i, 0] + sx * box_len[0]
+                    y = pos[i, 1] + sy * box_len[1]
+                    z = pos[i, 2] + sz * box_len[2]
+                    code = _image_code(sx, sy, sz)
+                    cx = min(max(int(np.floor((x - glo[0]) / gcl[0])), 0), gnc[0] - 1)
+                    cy = min(max(int(np.floor((y - glo[1]) / gcl[1])), 0), gnc[1] - 1)
+                    cz = min(max(int(np.floor((z - glo[2]) / gcl[2])), 0), gnc[2] - 1)
+                    cell = (cz * gnc[1] + cy) * gnc[0] + cx
+                    for q in range(grid_start[cell], grid_start[cell + 1]):
+                        g = grid_list[q]
+                        # a spanning primitive is met unshifted only (it is its own image)
+                        if ((sx != 0 and gspan[g, 0] != 0) or (sy != 0 and gspan[g, 1] != 0)
+                                or (sz != 0 and gspan[g, 2] != 0)):
+                            continue
+                        if _geom_candidate(g, x, y, z, rad[i], skin, gcur, grot, gkind, gbound):
+                            if cnt < width:
+                                pad[i, cnt] = g * KEY_STRIDE + code
+                            cnt += 1
+        counts[i] = cnt
 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def _geom_pass_par(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
                    gnc, grid_start, grid_list, pad, counts):
-    for i in prange(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, pad, counts)
+    n = pos.shape[0]
+    for c in prange(SWEEP_BLOCKS):
+        i0, i1 = chunk_bounds(n, SWEEP_BLOCKS, c)
+        _geom_rows(i0, i1, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
+                   gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
 def _geom_pass_ser(pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo, gcl,
                    gnc, grid_start, grid_list, pad, counts):
-    for i in range(pos.shape[0]):
-        _geom_pass_one(i, pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box, glo,
-                       gcl, gnc, grid_start, grid_list, pad, counts)
+    _geom_rows(0, pos.shape[0], pos, rad, skin, gcur, grot, gkind, gbound, gspan, periodic, box_len, img_box,
+               glo, gcl, gnc, grid_start, grid_list, pad, counts)
 
 
 @njit(cache=True, fastmath=False)
@@ -1236,7 +1306,8 @@ def contact_potential_energy(pos, rad, pid, mat, nb_start, nb_j, nb_sh, box_len,
                 rstar = rad[i] * rad[j] / (rad[i] + rad[j])
                 e += 0.4 * ptab[mat[i], mat[j], 0] * np.sqrt(rstar) * s**2.5
         for k in range(gc_start[i], gc_start[i + 1]):
-            g, xg, yg, zg = _geom_key_frame(gc_g[k], pos[i, 0], pos[i, 1], pos[i, 2], box_len)
+            g, xg, yg, zg = _geom_key_frame(gc_g[k], pos[i, 0], pos[i, 1], pos[i, 2], box_len[0],
+                                            box_len[1], box_len[2])
             ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, rad[i])
             if ok:
                 e += 0.4 * ptab[mat[i], gmat[g], 0] * np.sqrt(rad[i]) * s**2.5
