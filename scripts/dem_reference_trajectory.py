@@ -38,6 +38,13 @@ EV_COLS = ("time_s", "x_m", "y_m", "z_m", "vn_m_s", "vt_m_s", "end_time_s", "pea
            "dissipated_j")
 
 
+
+def host_cpu() -> str:
+    """The CPU numba compiles for (its code, and so the last bits of a trajectory, depend on it)."""
+    import llvmlite.binding as ll
+
+    return str(ll.get_host_cpu_name())
+
 def gas_sim(parallel: bool):
     """Dense frictional gas: 1200 spheres of 5 mm radius on a jittered lattice."""
     from msmill.dem import Simulation
@@ -124,7 +131,7 @@ def main() -> None:
     prov = {"command": "python scripts/dem_reference_trajectory.py", "commit": commit,
             "msmill_version": msmill.__version__,
             "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "numba": __import__("numba").__version__, "numpy": np.__version__,
+            "numba": __import__("numba").__version__, "numpy": np.__version__, "host_cpu": host_cpu(),
             "runs": {"gas": "1200 spheres r 5 mm, E 2e10, e 0.5, mu 0.4, 400 steps dt 1e-6 s, seed 7",
                      "mill": "default slice, 30 mm, 30 t/h, 1500 rpm, gates 40 deg, 0.4 s"},
             "events": {k: int(res[f"{k}/ev_int"].shape[0]) for k in ("gas_par", "gas_ser", "mill")},

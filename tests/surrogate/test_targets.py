@@ -198,5 +198,5 @@ def test_a_layout_with_other_quantile_levels_is_refused_in_one_line():
     doc = tg.TargetLayout(5, True, True).to_dict()
     assert tg.TargetLayout.from_dict(doc).to_dict() == doc
     doc["levels"] = [(j + 0.5) / 12 for j in range(12)]
-    with pytest.raises(MsmillInputError, match="12 quantile levels.*retrain"):
+    with pytest.raises(MsmillInputError, match=r"12 quantile levels.*retrain"):
         tg.TargetLayout.from_dict(doc)
