@@ -36,6 +36,8 @@ from pathlib import Path
 from msmill._version import __version__
 from msmill.dem.mill.run import VELOCITY_FIT_PARAMETERS, RunSettings, git_commit, run_mill, save_run
 from msmill.machine import Machine, OperatingPoint
+from msmill.stageparams import DesignPoint
+from msmill.surrogate.campaign_export import in_design_space
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPORT = ROOT / "src/msmill/data/campaigns/default"
@@ -48,11 +50,12 @@ def fewest_impacts(doc: dict) -> int:
 
 
 def undersampled(export: Path, target_kl: float) -> list[dict]:
-    """Exported steady slice runs whose expected sampling KL ``p / (2 n)`` exceeds ``target_kl``, cheapest first."""
+    """Exported steady slice training runs (in the design space) whose expected sampling KL ``p / (2 n)``
+    exceeds ``target_kl``, the most KL removed per CPU second first."""
     n_needed = VELOCITY_FIT_PARAMETERS / (2 * target_kl)
     docs = [json.loads(p.read_text(encoding="utf-8")) for p in sorted(export.glob("run-*.json"))]
     out = [d for d in docs if d["statistics"].get("outcome") == "steady" and d["run"]["mode"] == "slice"
-           and fewest_impacts(d) < n_needed]
+           and in_design_space(DesignPoint(**d["statistics"]["design"])) and fewest_impacts(d) < n_needed]
     # most sampling KL removed per CPU second first: the gain p/2n - p/2N over a cost ~ old wall x N/n
     # is proportional to (1 - n/N) / old wall, so the fewest impacts and the cheapest runs go first
     return sorted(out, key=lambda d: d["run"]["wall_s"] / max(1.0 - fewest_impacts(d) / n_needed, 1e-6))
