@@ -110,9 +110,11 @@ def test_attachments(client: TestClient) -> None:
     ore_text = (ROOT / "src" / "msmill" / "data" / "ores" / "ug2.toml").read_text(encoding="utf-8")
     req = _example()
     req["attachments"] = {"ore_toml": ore_text.replace("71.8", "50.0")}
-    softer = client.post("/predict", json=req).json()["summary"]["p80_mm"]
-    base = client.post("/predict", json=_example()).json()["summary"]["p80_mm"]
-    assert softer > base  # smaller A: less fines per breakage
+    softer = client.post("/predict", json=req).json()["summary"]
+    base = client.post("/predict", json=_example()).json()["summary"]
+    # smaller A: less fines per breakage, a coarser product. P50 sits where t10 acts; P80 (20 mm, set by the
+    # coarse classes' breakage probability) may not move between two grid points
+    assert softer["p50_mm"] > base["p50_mm"] and softer["p80_mm"] >= base["p80_mm"]
     req["attachments"] = {"feed_csv": "size_mm,passing_pct\n1,50\n2,40\n"}
     r = client.post("/predict", json=req)
     assert r.status_code == 422 and "feed_csv" in r.json()["detail"]["field"]
