@@ -54,7 +54,7 @@ from msmill.errors import MsmillInputError
 from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics
 
 #: Number of quantile levels per velocity distribution.
-N_LEVELS = 20
+N_LEVELS = 28
 #: Probability levels of the velocity quantiles, ``(j - 1/2) / M``.
 LEVELS = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
 #: Floor of fractions and probabilities before log-ratio / logit transforms.
