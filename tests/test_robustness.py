@@ -148,7 +148,12 @@ def test_empty_and_thin_machine_files(tmp_path, capsys):
     (["--speed-rpm", "1e6"], "--speed-rpm"),
     (["--seed", "-1"], "--seed"),
     (["--size-mm", "1000"], "--size-mm"),
-    (["--size-mm", "0.01"], "--max-time-s/--size-mm/--speed-rpm"),
+    (["--size-mm", "0.01"], "--max-time-s/--max-measure-s/--size-mm/--speed-rpm"),
+    (["--adaptive", "--max-measure-s", "0"], "--max-measure-s"),
+    (["--adaptive", "--max-measure-s", "nan"], "--max-measure-s"),
+    # the adaptive window's 30 s default cap counts in the budget: fine rock at high feed needs a shorter one
+    (["--adaptive", "--slice", "--size-mm", "2", "--feed-tph", "60", "--speed-rpm", "1900"],
+     "--feed-tph/--size-mm/--max-measure-s"),
 ])
 def test_dem_run_rejects_before_simulating(tmp_path, capsys, argv, field):
     base = ["dem", "run", "default", "--size-mm", "20", "--no-progress", "--out", str(tmp_path / "o")]

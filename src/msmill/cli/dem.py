@@ -34,6 +34,9 @@ def run_cmd(
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     adaptive: Annotated[bool, typer.Option(
         "--adaptive", help="Measure until the sampling errors reach the run settings' targets.")] = False,
+    max_measure_s: Annotated[float | None, typer.Option(
+        "--max-measure-s", help="With --adaptive: longest measurement window (s); default 30 "
+        "(coarse rock needs long windows for 500 impacts per stage).")] = None,
     warm_start: Annotated[Path | None, typer.Option(
         "--warm-start", help="Start from the hold-up of this finished run (same gate and slice).")] = None,
 ) -> None:
@@ -53,7 +56,8 @@ def run_cmd(
                  "gate_deg": "--gate-deg"}
         field = "/".join(names.get(f, f) for f in exc.field.split("/"))
         raise MsmillInputError(field, exc.value, exc.allowed) from None
-    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive)
+    extra = {} if max_measure_s is None else {"max_measure_s": max_measure_s}
+    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive, **extra)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
     mode = "slice" if slice_ else "full"
@@ -69,7 +73,8 @@ def run_cmd(
 
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
                       TimeElapsedColumn()) as bar:
-            task = bar.add_task("DEM", total=settings.time_limit_s(size_mm) + measure_s, info="")
+            window_s = settings.max_measure_s if adaptive else measure_s  # an adaptive window may end sooner
+            task = bar.add_task("DEM", total=settings.time_limit_s(size_mm) + window_s, info="")
 
             def cb(t: float, n: int, phase: str) -> None:
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")

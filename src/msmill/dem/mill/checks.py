@@ -43,6 +43,8 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     """
     number(settings.max_time_s, "--max-time-s", unit="s", ge=0)  # 0: scaled with the residence time
     number(settings.measure_s, "--measure-s", unit="s", gt=0)
+    if settings.adaptive:
+        number(settings.max_measure_s, "--max-measure-s", unit="s", gt=0)
     number(settings.chunk_s, "settings.chunk_s", unit="s", gt=0)
     if settings.dt_s is not None:
         number(settings.dt_s, "settings.dt_s", unit="s", gt=0)
@@ -100,13 +102,14 @@ def check_run_budget(scene: Any, settings: Any) -> None:
     r_min_m = float(min(scene.sizes_mm)) / 2000.0
     cap, what = LIMITS["dem_steps"]
     if steps > cap:
-        raise MsmillInputError("--max-time-s/--size-mm/--speed-rpm", f"~{steps:.3g} steps",
+        raise MsmillInputError("--max-time-s/--max-measure-s/--size-mm/--speed-rpm", f"~{steps:.3g} steps",
                                f"at most {cap:.3g} {what} (resource limit msmill.validate.LIMITS['dem_steps']); "
                                "shorten the run, coarsen the rock or lower the speed")
     mass_kg = scene.rock.density_kg_m3 * math.pi / 6.0 * (2 * r_min_m) ** 3
     fed = scene.feed_kg_s * duration / mass_kg
     cap, what = LIMITS["dem_particles"]
     if fed > cap:
-        raise MsmillInputError("--feed-tph/--size-mm", f"~{fed:.3g} rocks fed",
+        raise MsmillInputError("--feed-tph/--size-mm/--max-measure-s", f"~{fed:.3g} rocks fed",
                                f"at most {cap:.3g} rocks fed during the run (resource limit "
-                               "msmill.validate.LIMITS['dem_particles']); use --slice, a coarser rock or a shorter run")
+                               "msmill.validate.LIMITS['dem_particles']); use --slice, a coarser rock or a shorter run "
+                               "(with --adaptive: a shorter --max-measure-s)")
