@@ -35,9 +35,10 @@ def key(folder):
     d = st["design"]
     return st["mode"], *(round(float(d[k]), 6) for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg"))
 
-reruns = {key(f): f for f in sorted(glob.glob(os.environ["RUNS"] + "/rerun*/*/")) if key(f) is not None}
-done = [f for f in sys.argv[1:] if key(f) is not None]  # a run still going (or a pattern matching nothing) waits
-kept = [f for f in done if key(f) not in reruns]
+reruns = {k: f for f in sorted(glob.glob(os.environ["RUNS"] + "/rerun*/*/")) if (k := key(f)) is not None}
+keys = {f: key(f) for f in sys.argv[1:]}
+done = [f for f, k in keys.items() if k is not None]  # a run still going (or a pattern matching nothing) waits
+kept = [f for f in done if keys[f] not in reruns]
 print("\n".join(kept + sorted(f.rstrip("/") for f in reruns.values())))
 print(f"{len(reruns)} re-runs replace {len(done) - len(kept)} runs; {len(sys.argv) - 1 - len(done)} folders "
       "without statistics skipped", file=sys.stderr)

@@ -247,8 +247,9 @@ def run_mill(
     def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
         return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra, ss)
 
-    # convergence checks skip the mixture fits (single Gaussians): the sampling errors do not depend on them
-    quick = replace(stats_settings or StatsSettings(), min_fit_samples=2**62)
+    # convergence checks skip the mixture fits (single Gaussians) and the filling transport: the sampling
+    # errors do not depend on them
+    quick = replace(stats_settings or StatsSettings(), min_fit_samples=2**62, with_filling_transport=False)
     if found is not None:
         t_measure0 = sim.time_s
         t_stop = t_measure0 + (rs.max_measure_s if rs.adaptive else rs.measure_s)

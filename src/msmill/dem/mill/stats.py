@@ -127,6 +127,10 @@ class StatsSettings:
     count_criterion : {"bic", "aic"}
         Information criterion choosing the secondary-impact count family
         (:class:`msmill.distributions.CountFamilySelection`).
+    with_filling_transport : bool
+        Measure :func:`filling_transport` (one more pass over the whole record);
+        the adaptive window's convergence checks, which need only the sampling
+        errors, turn it off.
     velocity_fit : {"ml", "binned_kl"}
         How a velocity mixture is fitted once ``K`` is chosen by BIC:
         ``"ml"`` (default) keeps the maximum-likelihood (EM) fit, which
@@ -145,6 +149,7 @@ class StatsSettings:
     min_fit_samples: int = 20
     count_criterion: str = "bic"
     velocity_fit: str = "ml"
+    with_filling_transport: bool = True
 
     def __post_init__(self) -> None:
         if self.velocity_fit not in ("ml", "binned_kl"):
@@ -753,7 +758,8 @@ def compute_statistics(
         steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
         mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
         inlet_destinations=dest.get(0), inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
-        filling_transport=filling_transport(machine, snaps_all, removed, (t0, t1), lag, rock_density_kg_m3),
+        filling_transport=(filling_transport(machine, snaps_all, removed, (t0, t1), lag, rock_density_kg_m3)
+                           if s_.with_filling_transport else None),
     )
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
 
