@@ -61,6 +61,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=14)
     ap.add_argument("--max-time-s", type=float, default=9.0)
     ap.add_argument("--measure-s", type=float, default=1.0)
+    ap.add_argument("--feed-speed-m-s", type=float, default=2.0,
+                    help="downward speed of the fed rock in the chute (m/s); the source delivers more the faster it is")
     ap.add_argument("--adaptive", action="store_true",
                     help="measure until the sampling targets are met (RunSettings defaults) instead of --measure-s")
     args = ap.parse_args()
@@ -75,7 +77,8 @@ def main() -> None:
             "points": pts.tolist()}
     (args.out / "design.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     machine = Machine.default()
-    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s, adaptive=args.adaptive)
+    settings = RunSettings(max_time_s=args.max_time_s, measure_s=args.measure_s, adaptive=args.adaptive,
+                           feed_speed_m_s=args.feed_speed_m_s)
     # expected cost ~ feed / size^4: cheapest first so a partial batch covers the most points
     order = np.argsort(pts[:, 1] / pts[:, 0] ** 4)
     for i in order:

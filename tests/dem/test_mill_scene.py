@@ -179,3 +179,25 @@ def test_saved_run_recomputes_same_statistics(small_run, tmp_path):
     assert cli(["dem", "stats", str(tmp_path)]) == 0
     assert (tmp_path / "statistics.json").exists()
     assert cli(["dem", "stats", str(tmp_path / "missing")]) == 2
+
+
+def test_feed_speed_sets_the_source_velocity_and_reaches_the_scene(monkeypatch):
+    """``RunSettings.feed_speed_m_s`` is the source's downward speed (capacity probes feed faster)."""
+    import msmill.dem.mill.run as run_module
+
+    sc = build_scene(MACHINE, OP, size_mm=20.0, mode="slice", feed_speed_m_s=6.0)
+    assert np.allclose(sc.sim._sources[0]["vel"], (0.0, 0.0, -6.0))
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(run_module, "build_scene", spy)
+    with pytest.raises(Stop):
+        run_mill(MACHINE, OP, size_mm=20.0, mode="slice", settings=RunSettings(feed_speed_m_s=7.5))
+    assert seen["feed_speed_m_s"] == 7.5
+    assert RunSettings().feed_speed_m_s == 2.0  # the default every training run used

@@ -30,6 +30,9 @@ def run_cmd(
         "--max-time-s", help="Give up waiting for steady state (s); default scales with the residence time.")] = None,
     measure_s: Annotated[float, typer.Option("--measure-s", help="Measurement window after steady state (s).")] = 0.5,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the feed source.")] = 0,
+    feed_speed_m_s: Annotated[float, typer.Option(
+        "--feed-speed-m-s", help="Downward speed of the fed rock in the chute (m/s); the feed source can place "
+        "more rock per second the faster it is (capacity probes above ~250 t/h need more than the default).")] = 2.0,
     vtk: Annotated[bool, typer.Option("--vtk", help="Also write the final particles as VTU.")] = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     adaptive: Annotated[bool, typer.Option(
@@ -57,7 +60,8 @@ def run_cmd(
         field = "/".join(names.get(f, f) for f in exc.field.split("/"))
         raise MsmillInputError(field, exc.value, exc.allowed) from None
     extra = {} if max_measure_s is None else {"max_measure_s": max_measure_s}
-    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive, **extra)
+    settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive,
+                           feed_speed_m_s=feed_speed_m_s, **extra)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
     mode = "slice" if slice_ else "full"

@@ -35,6 +35,10 @@ def largest_rock_mm(machine: Machine) -> float:
     return 1000.0 * min(gaps)
 
 
+#: Fastest feed stream into the chute (m/s): a free fall of about 5 m, far below any flinger tip speed.
+MAX_FEED_SPEED_M_S = 10.0
+
+
 def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = None,
                      feed_psd: tuple[Any, Any] | None = None) -> None:
     """Raise :class:`MsmillInputError` for run settings or rock sizes the DEM cannot use.
@@ -49,6 +53,8 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     if settings.dt_s is not None:
         number(settings.dt_s, "settings.dt_s", unit="s", gt=0)
     integer(settings.seed, "--seed", ge=0, le=2**32 - 1)
+    # the feed enters the chute downwards; faster than the slowest tip speed would make it an impact of its own
+    number(getattr(settings, "feed_speed_m_s", 2.0), "--feed-speed-m-s", unit="m/s", gt=0, le=MAX_FEED_SPEED_M_S)
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
         raise MsmillInputError("--max-time-s", settings.max_time_s,

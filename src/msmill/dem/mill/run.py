@@ -95,6 +95,10 @@ class RunSettings:
     safety: float = 0.2
     dt_s: float | None = None
     seed: int = 0
+    # downward speed of fed rock leaving the source in the chute (m/s): the source places rock in a fixed
+    # region of the chute, so the feed rate it can deliver grows with this speed (about 250-450 t/h of
+    # coarse rock at 2 m/s); capacity probes above that need a faster feed stream (issue 20)
+    feed_speed_m_s: float = 2.0
     min_time_s: float = 4.0
     residence_factor: float = 6.0
     max_time_cap_s: float = 20.0
@@ -218,7 +222,7 @@ def run_mill(
     wall0 = time.perf_counter()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
     scene = build_scene(machine, op, size_mm=size_mm, feed_psd=feed_psd, mode=mode, rock=rock, ore=ore,
-                        max_overlap_fraction=rs.max_overlap_fraction, seed=rs.seed)
+                        max_overlap_fraction=rs.max_overlap_fraction, feed_speed_m_s=rs.feed_speed_m_s, seed=rs.seed)
     check_run_budget(scene, rs)  # step count and rocks fed within msmill.validate.LIMITS
     sim = scene.sim
     kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
