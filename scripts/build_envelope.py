@@ -6,10 +6,11 @@ ingested), takes each run's outcome (steady / choked / not steady) and measured
 throughput, fits the capacity model (``msmill.capacity.CapacityModel``, default
 the censored log-linear model) and writes ``src/msmill/data/envelopes/default.json``:
 the points, the method and fitted parameters (refitted and checked on load, no
-pickles), and provenance (command, version, commit, date, inputs, the runs used,
+pickles; with no choked run the method is ``demonstrated``, lower bounds from the
+steady runs, docs/mill-dem.md 3.1), and provenance (command, version, commit, date, inputs, the runs used,
 counts per outcome).
 
-    python scripts/build_envelope.py [--export DIR] [--store URL] [--method censored|classifier] [--out FILE]
+    python scripts/build_envelope.py [--export DIR] [--store URL] [--method censored|classifier|demonstrated] [--out FILE]
 
 ``msmill predict``, ``Mill.run`` and ``msmill sweep`` / ``optimize`` use the
 file when it is installed. Re-run it after the export is rebuilt
@@ -94,9 +95,11 @@ def build(export: Path, store: str | None, method: str) -> tuple[object, object,
         sys.exit(f"the runs come from {len(machines)} machines ({', '.join(m[:12] for m in machines)}): "
                  "an envelope is for one machine")
     points = [r["point"] for r in rows]
-    if not any(p.outcome == "choked" for p in points):
-        sys.exit(f"{len(points)} runs, none choked: the data give no upper bound on the capacity, so no envelope "
-                 "is fitted (nothing written; remove a stale shipped envelope with git rm)")
+    if method is None:  # what the data support: a capacity where some run choked, lower bounds where none did
+        method = "censored" if any(p.outcome == "choked" for p in points) else "demonstrated"
+    if method != "demonstrated" and not any(p.outcome == "choked" for p in points):
+        sys.exit(f"{len(points)} runs, none choked: the data give no upper bound on the capacity, so the {method} "
+                 "model cannot be fitted (nothing written; --method demonstrated gives the lower bounds)")
     model = CapacityModel.fit(points, method=method)
     counts = {k: sum(p.outcome == k for p in points) for k in ("steady", "choked", "not_steady")}
     prov = {
@@ -121,11 +124,13 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--export", type=Path, default=EXPORT, help="campaign export folder")
     ap.add_argument("--store", default=None, help="also use the done runs of this store (URL) not in the export")
-    ap.add_argument("--method", choices=METHODS, default="censored", help="capacity model")
+    ap.add_argument("--method", choices=METHODS, default=None,
+                    help="capacity model (default: censored when some run choked, else demonstrated: lower bounds)")
     ap.add_argument("--out", type=Path, default=OUT, help="envelope JSON to write")
     a = ap.parse_args(argv)
     t0 = time.process_time()
     model, env, prov = build(a.export.resolve(), a.store, a.method)
+    a.method = model.method
     prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     prov["cpu_s"] = round(time.process_time() - t0, 2)
     a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -139,6 +144,9 @@ def main(argv: list[str] | None = None) -> None:
               + f"; sigma {model.params['sigma']:.3f}")
     for s, v, g in SHOW:
         cap = again.capacity_tph(s, v, g)
+        if again.lower_bound:
+            print(f"{s:g} mm {v:g} rpm gate {g:g} deg: capacity at least {cap:.0f} t/h (largest steady feed near it)")
+            continue
         p = again.probability_steady(s, [0.8 * cap, 1.25 * cap], v, g) if cap < float("inf") else [float("nan")] * 2
         print(f"{s:g} mm {v:g} rpm gate {g:g} deg: capacity {cap:.1f} t/h; P(steady) at 0.8x {p[0]:.2f}, "
               f"1.25x {p[1]:.2f}")

@@ -541,6 +541,55 @@ def prior_table(pts) -> list[str]:
     return rows
 
 
+#: grid of the lower-bound table (no choked run): sizes (mm), upper-stage speeds (rpm), gate angles (deg)
+DEMONSTRATED_AT = ((6.0, 10.0, 14.0, 20.0, 28.0), (1200.0, 1550.0, 1900.0), (0.0, 20.0, 40.0, 60.0, 80.0))
+
+
+def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
+    """Capacity section when no run choked: the largest feed a steady run passed near each point (lower bounds)."""
+    from msmill.capacity import (
+        DEMONSTRATED_GATE_TOL_DEG,
+        DEMONSTRATED_SIZE_FACTOR,
+        DEMONSTRATED_SPEED_RPM,
+    )
+
+    n = env.counts()
+    sizes, speeds, gates = DEMONSTRATED_AT
+    head = "| rock (mm) | upper speed (rpm) | " + " | ".join(f"gate {g:g} deg" for g in gates) + " |"
+    rows = [head, "|" + "---|" * (2 + len(gates))]
+    for s_mm in sizes:
+        for v in speeds:
+            cells = [model.capacity_tph(s_mm, v, g) for g in gates]
+            rows.append(f"| {s_mm:g} | {v:g} | " + " | ".join("-" if not np.isfinite(c) else f">= {c:.0f}"
+                                                            for c in cells) + " |")
+    top = max((p for p in env.points if p.outcome == "steady"), key=lambda p: p.feed_tph)
+    return [
+        f"From the shipped envelope `{env_rel}` (`scripts/build_envelope.py`, {env.provenance.get('date_utc', '')}"
+        f", commit {str(env.provenance.get('git_commit', ''))[:7]}): **{n['steady']} steady runs and no choked "
+        f"run**; {n['not_steady']} not-steady runs carry no capacity information and are not used."
+        + (f" **{len(missing)} run documents of the export are not in the envelope: rebuild it.**" if missing else ""),
+        "",
+        "No DEM run of the default machine has choked: the slice passed every feed the chute's feed stream could "
+        f"deliver, up to {top.feed_tph:.0f} t/h ({top.size_mm:.3g} mm rock, {top.speed_rpm:.0f} rpm, gate "
+        f"{top.gate_deg:.1f} deg; `docs/mill-dem.md` 3.1), more than 40 times the design space's largest feed. "
+        "So the data bound the capacity from below only, and the shipped envelope (method `demonstrated`, "
+        "`msmill.capacity`) says exactly that: the capacity at a size, speed and gate is **at least** the largest "
+        f"feed of a steady run near it (rock within a factor {DEMONSTRATED_SIZE_FACTOR:g} of the size, a shaft "
+        f"speed within {DEMONSTRATED_SPEED_RPM:g} rpm, a gate angle at most {DEMONSTRATED_GATE_TOL_DEG:g} deg above "
+        "the point's: opening the gates further cannot pass less). '-': no run near that point, no statement.",
+        "",
+        *rows,
+        "",
+        "`msmill predict` reports the lower bound (`capacity ... >= X`) and warns, in one line, when the feed rate "
+        "is above it: the feed is beyond what the DEM has shown the mill to pass there, and the capacity above it is "
+        "unknown (not exceeded). `msmill sweep` flags such points (`above_capacity`) and `msmill optimize` "
+        "excludes them; inside the design space (10-60 t/h) every point with a run near it is below its bound. "
+        "The censored capacity model and the classifier stay in `msmill.capacity` for data with chokes "
+        "(`scripts/build_envelope.py --method censored` refuses to fit without one).",
+        "",
+    ]
+
+
 def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[str]:
     """The page's capacity section (and its figure) from the shipped envelope."""
     from msmill.capacity import CapacityModel, EnvelopeData, load_capacity
@@ -553,6 +602,8 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
     used = {r["content_hash"] for r in env.provenance.get("runs", [])}
     missing = [r for r in all_runs if r.content_hash not in used]
     n = env.counts()
+    if model.lower_bound:
+        return demonstrated_section(env, model, missing, rel(env_path))
     lo, hi = model.domain["size_mm"]
     mid = float(np.sqrt(lo * hi))
     plot_capacity(model, pts, mid, img / "campaign-capacity.png")

@@ -52,7 +52,7 @@ python -m msmill campaign create default --size-range-mm 6 30 --set adaptive=tru
 rm -f src/msmill/data/campaigns/default/run-*.json
 python scripts/campaign_export.py --out src/msmill/data/campaigns/default
 python scripts/build_default_surrogate.py --loo closed --restarts 1
-# no choked run, no upper bound on the capacity: build_envelope writes nothing, and a stale envelope goes
+# the envelope: the censored capacity model when some run choked, else the lower bounds the steady runs demonstrate
 python scripts/build_envelope.py || { echo "no envelope built: removing the shipped one"; rm -f src/msmill/data/envelopes/default.json; }
 python benchmarks/surrogate_accuracy.py --loo closed
 python scripts/campaign_results.py

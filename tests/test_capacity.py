@@ -162,7 +162,9 @@ def test_shipped_envelope_matches_the_shipped_export():
     for key in ("command", "msmill_version", "git_commit", "date_utc", "inputs"):
         assert key in env.provenance
     m = default_capacity_model()
-    assert m.method == "censored" and m.n_choked == env.counts()["choked"]
+    # no choked run: the envelope states lower bounds (what steady runs passed), else the censored model
+    assert m.method == ("censored" if env.counts()["choked"] else "demonstrated")
+    assert m.n_choked == env.counts()["choked"]
     for p in env.points:  # every choked run's feed is above the capacity's lower bound, its throughput
         if p.outcome == "choked":
             assert m.probability_steady(p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg)[0] < \
@@ -183,3 +185,58 @@ def test_capacity_is_uncertain_where_no_run_was_made():
     _, sd_off = m.log_capacity(20.0, 1900.0, 0.0)
     assert sd_off[0] > sd_at[0] + 0.5  # prior sd 1 per unit on two slopes, about 1.1 units away on each
     assert m.outside(20.0, 1900.0, 0.0) == ["speed_rpm", "gate_deg"]
+
+
+# ---------------------------------------------------------------- "demonstrated": no run choked (lower bounds)
+#: HAND-MADE steady runs (size mm, feed t/h, speed rpm, gate deg); none choked
+STEADY_ONLY = [EnvelopePoint(20.0, 100.0, 1500.0, 10.0, "steady"), EnvelopePoint(24.0, 300.0, 1550.0, 30.0, "steady"),
+               EnvelopePoint(20.0, 900.0, 1500.0, 60.0, "steady"), EnvelopePoint(40.0, 2000.0, 1500.0, 0.0, "steady"),
+               EnvelopePoint(20.0, 5000.0, 1900.0, 0.0, "steady"), EnvelopePoint(20.0, 50.0, 1500.0, 5.0, "not_steady")]
+
+
+def test_demonstrated_is_the_largest_steady_feed_near_the_point():
+    m = CapacityModel.fit(STEADY_ONLY, method="demonstrated")
+    assert m.lower_bound and m.n_steady == 5 and m.n_choked == 0
+    # gate 40: the 10 and 30 deg runs count (a wider gate passes at least as much), the 60 deg one does not;
+    # 40 mm is beyond the size factor 1.5 of 20 mm, 1900 rpm beyond 250 rpm of 1500
+    assert m.capacity_tph(20.0, 1500.0, 40.0) == 300.0
+    assert m.capacity_tph(20.0, 1500.0, 62.0) == 900.0
+    assert m.capacity_tph(20.0, 1500.0, 33.0) == 300.0  # 30 deg is within the 5 deg tolerance
+    assert m.capacity_tph(20.0, 1500.0, 5.0) == 100.0
+    assert m.capacity_tph(28.0, 1500.0, 5.0) == 2000.0  # 40 / 28 < 1.5
+    assert np.isnan(m.capacity_tph(20.0, 1500.0, 4.0))  # nothing near: no statement
+    assert check_capacity(m, 20.0, 1e5, 1500.0, 4.0) is None
+    p = m.probability_steady(20.0, [299.0, 300.0, 301.0], 1500.0, 40.0)
+    assert p[0] == p[1] == 1.0 and np.isnan(p[2])  # unknown above the demonstrated feed, not a choke
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(10, 40), st.floats(1200, 1900), st.floats(0, 80), st.floats(0, 30))
+def test_demonstrated_never_falls_as_the_gates_open(size, speed, gate, more):
+    m = CapacityModel.fit(STEADY_ONLY, method="demonstrated")
+    a, b = m.capacity_tph(size, speed, gate), m.capacity_tph(size, speed, gate + more)
+    assert np.isnan(a) or b >= a
+    assert np.isnan(a) or a in {p.feed_tph for p in STEADY_ONLY if p.outcome == "steady"}
+
+
+def test_demonstrated_warns_above_and_says_the_capacity_is_unknown_there():
+    m = CapacityModel.fit(STEADY_ONLY, method="demonstrated")
+    chk = check_capacity(m, 20.0, 450.0, 1500.0, 40.0)
+    msg = chk.message()
+    assert chk.above and chk.lower_bound and "\n" not in msg
+    assert "above the largest feed the DEM has shown" in msg and "300 t/h" in msg and "unknown" in msg
+    below = check_capacity(m, 20.0, 200.0, 1500.0, 40.0)
+    assert not below.above and "capacity at least 300 t/h" in below.message()
+    with pytest.warns(AboveCapacityWarning, match="largest feed the DEM has shown"):
+        warn_if_above_capacity(m, 20.0, 450.0, 1500.0, 40.0)
+
+
+def test_demonstrated_envelope_round_trip_and_points_only_file(tmp_path):
+    m = CapacityModel.fit(STEADY_ONLY, method="demonstrated")
+    m.to_envelope(STEADY_ONLY, {"note": "HAND-MADE"}).to_json(tmp_path / "e.json")
+    again = load_capacity(tmp_path / "e.json")
+    assert again.method == "demonstrated" and again.capacity_tph(20.0, 1500.0, 40.0) == 300.0
+    EnvelopeData(STEADY_ONLY).to_json(tmp_path / "points.json")  # no model entry, no choke: demonstrated
+    assert load_capacity(tmp_path / "points.json").method == "demonstrated"
+    with pytest.raises(MsmillInputError, match="steady"):
+        CapacityModel.fit([p for p in STEADY_ONLY if p.outcome != "steady"], method="demonstrated")

@@ -22,6 +22,20 @@ the capacity where that probability is one half:
     monotone in the feed rate by construction, the capacity is ``exp(mu)``.
     With few choked runs the coefficients are largely the priors' and the
     steady runs' lower bounds; the probability carries that uncertainty.
+``"demonstrated"``: no choked run at all (what our DEM of the default
+    machine gives: its slice passed every feed the chute's feed stream could
+    deliver, up to 2520 t/h, docs/mill-dem.md 3.1). The data then bound the
+    capacity from below only, and this method says exactly that: the
+    capacity at ``(size, speed, gate)`` is **at least** the largest feed of a
+    steady run near it, a run of rock within a factor
+    :data:`DEMONSTRATED_SIZE_FACTOR` of the size, a shaft speed within
+    :data:`DEMONSTRATED_SPEED_RPM`, and a gate angle at most
+    :data:`DEMONSTRATED_GATE_TOL_DEG` above the query's (a gate opened
+    further cannot pass less through the outlet; nothing is assumed about
+    speed or size beyond the neighbourhood). ``P(steady)`` is 1 at or below
+    that feed and unknown (NaN) above it; no such run: no statement (NaN).
+    The warning above it says that the feed is beyond what the DEM has shown
+    the mill to pass, not that the mill chokes.
 ``"classifier"``: a Gaussian-process classifier (scikit-learn, anisotropic
     RBF on ``log size``, ``feed``, ``speed``, ``gate`` scaled to about unit
     range) of steady (label 1, plus a steady pseudo-point at each choked run's
@@ -72,7 +86,13 @@ __all__ = [
     "warn_if_above_capacity",
 ]
 
-METHODS = ("censored", "classifier")
+METHODS = ("censored", "classifier", "demonstrated")
+#: ``"demonstrated"``: a steady run speaks for rock sizes within this factor of its own ...
+DEMONSTRATED_SIZE_FACTOR = 1.5
+#: ... for shaft speeds within this many rpm of its own ...
+DEMONSTRATED_SPEED_RPM = 250.0
+#: ... and for gate angles from its own less this tolerance upwards (a wider opening passes at least as much)
+DEMONSTRATED_GATE_TOL_DEG = 5.0
 ENVELOPE_KIND = "msmill_envelope"
 _SCALE = np.array([1.0, 60.0, 1900.0, 80.0])  # log(size/mm), t/h, rpm, deg: about unit range over the design space
 #: reference point and unit of each input of the censored model's log-linear law
@@ -159,10 +179,12 @@ def _design(size_mm: Any, speed_rpm: Any, gate_deg: Any) -> np.ndarray:
                             (g - _REF_GATE_DEG) / _GATE_UNIT_DEG])
 
 
-def _split(points: list[EnvelopePoint]) -> tuple[list[EnvelopePoint], list[EnvelopePoint]]:
+def _split(points: list[EnvelopePoint], need_choked: bool = True) -> tuple[list[EnvelopePoint], list[EnvelopePoint]]:
     steady = [p for p in points if p.outcome == "steady"]
     choked = [p for p in points if p.outcome == "choked"]
-    if not steady or not choked:
+    if not steady and not need_choked:
+        raise MsmillInputError("envelope points", "no steady run", "at least one steady run")
+    if need_choked and (not steady or not choked):
         raise MsmillInputError("envelope points", f"{len(steady)} steady, {len(choked)} choked",
                                "at least one steady and one choked run")
     return steady, choked
@@ -239,13 +261,30 @@ def _fit_classifier(points: list[EnvelopePoint], throughput_as_steady: bool, see
                  "throughput_as_steady": throughput_as_steady, "seed": seed, "n_labelled_steady": int(sum(labels))}
 
 
+def _demonstrated_params() -> dict[str, float]:
+    return {"size_factor": DEMONSTRATED_SIZE_FACTOR, "speed_window_rpm": DEMONSTRATED_SPEED_RPM,
+            "gate_tolerance_deg": DEMONSTRATED_GATE_TOL_DEG}
+
+
+def _demonstrated_tph(steady: np.ndarray, params: dict[str, float], size_mm: Any, speed_rpm: Any,
+                      gate_deg: Any) -> np.ndarray:
+    """Largest feed (t/h) of the steady runs ``steady`` (rows size, feed, speed, gate) near each query; NaN if none."""
+    s, v, g = (np.ravel(c) for c in np.broadcast_arrays(*(np.asarray(x, dtype=float)
+                                                          for x in (size_mm, speed_rpm, gate_deg))))
+    near = ((np.abs(np.log(steady[None, :, 0] / s[:, None])) <= math.log(params["size_factor"]) + 1e-12)
+            & (np.abs(steady[None, :, 2] - v[:, None]) <= params["speed_window_rpm"])
+            & (steady[None, :, 3] <= g[:, None] + params["gate_tolerance_deg"]))
+    best = np.where(near, steady[None, :, 1], -np.inf).max(axis=1, initial=-np.inf)
+    return np.where(np.isfinite(best), best, np.nan)
+
+
 @dataclass
 class CapacityModel:
     """Probability of steady flow and capacity from steady and choked DEM points (module docstring).
 
     Attributes
     ----------
-    method : {"censored", "classifier"}
+    method : {"censored", "classifier", "demonstrated"}
     params : dict
         Fitted parameters (JSON-able; stored in envelope files).
     n_steady, n_choked : int
@@ -254,6 +293,8 @@ class CapacityModel:
         ``{input: [low, high]}`` over the steady and choked runs (size mm, speed rpm, gate deg, feed t/h).
     classifier : object or None
         The scikit-learn classifier (``"classifier"`` only).
+    steady : ndarray or None
+        ``"demonstrated"`` only: rows ``(size mm, feed t/h, speed rpm, gate deg)`` of the steady runs.
     """
 
     method: str
@@ -262,11 +303,20 @@ class CapacityModel:
     n_choked: int
     domain: dict[str, list[float]]
     classifier: Any = None
+    steady: np.ndarray | None = None
+
+    @property
+    def lower_bound(self) -> bool:
+        """The capacity is a lower bound (``"demonstrated"``: no run choked), not an estimate."""
+        return self.method == "demonstrated"
 
     @classmethod
     def fit(cls, points: list[EnvelopePoint], method: str = "censored", throughput_as_steady: bool = True,
             seed: int = 0, theta: list[float] | None = None, priors: dict[str, float] | None = None) -> CapacityModel:
         """Fit to steady and choked points (not-steady points are ignored).
+
+        ``"demonstrated"`` needs steady points only (choked ones are ignored
+        by it: with a choke, use ``"censored"``).
 
         ``priors`` (entries of :data:`PRIORS` to change) applies to the
         censored model; ``throughput_as_steady``, ``seed`` and ``theta`` (fixed
@@ -275,11 +325,17 @@ class CapacityModel:
         Raises
         ------
         MsmillInputError
-            If the points hold no steady or no choked run (nothing to separate), or the method is unknown.
+            If the points hold no steady or no choked run (nothing to separate; ``"demonstrated"``: no
+            steady run), or the method is unknown.
         """
         if method not in METHODS:
             raise MsmillInputError("method", method, " or ".join(METHODS))
-        steady, choked = _split(points)
+        steady, choked = _split(points, need_choked=method != "demonstrated")
+        if method == "demonstrated":
+            rows = np.array([[p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg] for p in steady], dtype=float)
+            dom = {k: [float(rows[:, j].min()), float(rows[:, j].max())]
+                   for j, k in enumerate(("size_mm", "feed_tph", "speed_rpm", "gate_deg"))}
+            return cls(method, _demonstrated_params(), len(steady), 0, dom, steady=rows)
         used = steady + choked
         dom = {k: [float(min(getattr(p, k) for p in used)), float(max(getattr(p, k) for p in used))]
                for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg")}
@@ -299,7 +355,15 @@ class CapacityModel:
         return z @ beta, np.sqrt(var)
 
     def probability_steady(self, size_mm: Any, feed_tph: Any, speed_rpm: Any, gate_deg: Any) -> np.ndarray:
-        """Probability that the mill is steady (passes its feed) at the given points (broadcast)."""
+        """Probability that the mill is steady (passes its feed) at the given points (broadcast).
+
+        ``"demonstrated"``: 1 at or below the demonstrated feed, NaN (unknown) above it or where no run is near.
+        """
+        if self.method == "demonstrated":
+            f = np.ravel(np.broadcast_arrays(*(np.asarray(x, dtype=float)
+                                               for x in (feed_tph, size_mm, speed_rpm, gate_deg)))[0])
+            lb = _demonstrated_tph(self.steady, self.params, size_mm, speed_rpm, gate_deg)
+            return np.where(f <= lb, 1.0, np.nan)
         if self.method == "classifier":
             return self.classifier.predict_proba(_features(size_mm, feed_tph, speed_rpm, gate_deg))[:, 1]
         from scipy.special import ndtr
@@ -315,8 +379,11 @@ class CapacityModel:
 
         Censored model: ``exp(mu)`` in closed form. Classifier: the smallest
         feed on a grid over ``feed_range_tph`` where it falls below 1/2
-        (``inf`` if none).
+        (``inf`` if none). Demonstrated: the lower bound, the largest feed of
+        a steady run near the point (NaN if none is near).
         """
+        if self.method == "demonstrated":
+            return float(_demonstrated_tph(self.steady, self.params, size_mm, speed_rpm, gate_deg)[0])
         if self.method == "censored":
             return float(np.exp(self.log_capacity(size_mm, speed_rpm, gate_deg)[0][0]))
         f = np.linspace(*feed_range_tph, n_grid)
@@ -346,7 +413,7 @@ def load_capacity(source: str | Path | EnvelopeData, refit: bool = False) -> Cap
     """The capacity model of an envelope file, rebuilt from its JSON (no pickles).
 
     A file without a ``model`` entry (``msmill dem envelope``) is fitted with
-    the default method. With one, the censored model is rebuilt from its
+    the default method (``"demonstrated"`` when none of its runs choked). With one, the censored model is rebuilt from its
     stored parameters, the classifier refitted to the points at its stored
     hyper-parameters. ``refit`` refits the censored model from the points and
     checks it against the stored parameters: a mismatch (the fitting code or
@@ -355,7 +422,9 @@ def load_capacity(source: str | Path | EnvelopeData, refit: bool = False) -> Cap
     """
     env = source if isinstance(source, EnvelopeData) else EnvelopeData.from_json(source)
     stored = env.model or {}
-    method = stored.get("method", "censored")
+    # a points-only file: the censored model when some run choked, else what the runs demonstrate
+    method = stored.get("method") or ("censored" if any(p.outcome == "choked" for p in env.points)
+                                      else "demonstrated")
     params = stored.get("params") or {}
     if method == "censored" and params and not refit:
         try:
@@ -364,6 +433,13 @@ def load_capacity(source: str | Path | EnvelopeData, refit: bool = False) -> Cap
         except (KeyError, TypeError, ValueError):
             raise MsmillInputError(str(source), "model", "an envelope whose model has params, counts and domain "
                                    "(scripts/build_envelope.py)") from None
+    if method == "demonstrated":
+        model = CapacityModel.fit(env.points, method=method)
+        if params and params != model.params:
+            warnings.warn(f"envelope {getattr(source, 'name', 'data')}: its neighbourhood {params} is not this "
+                          f"version's {model.params} (rebuild it with scripts/build_envelope.py)", UserWarning,
+                          stacklevel=2)
+        return model
     model = CapacityModel.fit(env.points, method=method, seed=params.get("seed", 0),
                               theta=params.get("theta") if method == "classifier" else None,
                               priors=params.get("priors"))
@@ -401,6 +477,7 @@ class CapacityCheck:
     gate_deg: float
     outside: tuple[str, ...] = ()
     largest_feed_tph: float = float("inf")
+    lower_bound: bool = False
 
     @property
     def above(self) -> bool:
@@ -410,6 +487,13 @@ class CapacityCheck:
     def message(self) -> str:
         """One line: capacity, requested feed, by how much, probability of steady flow."""
         where = f"at {self.size_mm:.3g} mm, {self.speed_rpm:g} rpm, gate {self.gate_deg:g} deg"
+        if self.lower_bound:
+            if self.above:
+                return (f"feed {self.feed_tph:g} t/h is above the largest feed the DEM has shown the mill to pass "
+                        f"{where} ({self.capacity_tph:.0f} t/h, by {self.feed_tph - self.capacity_tph:.0f} t/h): "
+                        "no DEM run has choked, so the capacity above it is unknown, not exceeded")
+            return (f"capacity at least {self.capacity_tph:.0f} t/h {where} (a steady DEM run near here passed it; "
+                    f"no run has choked); feed {self.feed_tph:g} t/h")
         extra = f"; extrapolated in {', '.join(self.outside)}" if self.outside else ""
         if self.capacity_tph > self.largest_feed_tph:
             extra += f"; above the largest DEM feed ({self.largest_feed_tph:.0f} t/h), so not measured"
@@ -424,13 +508,17 @@ class CapacityCheck:
 
 def check_capacity(model: CapacityModel | None, size_mm: float, feed_tph: float, speed_rpm: float,
                    gate_deg: float) -> CapacityCheck | None:
-    """The capacity and steady probability at a point; None without a model."""
+    """The capacity and steady probability at a point; None without a model, or (``"demonstrated"``) no run near it."""
     if model is None:
         return None
-    return CapacityCheck(float(feed_tph), model.capacity_tph(size_mm, speed_rpm, gate_deg),
+    cap = model.capacity_tph(size_mm, speed_rpm, gate_deg)
+    if math.isnan(cap):
+        return None
+    return CapacityCheck(float(feed_tph), cap,
                          float(model.probability_steady(size_mm, feed_tph, speed_rpm, gate_deg)[0]),
                          float(size_mm), float(speed_rpm), float(gate_deg),
-                         tuple(model.outside(size_mm, speed_rpm, gate_deg)), model.domain["feed_tph"][1])
+                         tuple(model.outside(size_mm, speed_rpm, gate_deg)), model.domain["feed_tph"][1],
+                         lower_bound=model.lower_bound)
 
 
 def warn_if_above_capacity(model: CapacityModel | None, size_mm: float, feed_tph: float, speed_rpm: float,

@@ -156,3 +156,21 @@ def test_predict_warns_above_capacity_from_envelope(folder, capsys):
     with warnings.catch_warnings():
         warnings.simplefilter("error", AboveCapacityWarning)
         warn_if_above_capacity(CapacityModel.fit(pts), 20.0, 12.0, 1500.0, 40.0)
+
+
+def test_predict_with_an_envelope_of_steady_runs_only(folder, capsys):
+    """HAND-MADE envelope where no run choked: the summary gives a lower bound, and above it a warning."""
+    from msmill.capacity import EnvelopeData, EnvelopePoint
+
+    pts = [EnvelopePoint(s, 20.0, 1500.0, 30.0, "steady") for s in (10, 20, 30, 40)]
+    EnvelopeData(pts, {"note": "HAND-MADE"}).to_json(folder / "envelope.json")
+    p = write(folder, GOOD)
+    capsys.readouterr()
+    assert run(["predict", str(p), "--envelope", str(folder / "envelope.json")]) == 0
+    cap = capsys.readouterr()
+    assert "largest feed the DEM has shown the mill to pass" in cap.err and "unknown" in cap.err
+    assert ">= 20" in cap.out and "no run choked" in cap.out
+    low = write(folder, GOOD.replace("rate_tph = 30.0", "rate_tph = 12.0"), "low.toml")
+    assert run(["predict", str(low), "--envelope", str(folder / "envelope.json")]) == 0
+    cap = capsys.readouterr()
+    assert "largest feed the DEM has shown" not in cap.err and ">= 20" in cap.out

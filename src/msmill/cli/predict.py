@@ -8,7 +8,7 @@ and the plots, and prints a summary table.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -67,6 +67,17 @@ def apply_envelope(mill, envelope: Path | None, capacity_check: bool) -> None:
         mill.use_envelope(envelope)
 
 
+def _capacity_rows(result: Any) -> list[tuple[str, str]]:
+    """Summary rows of the envelope check: the capacity (or its lower bound) and P(steady)."""
+    if result.capacity_is_lower_bound:
+        p = result.probability_steady
+        return [("capacity at F80, speed, gate (t/h; DEM envelope, no run choked)", f">= {result.capacity_tph:.3g}"),
+                ("probability of steady flow at this feed",
+                 "1 (a steady DEM run passed more)" if p == p else "unknown (above every steady DEM run near here)")]
+    return [("capacity at F80, speed, gate (t/h; DEM envelope)", f"{result.capacity_tph:.3g}"),
+            ("probability of steady flow at this feed", f"{result.probability_steady:.2f}")]
+
+
 def _impact_kw(result) -> float:
     from msmill.model.power import power_estimate
 
@@ -98,9 +109,7 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         ("impact energy (kWh/t)", f"{result.specific_impact_energy_kwh_t:.3g}"),
         ("impact power (kW; no-load not included, docs/validation.md)", f"{_impact_kw(result):.3g}"),
         ("mass-balance error", f"{result.mass_balance_error:.1e}"),
-        *([("capacity at F80, speed, gate (t/h; DEM envelope)", f"{result.capacity_tph:.3g}"),
-           ("probability of steady flow at this feed", f"{result.probability_steady:.2f}")]
-          if result.capacity_tph is not None else []),
+        *(_capacity_rows(result) if result.capacity_tph is not None else []),
         ("feed / product mass with extrapolated stage statistics (%)",
          f"{result.extrapolated_feed_pct:.3g} / {result.extrapolated_product_pct:.3g}"),
     ]

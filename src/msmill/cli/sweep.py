@@ -168,8 +168,7 @@ def optimize(
                   + f" -> P80 {r['p80_mm']:.4g} mm, {r['throughput_tph']:.4g} t/h, "
                     f"{r['specific_energy_kwh_t']:.3g} kWh/t, {r['power_kw']:.3g} kW"
                   + ("" if r["inside_design_space"] else " (outside the design space)")
-                  + (f"; capacity {r['capacity_tph']:.4g} t/h, P(steady) {r['p_steady']:.2f}"
-                     if np.isfinite(r.get("capacity_tph", np.nan)) else ""))
+                  + _capacity_text(r))
         if "p80_low_mm" in r:
             con.print(f"P80 band {r['p80_low_mm']:.4g}-{r['p80_high_mm']:.4g} mm")
     if sens is not None:
@@ -178,3 +177,13 @@ def optimize(
     elif res.settings is not None:
         con.print("uncertainty: give --l-ref-se-mm (from msmill calibrate) to re-optimise at L_ref +- s.e.")
     con.print(f"wrote {', '.join(files)} to {dest} ({time.perf_counter() - t0:.1f} s)")
+
+
+def _capacity_text(row: dict) -> str:
+    """``; capacity ...`` of a result row (a lower bound when no DEM run choked), or ''."""
+    cap = row.get("capacity_tph", np.nan)
+    if not np.isfinite(cap):
+        return ""
+    if row.get("capacity_is_lower_bound"):
+        return f"; capacity >= {cap:.4g} t/h (no DEM run choked)"
+    return f"; capacity {cap:.4g} t/h, P(steady) {row['p_steady']:.2f}"

@@ -335,7 +335,7 @@ class Mill:
         if chk.above:
             warnings.warn(chk.message(), AboveCapacityWarning, stacklevel=3)
         return dataclasses.replace(res, capacity_tph=chk.capacity_tph, probability_steady=chk.probability_steady,
-                                   notes=(*res.notes, chk.message()))
+                                   capacity_is_lower_bound=chk.lower_bound, notes=(*res.notes, chk.message()))
 
     def _run(self, feed: PSD, op: Any, timeseries: bool, max_steps: int) -> MillResult:
         grid = self.model_grid(feed)

@@ -72,9 +72,11 @@ def capacity_feasible(model: Any) -> Feasible:
 def _capacity_columns(res: Any) -> dict[str, Any]:
     cap = getattr(res, "capacity_tph", None)
     if cap is None:
-        return {"capacity_tph": float("nan"), "p_steady": float("nan"), "above_capacity": False}
+        return {"capacity_tph": float("nan"), "p_steady": float("nan"), "above_capacity": False,
+                "capacity_is_lower_bound": False}
     return {"capacity_tph": float(cap), "p_steady": float(res.probability_steady),
-            "above_capacity": bool(res.feed_tph > cap)}
+            "above_capacity": bool(res.feed_tph > cap),
+            "capacity_is_lower_bound": bool(getattr(res, "capacity_is_lower_bound", False))}
 
 
 def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float],

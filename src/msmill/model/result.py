@@ -78,6 +78,10 @@ class MillResult:
         Capacity at the feed's F80, speed and gate from the mill's DEM
         envelope (:mod:`msmill.capacity`), and the probability that the mill
         passes the requested feed there; None without an envelope.
+    capacity_is_lower_bound : bool
+        The envelope has no choked run (method ``"demonstrated"``): ``capacity_tph``
+        is the largest feed a steady DEM run near this point passed, and
+        ``probability_steady`` is NaN (unknown) above it.
     """
 
     feed_psd: PSD
@@ -108,6 +112,7 @@ class MillResult:
     band_samples: int = 0
     capacity_tph: float | None = None
     probability_steady: float | None = None
+    capacity_is_lower_bound: bool = False
 
     def summary(self) -> pd.Series:
         """Headline figures as a Series (index names carry the units)."""
