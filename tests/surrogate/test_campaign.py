@@ -94,7 +94,8 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
     assert cli(["campaign", "status", "k", "--db", db]) == 0
     assert "planned=5" in capsys.readouterr().out
     st = Store(db)
-    assert st.campaign("k").run_settings == {"max_time_s": 0.8, "seed": 2}
+    # the campaign defaults (warm start from the stage table, adaptive window) are stored with the campaign
+    assert st.campaign("k").run_settings == {"max_time_s": 0.8, "seed": 2, "start": "table", "adaptive": True}
     assert {r.seed for r in st.runs(campaign="k")} == {2}
     assert cli(["campaign", "create", "bad", "--db", db, "--set", "warp=9"]) == 2
     assert cli(["campaign", "status", "nope", "--db", db]) == 2
@@ -103,6 +104,44 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
     assert "error:" in capsys.readouterr().err
     assert cli(["db", "list", "--db", db, "--size-mm", "20", "--campaign", "k"]) == 0
     assert capsys.readouterr().out.strip().endswith("2 runs")  # 20 mm at 20 and 40 t/h (the CSV row was a duplicate)
+
+
+def test_campaign_default_is_warm_start_and_adaptive_window(tmp_path, monkeypatch, capsys):
+    """A campaign created with defaults runs every point from the stage table's hold-up with the adaptive
+    window; ``--set start=empty --set adaptive=false`` switches both off; the worker passes them to run_mill."""
+    import msmill.dem.mill.run as run_mod
+    from msmill.surrogate import campaign as cm
+
+    db = f"sqlite:///{tmp_path / 's.sqlite'}"
+    assert cli(["campaign", "create", "warm", "--db", db]) == 0
+    assert cli(["campaign", "create", "cold", "--db", db, "--set", "start=empty", "--set", "adaptive=false"]) == 0
+    assert cli(["campaign", "create", "bad", "--db", db, "--set", "start=hot"]) == 2
+    assert "settings.start" in capsys.readouterr().err
+    st = Store(db)
+    assert st.campaign("warm").run_settings == {"start": "table", "adaptive": True} == cm.CAMPAIGN_RUN_DEFAULTS
+    assert st.campaign("cold").run_settings == {"start": "empty", "adaptive": False}
+
+    seen = {}
+
+    class FakeRun:
+        def __init__(self, settings):
+            self.stats = type("S", (), {"run": make_stats(20.0)})()
+            self.extra = {"outcome": "steady", "git_commit": None,
+                          "warm_start": {"kind": "table"} if settings.start == "table" else None}
+            self.wall_s = 1.0
+
+    def fake_run_mill(machine, op, size_mm=None, mode="slice", settings=None, ore=None, **kw):
+        seen["settings"] = settings
+        return FakeRun(settings)
+
+    monkeypatch.setattr(run_mod, "run_mill", fake_run_mill)
+    for name, start, adaptive in (("warm", "table", True), ("cold", "empty", False)):
+        info = st.campaign(name)
+        st.add_points(name, design_grid(info.machine, [20.0], [30.0], [1500.0], [40.0]))
+        [claim] = st.claim(name, 1, "w", new_token())
+        out = cm.execute_run(cm._task(info, claim))
+        assert seen["settings"].start == start and seen["settings"].adaptive is adaptive
+        assert out["outcome"] == "steady"
 
 
 def test_cli_run_with_progress_and_resume(tmp_path, client, monkeypatch, capsys):

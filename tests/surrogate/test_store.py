@@ -270,14 +270,16 @@ def test_failed_runs_keep_errors_and_retry_up_to_the_limit(store):
 def test_campaign_settings_are_validated(store):
     from msmill.surrogate.campaign import run_settings_dict
 
-    assert run_settings_dict({"max_time_s": "1.5", "seed": 3}) == {"max_time_s": 1.5, "seed": 3}
+    assert run_settings_dict({"max_time_s": "1.5", "seed": 3}, defaults={}) == {"max_time_s": 1.5, "seed": 3}
     with pytest.raises(MsmillInputError, match="no_such_setting"):
         run_settings_dict({"no_such_setting": 1})
     # --set adaptive=false from the command line arrives as the word: it must not become True
-    assert run_settings_dict({"adaptive": "false"}) == {"adaptive": False}
-    assert run_settings_dict({"adaptive": "True"}) == {"adaptive": True}
+    assert run_settings_dict({"adaptive": "false"}, defaults={}) == {"adaptive": False}
+    assert run_settings_dict({"adaptive": "True"}, defaults={}) == {"adaptive": True}
     with pytest.raises(MsmillInputError, match="adaptive"):
         run_settings_dict({"adaptive": "maybe"})
+    with pytest.raises(MsmillInputError, match="start"):
+        run_settings_dict({"start": "hot"})
     with pytest.raises(MsmillInputError):
         store.create_campaign("x", MACHINE, mode="half")
     store.create_campaign("x", MACHINE)

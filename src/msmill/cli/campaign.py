@@ -50,7 +50,9 @@ def create_cmd(
     name: NameArg,
     machine_toml: Annotated[str, typer.Option("--machine", help="Machine TOML or 'default'.")] = "default",
     full: Annotated[bool, typer.Option("--full", help="Full mill instead of a periodic slice.")] = False,
-    set_: Annotated[list[str] | None, typer.Option("--set", help="RunSettings field, KEY=VALUE (repeatable).")] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="RunSettings field, KEY=VALUE (repeatable); campaigns default to start=table (warm start "
+                      "from the stage table's hold-up) and adaptive=true.")] = None,
     max_attempts: Annotated[int, typer.Option("--max-attempts", help="Attempts per run before it fails.")] = 3,
     ore: Annotated[str | None, typer.Option("--ore", help="Ore (rock material) name.")] = None,
     raw_dir: Annotated[Path | None, typer.Option("--raw-dir", help="Workers save raw run folders here.")] = None,

@@ -1368,6 +1368,44 @@ def place_without_overlap(cand, radii, ex_pos, ex_rad, box_len, periodic):
 
 
 @njit(cache=True, fastmath=False)
+def geometry_overlap(pos, rad, gcur, gkind, box_len, periodic):
+    """Largest overlap (m) of each sphere with any primitive at its current pose (0 if clear).
+
+    Periodic axes are searched one box length either way (a sphere near the
+    boundary meets a primitive's periodic image). A plane counts every point
+    on its far side as overlapping (``r - d`` with the signed distance ``d``),
+    so a sphere outside the casing is never taken as clear.
+    """
+    n = pos.shape[0]
+    out = np.zeros(n)
+    sx = 1 if periodic[0] != 0 else 0
+    sy = 1 if periodic[1] != 0 else 0
+    sz = 1 if periodic[2] != 0 else 0
+    for i in range(n):
+        r = rad[i]
+        best = 0.0
+        for g in range(gkind.shape[0]):
+            for ix in range(-sx, sx + 1):
+                for iy in range(-sy, sy + 1):
+                    for iz in range(-sz, sz + 1):
+                        x = pos[i, 0] + ix * box_len[0]
+                        y = pos[i, 1] + iy * box_len[1]
+                        z = pos[i, 2] + iz * box_len[2]
+                        if gkind[g] == PLANE:
+                            d = ((x - gcur[g, 0]) * gcur[g, 3] + (y - gcur[g, 1]) * gcur[g, 4]
+                                 + (z - gcur[g, 2]) * gcur[g, 5])
+                            s = r - d
+                        else:
+                            ok, s, _nx, _ny, _nz, _cx, _cy, _cz = geom_contact(gkind[g], gcur, g, x, y, z, r)
+                            if not ok:
+                                s = 0.0
+                        if s > best:
+                            best = s
+        out[i] = best
+    return out
+
+
+@njit(cache=True, fastmath=False)
 def permute_slots(perm, cnt, ids, st, ev, pk, ds, tch):
     """Gather history slots by ``perm``, copying only the used slots of each particle.
 

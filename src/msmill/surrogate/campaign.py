@@ -4,6 +4,13 @@ A campaign (``msmill campaign create``) is a named set of design points in
 the store with one DEM setting: machine, slice or full mode, and
 :class:`msmill.dem.mill.run.RunSettings` fields (stored as JSON and passed
 through unchanged, so new run-protocol settings need no change here).
+A campaign created through :func:`run_settings_dict` (``msmill campaign
+create``, ``scripts/campaign_loop.py``) starts from
+:data:`CAMPAIGN_RUN_DEFAULTS`: every run starts from the default stage
+table's expected hold-up (``start = "table"``) and measures with the adaptive
+window (``adaptive = true``); ``--set start=empty`` or ``--set adaptive=false``
+switches either off. The settings are stored with the campaign, so they are
+explicit in the store and in every run's provenance.
 
 :func:`run_campaign` is the driver. It keeps every worker thread of a Dask
 cluster busy (its own ``distributed.LocalCluster``, one single-threaded
@@ -48,12 +55,16 @@ from msmill.surrogate.store import Store
 from msmill.surrogate.store.hashing import file_sha256, outcome_of, read_statistics
 from msmill.surrogate.store.queue import Claim, new_token
 
-__all__ = ["DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "design_grid", "execute_run", "run_campaign", "run_settings_dict"]
+__all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "design_grid", "execute_run",
+           "run_campaign", "run_settings_dict"]
 
 #: heartbeat age after which a running run is taken to be lost (s)
 DEFAULT_STALE_S = 120.0
 #: planner name -> planner(store, campaign, n) -> list of DesignPoint (filled by the surrogate's active learning)
 PLANNERS: dict[str, Callable[[Store, str, int], list[DesignPoint]]] = {}
+#: ``RunSettings`` fields a new campaign gets unless set (issue 12): warm start from the stage
+#: table's hold-up, adaptive measurement window
+CAMPAIGN_RUN_DEFAULTS: dict[str, Any] = {"start": "table", "adaptive": True}
 
 
 def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: float = 1.0) -> list[DesignPoint]:
@@ -95,18 +106,29 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
 PLANNERS["active"] = active_planner
 
 
-def run_settings_dict(values: dict[str, Any]) -> dict[str, Any]:
-    """Validate ``RunSettings`` fields (names and types) and return them as a plain dict."""
+def run_settings_dict(values: dict[str, Any], defaults: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Validate ``RunSettings`` fields (names and types) and return them as a plain dict.
+
+    Parameters
+    ----------
+    values : dict
+        Field name -> value (strings are converted to the field's type).
+    defaults : dict, optional
+        Fields added where ``values`` does not set them; None (default):
+        :data:`CAMPAIGN_RUN_DEFAULTS`; ``{}`` validates ``values`` alone.
+    """
+    from msmill.dem.mill.checks import check_start
     from msmill.dem.mill.run import RunSettings
 
+    values = {**(CAMPAIGN_RUN_DEFAULTS if defaults is None else defaults), **values}
     names = {f.name for f in dataclasses.fields(RunSettings)}
     unknown = sorted(set(values) - names)
     if unknown:
         raise MsmillInputError("run setting", ", ".join(unknown), ", ".join(sorted(names)))
-    defaults = dataclasses.asdict(RunSettings())
+    field_defaults = dataclasses.asdict(RunSettings())
     out = {}
     for k, v in values.items():
-        d = defaults[k]
+        d = field_defaults[k]
         if isinstance(d, bool):  # bool("false") is True: parse the words
             out[k] = _parse_bool(k, v)
             continue
@@ -114,6 +136,7 @@ def run_settings_dict(values: dict[str, Any]) -> dict[str, Any]:
             out[k] = v if v is None or d is None else type(d)(v)
         except (TypeError, ValueError):
             raise MsmillInputError(k, v, f"a {type(d).__name__}") from None
+    check_start(out.get("start", "empty"))
     return out
 
 

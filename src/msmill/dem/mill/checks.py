@@ -53,8 +53,9 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     if settings.dt_s is not None:
         number(settings.dt_s, "settings.dt_s", unit="s", gt=0)
     integer(settings.seed, "--seed", ge=0, le=2**32 - 1)
-    # the feed enters the chute downwards; faster than the slowest tip speed would make it an impact of its own
+    # the feed enters the chute downwards, at most as fast as a free fall of about 5 m
     number(getattr(settings, "feed_speed_m_s", 2.0), "--feed-speed-m-s", unit="m/s", gt=0, le=MAX_FEED_SPEED_M_S)
+    check_start(getattr(settings, "start", "empty"))
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
         raise MsmillInputError("--max-time-s", settings.max_time_s,
@@ -67,6 +68,14 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
         if s >= top:
             raise MsmillInputError("--size-mm", s, f"a rock diameter < {top:.4g} mm (the narrowest of the "
                                    "feed chute, the gaps between stages and the liner gaps)")
+
+
+def check_start(start: Any) -> None:
+    """Raise :class:`MsmillInputError` unless ``start`` is a kind of start (``RunSettings.start``)."""
+    from msmill.dem.mill.warmstart import START_KINDS
+
+    if start not in START_KINDS:
+        raise MsmillInputError("settings.start", start, " or ".join(repr(k) for k in START_KINDS))
 
 
 def estimated_dt_s(scene: Any, settings: Any) -> float:

@@ -2,8 +2,9 @@
 
 Procedure (documented in ``docs/mill-dem.md``):
 
-1. The empty mill (or a warm start, :mod:`msmill.dem.mill.warmstart`) is fed
-   from t = 0. The engine runs in chunks of ``chunk_s``; after every chunk
+1. The empty mill (or a warm start, :mod:`msmill.dem.mill.warmstart`: with
+   ``start = "table"`` the default stage table's expected hold-up, or a given
+   finished run's) is fed from t = 0. The engine runs in chunks of ``chunk_s``; after every chunk
    :func:`msmill.steadystate.first_steady` tests the hold-up and the product
    mass out (mass balance and no hold-up trend over two windows of
    ``steady_window_s``). The onset (start of the first passing pair of
@@ -52,7 +53,7 @@ from msmill.dem.mill.stats import (
     filling_transport,
     snapshots_frame,
 )
-from msmill.dem.mill.warmstart import WarmStart, place_warm_start
+from msmill.dem.mill.warmstart import WarmStart, place_table_start, place_warm_start
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
 from msmill.stageparams import DesignPoint, StageParameterTable
@@ -81,6 +82,11 @@ class RunSettings:
     residence time ``t_res`` of the rock (the default stage table's transport
     chain at the nearest rock size): ``max(min_time_s, 2 steady_window_s +
     residence_factor t_res)``, at most ``max_time_cap_s``.
+    ``start``: ``"empty"`` (default) starts from an empty mill, ``"table"``
+    from the default stage table's expected steady hold-up per compartment
+    (:func:`msmill.dem.mill.warmstart.place_table_start`); a ``start`` run given
+    to :func:`run_mill` takes precedence. Campaigns default to ``"table"`` and
+    ``adaptive`` (:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`).
     """
 
     max_time_s: float = 0.0
@@ -115,6 +121,8 @@ class RunSettings:
     target_velocity_rel_se: float = 0.03
     target_count_mean_rel_se: float = 0.08
     target_velocity_sampling_kl: float = 0.005
+    # start of the run (issue 12): "empty" or "table" (msmill.dem.mill.warmstart.START_KINDS)
+    start: str = "empty"
 
     def targets(self) -> dict[str, float]:
         """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
@@ -215,7 +223,7 @@ def run_mill(
         ``"transient"`` or ``"measure"``.
     start : WarmStart, optional
         Start from this finished run's hold-up (:mod:`msmill.dem.mill.warmstart`)
-        instead of an empty mill.
+        instead of an empty mill (or of the stage table's, ``settings.start = "table"``).
     """
     rs = settings or RunSettings()
     check_run_inputs(machine, rs, size_mm, feed_psd)  # before any work: times, sizes (dem/mill/checks.py)
@@ -229,7 +237,12 @@ def run_mill(
           "snapshot_every_s": rs.snapshot_every_s, "progress": False}
     crit = rs.criterion()
     limit = rs.time_limit_s(scene.size_mm)
-    warm = place_warm_start(scene, start, seed=rs.seed) if start is not None else None
+    if start is not None:
+        warm = place_warm_start(scene, start, seed=rs.seed)
+    elif rs.start == "table":
+        warm = place_table_start(scene, seed=rs.seed)
+    else:
+        warm = None
     found = None
 
     def remaining(t_end: float) -> float:
