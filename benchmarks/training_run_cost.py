@@ -6,10 +6,13 @@ first from size to size:
 
 * **old**: today's training run: empty mill, steady state by
   :mod:`msmill.steadystate`, a fixed 0.5 s measurement window;
-* **new**: warm start (:mod:`msmill.dem.mill.warmstart`) from the finished
-  *seed* run of a nearby point (35 t/h, 1600 rpm, same size and gate; cold,
-  0.3 s window, its cost reported apart: in a campaign every finished run seeds
-  its neighbours), then the adaptive window (``RunSettings.adaptive``).
+* **new**: what a campaign run does by default (``--start table``,
+  :data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`): the stage table's
+  expected hold-up placed at t = 0 (``RunSettings.start = "table"``,
+  :func:`msmill.dem.mill.warmstart.place_table_start`), then the adaptive
+  window (``RunSettings.adaptive``); or (``--start run``) a warm start from the
+  finished *seed* run of a nearby point (35 t/h, 1600 rpm, same size and gate;
+  cold, 0.3 s window, its cost reported apart).
 
 Both use the same steady-state criterion, so the comparison is of the start
 and the window only. For every stage and statistic the surrogate regresses
@@ -71,6 +74,10 @@ def main() -> None:
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[20.0, 10.0, 6.0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="write each run's statistics JSON here")
+    ap.add_argument("--start", choices=("table", "run"), default="table",
+                    help="the new run's start: the stage table's hold-up (the campaign default) or a seed run's")
+    ap.add_argument("--max-measure-s", type=float, default=None,
+                    help="cap of the new run's adaptive window (s); default RunSettings'")
     ap.add_argument("--cold-adaptive", action="store_true",
                     help="also run a cold start with the adaptive window and compare it with the warm one")
     args = ap.parse_args()
@@ -83,16 +90,19 @@ def main() -> None:
     ratios, worst = [], (0.0, "")
     n_dev = n_over = 0
     for i, size in enumerate(args.sizes_mm):
-        seed_run, seed_wall = timed(partial(run_mill, m, near, size_mm=size, settings=RunSettings(
-            measure_s=0.3, seed=args.seed + 1)))
-        start = WarmStart.from_run(seed_run)
-        print(f"{size:g} mm seed (35 t/h, 1600 rpm): {seed_run.outcome}, t_ss {seed_run.steady_state_time_s}, "
-              f"end {seed_run.window_s[1]:.2f} s, wall {seed_wall:.1f} s")
-        del seed_run
+        start = None
+        if args.start == "run":
+            seed_run, seed_wall = timed(partial(run_mill, m, near, size_mm=size, settings=RunSettings(
+                measure_s=0.3, seed=args.seed + 1)))
+            start = WarmStart.from_run(seed_run)
+            print(f"{size:g} mm seed (35 t/h, 1600 rpm): {seed_run.outcome}, t_ss {seed_run.steady_state_time_s}, "
+                  f"end {seed_run.window_s[1]:.2f} s, wall {seed_wall:.1f} s")
+            del seed_run
 
         old = partial(run_mill, m, point, size_mm=size, settings=RunSettings(measure_s=0.5, seed=args.seed))
-        new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(adaptive=True, seed=args.seed),
-                      start=start)
+        cap = {} if args.max_measure_s is None else {"max_measure_s": args.max_measure_s}
+        new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(
+            adaptive=True, seed=args.seed, start="table" if args.start == "table" else "empty", **cap), start=start)
 
         order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
         if args.cold_adaptive:  # same window rule as "new", cold start: isolates the start's effect
