@@ -1,0 +1,73 @@
+"""The replica analysis of benchmarks/transport_vs_dem.py on SYNTHETIC hold-up series (analytic fills)."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msmill.dem.mill.run import RunSettings
+from msmill.steadystate import first_steady
+
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "transport_vs_dem.py"
+_spec = importlib.util.spec_from_file_location("transport_vs_dem", _PATH)
+B = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = B  # dataclasses look their module up while the class is built
+_spec.loader.exec_module(B)
+
+FEED = 2.0  # kg/s
+
+
+def replica(tau_s: float, end_s: float = 6.0, every_s: float = 0.01, seed: int = 1) -> dict:
+    """SYNTHETIC replica: a well-mixed mill of residence tau filling from empty, H = F tau (1 - e^-t/tau)."""
+    t = np.round(np.arange(0.0, end_s + 1e-9, every_s), 5)
+    held = FEED * tau_s * (1 - np.exp(-t / tau_s))
+    out = FEED * t - held  # mass balance: fed = held + out
+    t = np.insert(t, 50, t[50])  # a repeated sample time, as a coarse record downsampled gives
+    held, out = np.insert(held, 50, held[50]), np.insert(out, 50, out[50])
+    return {"size_mm": 20.0, "seed": seed, "feed_kg_s": FEED, "residence_time_s": None,
+            "series": {"time_s": t.tolist(), "holdup_kg": held.tolist(), "product_cum_kg": out.tolist()}}
+
+
+def test_onset_and_residence_of_one_replica():
+    crit = RunSettings().criterion()
+    r = replica(1.0)
+    t, h, q = B.replica_series(r)
+    assert np.all(np.diff(t) > 0)  # the repeated time is dropped
+    onset = B.replica_onset(r, crit)
+    assert onset == first_steady(t, h, q, FEED, crit)[0]
+    assert 1.0 < onset < 4.0
+    # Little's law over the steady part: hold-up / rate -> tau (the tail of the fill is e^-onset small)
+    assert B.replica_residence(r, onset) == pytest.approx(1.0, rel=0.08)
+    # less than 1 s of steady series, or never steady: the run's own window figure
+    assert B.replica_residence({**r, "residence_time_s": 0.9}, 5.5) == 0.9
+    assert B.replica_residence({**r, "residence_time_s": 0.9}, float("nan")) == 0.9
+
+
+def test_ensemble_is_the_mean_series_and_its_onset_lies_between():
+    crit = RunSettings().criterion()
+    fast, slow = replica(0.6, end_s=6.0), replica(1.4, end_s=5.0, seed=2)
+    t, h, q, f = B.ensemble_series([fast, slow])
+    assert t[-1] == pytest.approx(5.0) and f == FEED  # to the shorter series
+    k = np.searchsorted(t, 2.0)
+    assert h[k] == pytest.approx(0.5 * (FEED * 0.6 * (1 - np.exp(-2 / 0.6)) + FEED * 1.4 * (1 - np.exp(-2 / 1.4))),
+                                 rel=1e-6)
+    o_fast, o_slow = B.replica_onset(fast, crit), B.replica_onset(slow, crit)
+    o_mean = first_steady(t, h, q, f, crit)[0]
+    assert o_fast < o_mean <= o_slow + 1e-9
+
+
+def test_attach_replicas_fills_the_row_and_its_error():
+    crit = RunSettings().criterion()
+    reps = [replica(1.0, seed=s) for s in range(4)]
+    row = B.Row(20.0, 0.03, 1.0, 1.05, 2.0, 2.0, 2.0, 2.0, False, tss_model_today_s=2.5)
+    B.attach_replicas(row, reps, crit)
+    assert row.n_replicas == 4
+    assert row.tss_dem_rep_s == pytest.approx(B.replica_onset(reps[0], crit))  # identical replicas
+    assert row.tss_err_rep == pytest.approx(2.5 - row.tss_dem_rep_s)
+    assert row.res_err_rep == pytest.approx((1.05 - row.res_dem_rep_s) / row.res_dem_rep_s)
+    assert row.tss_dem_rep_se_s == pytest.approx(0.0, abs=1e-12)  # resampling identical runs changes nothing
+    other = B.Row(14.0, 0.03, 1.0, 1.05, 2.0, 2.0, 2.0, 2.0, False)
+    assert B.attach_replicas(other, reps, crit).n_replicas == 0  # replicas of another size are not used
+    assert other.tss_err_rep == other.tss_err
