@@ -583,7 +583,9 @@ def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
         "`msmill predict` reports the lower bound (`capacity ... >= X`) and warns, in one line, when the feed rate "
         "is above it: the feed is beyond what the DEM has shown the mill to pass there, and the capacity above it is "
         "unknown (not exceeded). `msmill sweep` flags such points (`above_capacity`) and `msmill optimize` "
-        "excludes them; inside the design space (10-60 t/h) every point with a run near it is below its bound. "
+        "excludes them. Where only low-feed runs are near (fine rock, the small entries above), the bound lies "
+        "inside the design space's 10-60 t/h, so there the tools flag feeds that no DEM run near them has passed: "
+        "a conservative constraint, lifted by a DEM run at a higher feed there (`msmill campaign add`). "
         "The censored capacity model and the classifier stay in `msmill.capacity` for data with chokes "
         "(`scripts/build_envelope.py --method censored` refuses to fit without one).",
         "",
