@@ -90,7 +90,7 @@ def run_replica(size_mm: float, seed: int, measure_s: float, every_s: float, end
         "series": {"time_s": np.round(ts["time_s"].to_numpy()[idx], 5).tolist(),
                    "holdup_kg": np.round(ts["mass_kg"].to_numpy()[idx], 5).tolist(),
                    "product_cum_kg": np.round(ts["mass_out_kg"].to_numpy()[idx], 5).tolist()},
-        "end_s": float(sim.time_s),
+        "end_s": float(sim.time_s), "git_commit": run.extra.get("git_commit"),
         "run_settings": {"measure_s": measure_s, "seed": seed, **{k: getattr(rs, k) for k in (
             "steady_window_s", "rel_tol", "trend_tol", "balance_tol", "chunk_s")}},
     }
@@ -116,10 +116,11 @@ def export(out: Path, dest: Path, command: str) -> None:
            "provenance": {"command": command, "msmill_version": __version__, "git_commit": git_commit(),
                           "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                           "inputs": "msmill/data/stage_parameters/default.json (operating point and sizes)",
-                          "source": str(out / "replicas.jsonl"), "python": platform.python_version()},
+                          "source": str(out / "replicas.jsonl"), "python": platform.python_version(),
+                          "run_commits": sorted({str(r.get("git_commit")) for r in rows})},
            "replicas": rows}
     dest.parent.mkdir(parents=True, exist_ok=True)
-    dest.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    dest.write_text(json.dumps(doc, separators=(",", ":")) + "\n", encoding="utf-8")  # compact: series dominate
     print(f"wrote {dest} ({len(rows)} replicas)")
 
 
