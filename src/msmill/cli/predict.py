@@ -7,6 +7,7 @@ and the plots, and prints a summary table.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -70,10 +71,10 @@ def apply_envelope(mill, envelope: Path | None, capacity_check: bool) -> None:
 def _capacity_rows(result: Any) -> list[tuple[str, str]]:
     """Summary rows of the envelope check: the capacity (or its lower bound) and P(steady)."""
     if result.capacity_is_lower_bound:
-        p = result.probability_steady
+        known = not math.isnan(result.probability_steady)  # NaN above the bound: no evidence either way
         return [("capacity at F80, speed, gate (t/h; DEM envelope, no run choked)", f">= {result.capacity_tph:.3g}"),
                 ("probability of steady flow at this feed",
-                 "1 (a steady DEM run passed more)" if p == p else "unknown (above every steady DEM run near here)")]
+                 "1 (a steady DEM run passed more)" if known else "unknown (above every steady DEM run near here)")]
     return [("capacity at F80, speed, gate (t/h; DEM envelope)", f"{result.capacity_tph:.3g}"),
             ("probability of steady flow at this feed", f"{result.probability_steady:.2f}")]
 
