@@ -99,8 +99,10 @@ def _capacity_line(con, mill, table) -> None:
         return
     n = int(table["above_capacity"].sum())
     cap = mill.capacity
-    con.print(f"capacity (DEM envelope, {cap.n_choked} choked of {cap.n_steady + cap.n_choked} runs): "
-              f"{n} of {len(table)} points above it (above_capacity, feasible = false)")
+    what = ("lower bound: the largest feed a steady run near the point passed, no run choked" if cap.lower_bound
+            else f"{cap.n_choked} choked of {cap.n_steady + cap.n_choked} runs")
+    con.print(f"capacity (DEM envelope, {what}): {n} of {len(table)} points above it (above_capacity, "
+              "feasible = false)")
 
 
 def optimize(
