@@ -95,3 +95,21 @@ def test_capacity_feasible_hook_from_another_envelope(cap):
         warnings.simplefilter("ignore")
         rows = [evaluate_point(m, FEED, op, {"feed_tph": f}, feasible=hook) for f in (12.0, 35.0)]
     assert [r["feasible"] for r in rows] == [True, False]
+
+
+def test_sweep_with_lower_bounds_only():
+    """HAND-MADE steady-only envelope (no choke): the bound is the largest feed passed near F80, 1500 rpm, gate 40."""
+    steady = [EnvelopePoint(s, f, 1500.0, 30.0, "steady") for s in (20.0, 28.0) for f in (10.0, 22.0)]
+    low = CapacityModel.fit(steady, method="demonstrated")
+    m = Mill("UG2", "table", grid=GRID, envelope=low)
+    op = OperatingPoint(feed_tph=15, speed_rpm=1500, gate_deg=40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t = sweep(m, FEED, op, {"feed_tph": np.array([10.0, 20.0, 30.0, 40.0])})
+    np.testing.assert_array_equal(t["above_capacity"], [False, False, True, True])
+    np.testing.assert_array_equal(t["feasible"], [True, True, False, False])
+    assert t["capacity_is_lower_bound"].all() and np.allclose(t["capacity_tph"], 22.0)
+    assert (t["p_steady"][:2] == 1.0).all() and t["p_steady"][2:].isna().all()  # unknown above the bound
+    with pytest.warns(AboveCapacityWarning, match="largest feed the DEM has shown"):
+        res = run(m, 30.0)
+    assert res.capacity_is_lower_bound and res.capacity_tph == 22.0
