@@ -53,7 +53,7 @@ def test_run_warns_above_capacity_and_not_below(mill, cap):
 def test_envelope_off_and_the_default_only_for_the_default_machine(cap, monkeypatch):
     import msmill.capacity
 
-    # the hand-made envelope stands in for a shipped one (none ships while the export holds no choked run)
+    # the hand-made envelope stands in for a shipped one (it stands in for the shipped one)
     monkeypatch.setattr(msmill.capacity, "default_capacity_model", lambda: cap)
     with warnings.catch_warnings():
         warnings.simplefilter("error", AboveCapacityWarning)
