@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from msmill.dem.mill.run import RunSettings, run_mill
 from msmill.machine import Machine, OperatingPoint
 
 sys.path.insert(0, str(Path(__file__).parent))
-from training_run_cost import deviations
+from training_run_cost import describe, deviations, timed
 
 
 def main() -> None:
@@ -45,20 +44,13 @@ def main() -> None:
     for start in ("empty", "table"):
         rs = RunSettings(measure_s=args.measure_s, adaptive=args.adaptive, max_measure_s=args.max_measure_s,
                          seed=args.seed, start=start)
-        t0 = time.perf_counter()
-        run = run_mill(m, op, size_mm=args.size_mm, settings=rs)
-        wall = time.perf_counter() - t0
+        run, wall = timed(lambda rs=rs: run_mill(m, op, size_mm=args.size_mm, settings=rs))
         st = run.stats.run
         res[start] = (st, wall, run.steady_state_time_s)
         if args.out:
             args.out.mkdir(parents=True, exist_ok=True)
             st.to_json(args.out / f"{args.size_mm:g}mm_{start}.json")
-        ws = run.extra.get("warm_start") or {}
-        print(f"{start}: {run.outcome}, onset {run.steady_state_time_s}, detected {run.steady_state_detected_s}, "
-              f"window {run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall:.1f} s, "
-              f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, residence {st.residence_time_s:.2f} s, "
-              f"placed {ws.get('placed_kg', 0.0):.2f} of {ws.get('target_kg', 0.0):.2f} kg, errors reached "
-              + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None))
+        print(f"{start}: {describe(run, wall)}")
     devs = deviations(res["empty"][0], res["table"][0])
     worst = max(devs)
     print(f"max deviation {worst[0]:.2f} sigma ({worst[1]}); {sum(d > 2 for d, _ in devs)} of {len(devs)} "

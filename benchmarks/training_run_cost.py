@@ -63,6 +63,17 @@ def deviations(a, b) -> list[tuple[float, str]]:
     return devs
 
 
+def describe(run, wall_s: float) -> str:
+    """One line on a finished run: outcome, onset, window, wall, product / feed, warm placement, errors reached."""
+    st = run.stats.run
+    ws = run.extra.get("warm_start") or {}
+    return (f"{run.outcome}, onset {run.steady_state_time_s}, detected {run.steady_state_detected_s}, window "
+            f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall_s:.1f} s, "
+            f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, residence {st.residence_time_s:.2f} s, "
+            f"warm placed {ws.get('placed_fraction', 0.0):.2f}, errors reached "
+            + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None))
+
+
 def timed(fn):
     t0 = time.perf_counter()
     out = fn()
@@ -115,12 +126,7 @@ def main() -> None:
             res[name] = (st, wall)
             if args.out:
                 st.to_json(args.out / f"{size:g}mm_{name}.json")
-            ws = run.extra.get("warm_start") or {}
-            print(f"{size:g} mm {name}: {run.outcome}, t_ss {run.steady_state_time_s}, window "
-                  f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall:.1f} s, "
-                  f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, "
-                  f"warm placed {ws.get('placed_fraction', 0):.2f}, errors reached "
-                  + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items()))
+            print(f"{size:g} mm {name}: {describe(run, wall)}")
         devs = deviations(res["old"][0], res["new"][0])
         d_max = max(devs)
         n_dev += len(devs)

@@ -193,23 +193,32 @@ def replica_residence(rep: dict, onset_s: float) -> float:
     return float(np.trapezoid(held[k], t[k]) / (t[k][-1] - t[k][0]) / rate) if rate > 0 else _NAN
 
 
-def ensemble_series(reps: list[dict], every_s: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Mean hold-up and cumulative product of the replicas, interpolated on common times (to the shortest)."""
+def replicas_on_grid(reps: list[dict], every_s: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                        np.ndarray]:
+    """Each replica's hold-up and cumulative product on common times (to the shortest): t, (R, T), (R, T), feeds (R,)."""
     series = [replica_series(r) for r in reps]
     t = np.arange(0.0, min(s[0][-1] for s in series) + 1e-9, every_s)
-    held = np.mean([np.interp(t, s[0], s[1]) for s in series], axis=0)
-    out = np.mean([np.interp(t, s[0], s[2]) for s in series], axis=0)
-    return t, held, out, float(np.mean([r["feed_kg_s"] for r in reps]))
+    held = np.array([np.interp(t, s[0], s[1]) for s in series])
+    out = np.array([np.interp(t, s[0], s[2]) for s in series])
+    return t, held, out, np.array([float(r["feed_kg_s"]) for r in reps])
+
+
+def ensemble_series(reps: list[dict], every_s: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Mean hold-up and cumulative product of the replicas, interpolated on common times (to the shortest)."""
+    t, held, out, feed = replicas_on_grid(reps, every_s)
+    return t, held.mean(axis=0), out.mean(axis=0), float(feed.mean())
 
 
 def bootstrap_onset_se(reps: list[dict], crit: SteadyStateCriterion, n_boot: int = 200, seed: int = 0) -> float:
     """Standard error (s) of the ensemble-mean onset: the replicas resampled with replacement (NaN below 3)."""
     if len(reps) < 3:
         return _NAN
+    t, held, out, feed = replicas_on_grid(reps)  # once: a resample only averages other rows
     rng = np.random.default_rng(seed)
     ons = []
     for _ in range(n_boot):
-        found = first_steady(*ensemble_series([reps[i] for i in rng.integers(0, len(reps), len(reps))]), crit)
+        k = rng.integers(0, len(reps), len(reps))
+        found = first_steady(t, held[k].mean(axis=0), out[k].mean(axis=0), float(feed[k].mean()), crit)
         ons.append(found[0] if found else _NAN)
     return float(np.nanstd(ons, ddof=1))
 

@@ -533,10 +533,7 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     M, out_op, imp = _step_matrices(T, batch.G, n, nd, impacted)
     stay = max_speed = None
     if tr.filling is not None:
-        eye = np.zeros_like(T)
-        c = np.arange(T.shape[0])
-        eye[c, :, c] = 1.0
-        stay = _step_matrices(eye, batch.G, n, nd, impacted)[0]
+        stay = _step_matrices(tr.staying(), batch.G, n, nd, impacted)[0]
         max_speed = np.repeat(tr.max_speed(), n * nd)  # state order (compartment, class, damage)
     return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops, n_stages=n_st, n_sizes=n, n_damage=nd,
                       feed_compartment=tr.feed_compartment, transition=tr, stay=stay, max_speed=max_speed)

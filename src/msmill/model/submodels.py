@@ -256,13 +256,17 @@ class Transition:
         leave = 1.0 - self.matrix[c, :, c].min(axis=1)
         return np.where(leave > 1e-12, 1.0 / np.maximum(leave, 1e-12), np.inf)
 
-    def at_speed(self, g: float) -> np.ndarray:
-        """The one-step matrix at speed ``g`` (each compartment's speed capped by :meth:`max_speed`)."""
-        gs = np.minimum(g, self.max_speed())[:, None, None]
+    def staying(self) -> np.ndarray:
+        """The matrix of a transport that moves nothing: every compartment's rock stays (``matrix``'s shape)."""
         eye = np.zeros_like(self.matrix)
         c = np.arange(self.matrix.shape[0])
         eye[c, :, c] = 1.0
-        return self.matrix + (gs - 1.0) * (self.matrix - eye)
+        return eye
+
+    def at_speed(self, g: float) -> np.ndarray:
+        """The one-step matrix at speed ``g`` (each compartment's speed capped by :meth:`max_speed`)."""
+        gs = np.minimum(g, self.max_speed())[:, None, None]
+        return self.matrix + (gs - 1.0) * (self.matrix - self.staying())
 
     @property
     def n_stages(self) -> int:

@@ -444,14 +444,25 @@ FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 FILLING_MIN_TAGS = 20
 
 
+def chain_visits(p: np.ndarray) -> np.ndarray:
+    """Expected steps rock fed to compartment 0 spends in each compartment of the chain ``p`` (C,).
+
+    ``p`` (C, C+1): one-step destinations, last column out; the result is
+    ``e0 (I - Q)^-1``. Raises :class:`numpy.linalg.LinAlgError` when some rock
+    never leaves (a singular ``I - Q``).
+    """
+    q = np.asarray(p, dtype=float)[:, :-1]
+    c = q.shape[0]
+    return np.linalg.solve((np.eye(c) - q).T, np.eye(c)[0])
+
+
 def chain_residence_steps(p: np.ndarray) -> float:
     """Mean number of steps rock fed to compartment 0 spends in the chain ``p`` (C, C+1; last column out).
 
-    ``inf`` when some rock never leaves (a singular ``I - Q``).
+    The sum of :func:`chain_visits`; ``inf`` when some rock never leaves (a singular ``I - Q``).
     """
-    q = np.asarray(p, dtype=float)[:, :-1]
     try:
-        v = float(np.linalg.solve(np.eye(q.shape[0]) - q, np.ones(q.shape[0]))[0])
+        v = float(chain_visits(p).sum())
     except np.linalg.LinAlgError:
         return float("inf")
     return v if np.isfinite(v) and v > 0 else float("inf")

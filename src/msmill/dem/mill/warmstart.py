@@ -92,6 +92,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
+from msmill.dem.mill.stats import chain_visits
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, rpm_to_rad_s
 from msmill.stageparams import RunStatistics, StageParameterTable
@@ -221,9 +222,8 @@ def place_warm_start(scene: Any, start: WarmStart, seed: int = 0) -> dict[str, A
 def _chain_residence_s(run: RunStatistics) -> np.ndarray:
     """``tau e0 (I - Q)^-1``: steady hold-up per unit feed (s) of compartments 0 (inlet zone) .. n of one run."""
     n = run.n_stages
-    q = np.array([run.inlet_destinations[: n + 1]] + [st.destinations[: n + 1] for st in run.stages], dtype=float)
-    steps = np.linalg.solve((np.eye(n + 1) - q).T, np.eye(n + 1)[0])
-    return run.characteristic_time_s * steps
+    p = np.array([run.inlet_destinations[: n + 2]] + [st.destinations[: n + 2] for st in run.stages], dtype=float)
+    return run.characteristic_time_s * chain_visits(p)
 
 
 def table_residence_s(size_mm: float, n_stages: int,
