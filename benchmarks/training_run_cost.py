@@ -10,7 +10,8 @@ first from size to size:
   :data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`): the stage table's
   expected hold-up placed at t = 0 (``RunSettings.start = "table"``,
   :func:`msmill.dem.mill.warmstart.place_table_start`), then the adaptive
-  window (``RunSettings.adaptive``); or (``--start run``) a warm start from the
+  window (``RunSettings.adaptive``) from the steady-state onset
+  (``RunSettings.window_from = "onset"``); or (``--start run``) a warm start from the
   finished *seed* run of a nearby point (35 t/h, 1600 rpm, same size and gate;
   cold, 0.3 s window, its cost reported apart).
 
@@ -23,12 +24,18 @@ With n such comparisons of two samples of one law about ``0.046 n`` exceed 2
 sigma by chance; the count beyond 2 sigma is printed beside the maximum.
 
 Run: ``NUMBA_NUM_THREADS=1 python benchmarks/training_run_cost.py [--sizes-mm 20 10]``.
+With ``--results DIR`` every finished run's statistics, wall time and summary are kept in DIR and a
+run already there is not run again, so a long benchmark (a cold 6 mm run costs about an hour) resumes
+after an interruption, and ``--variants old`` / ``new`` can run the two halves as separate jobs (the
+summary lines are printed for the sizes with both).
 Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x>``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import time
 import warnings
 from functools import partial
@@ -39,6 +46,8 @@ import numpy as np
 from msmill.dem.mill.run import RunSettings, run_mill
 from msmill.dem.mill.warmstart import WarmStart
 from msmill.machine import Machine, OperatingPoint
+from msmill.stageparams import RunStatistics
+from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
 
 KEYS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda")
 
@@ -80,11 +89,29 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
+def cached_or_run(results: Path | None, tag: str, fn) -> tuple[RunStatistics, float, str]:
+    """``(statistics, wall_s, summary line)`` of a run, from ``results`` if it holds it, else run and keep it."""
+    if results is not None and (results / f"{tag}.meta.json").exists():
+        meta = json.loads((results / f"{tag}.meta.json").read_text())
+        return RunStatistics.from_json(results / f"{tag}.json"), float(meta["wall_s"]), meta["summary"] + " (kept)"
+    run, wall = timed(fn)
+    line = describe(run, wall)
+    if results is not None:
+        run.stats.run.to_json(results / f"{tag}.json")
+        meta = {"wall_s": wall, "summary": line, "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "load_average": [round(x, 2) for x in os.getloadavg()]}
+        (results / f"{tag}.meta.json").write_text(json.dumps(meta, indent=1))  # written last: marks the run done
+    return run.stats.run, wall, line
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[20.0, 10.0, 6.0])
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=None, help="write each run's statistics JSON here")
+    ap.add_argument("--results", type=Path, default=None,
+                    help="keep each finished run here (statistics, wall, summary); runs already kept are reused")
+    ap.add_argument("--variants", nargs="+", choices=("old", "new"), default=["old", "new"],
+                    help="run only these (with --results: the other half may come from an earlier job)")
     ap.add_argument("--start", choices=("table", "run"), default="table",
                     help="the new run's start: the stage table's hold-up (the campaign default) or a seed run's")
     ap.add_argument("--max-measure-s", type=float, default=None,
@@ -92,8 +119,8 @@ def main() -> None:
     ap.add_argument("--cold-adaptive", action="store_true",
                     help="also run a cold start with the adaptive window and compare it with the warm one")
     args = ap.parse_args()
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
+    if args.results:
+        args.results.mkdir(parents=True, exist_ok=True)
     warnings.simplefilter("ignore")  # transient overlap warnings are not the point here
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
@@ -112,8 +139,8 @@ def main() -> None:
 
         old = partial(run_mill, m, point, size_mm=size, settings=RunSettings(measure_s=0.5, seed=args.seed))
         cap = {} if args.max_measure_s is None else {"max_measure_s": args.max_measure_s}
-        new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(
-            adaptive=True, seed=args.seed, start="table" if args.start == "table" else "empty", **cap), start=start)
+        protocol = {**CAMPAIGN_RUN_DEFAULTS, **({} if args.start == "table" else {"start": "empty"}), **cap}
+        new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(seed=args.seed, **protocol), start=start)
 
         order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
         if args.cold_adaptive:  # same window rule as "new", cold start: isolates the start's effect
@@ -121,12 +148,15 @@ def main() -> None:
                                                 settings=RunSettings(adaptive=True, seed=args.seed))),)
         res = {}
         for name, fn in order:
-            run, wall = timed(fn)
-            st = run.stats.run
+            tag = f"{size:g}mm_{name}"
+            if name in ("old", "new") and name not in args.variants:
+                if args.results is None or not (args.results / f"{tag}.meta.json").exists():
+                    continue
+            st, wall, line = cached_or_run(args.results, tag, fn)
             res[name] = (st, wall)
-            if args.out:
-                st.to_json(args.out / f"{size:g}mm_{name}.json")
-            print(f"{size:g} mm {name}: {describe(run, wall)}")
+            print(f"{size:g} mm {name}: {line}")
+        if "old" not in res or "new" not in res:
+            continue
         devs = deviations(res["old"][0], res["new"][0])
         d_max = max(devs)
         n_dev += len(devs)
@@ -141,6 +171,9 @@ def main() -> None:
         print(f"{size:g} mm: cost ratio {ratio:.3f}; max deviation {d_max[0]:.2f} sigma ({d_max[1]}); "
               f"{sum(d > 2 for d, _ in devs)} of {len(devs)} beyond 2 sigma")
     print(f"beyond 2 sigma: {n_over} of {n_dev} (about {0.046 * n_dev:.1f} expected by chance); worst: {worst[1]}")
+    if not ratios:
+        print("points=0 (no size with both runs yet)")
+        return
     print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}")
 
 

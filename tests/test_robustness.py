@@ -153,6 +153,8 @@ def test_empty_and_thin_machine_files(tmp_path, capsys):
     (["--adaptive", "--max-measure-s", "nan"], "--max-measure-s"),
     (["--feed-speed-m-s", "0"], "--feed-speed-m-s"),
     (["--feed-speed-m-s", "11"], "--feed-speed-m-s"),
+    (["--start", "hot"], "--start"),
+    (["--window-from", "now"], "--window-from"),
     # the adaptive window's 30 s default cap counts in the budget: fine rock at high feed needs a shorter one
     (["--adaptive", "--slice", "--size-mm", "2", "--feed-tph", "60", "--speed-rpm", "1900"],
      "--feed-tph/--size-mm/--max-measure-s"),

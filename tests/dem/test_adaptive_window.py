@@ -19,7 +19,7 @@ def _run(**targets):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         op = OperatingPoint(feed_tph=60, speed_rpm=700, bottom_speed_factor=1.0, gate_deg=40)
-        return run_mill(MACHINE, op, size_mm=20.0, mode="slice", settings=RunSettings(**BASE, **targets))
+        return run_mill(MACHINE, op, size_mm=20.0, mode="slice", settings=RunSettings(**{**BASE, **targets}))
 
 
 @pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
@@ -47,3 +47,32 @@ def test_sampling_kl_follows_the_fewest_impacts():
     assert n >= 3
     reached = run.stats.run.sampling_error_reached["velocity_sampling_kl"]
     assert reached == pytest.approx(VELOCITY_FIT_PARAMETERS / (2 * n))
+
+
+def test_window_start_rule():
+    """Detection: now; onset: the onset, not before settle_s nor after now; not steady: the last measure_s."""
+    from msmill.dem.mill.run import window_start_s
+
+    onset = RunSettings(window_from="onset", settle_s=0.3, measure_s=0.5)
+    assert window_start_s(RunSettings(), (0.8, 2.1), 2.15) == 2.15
+    assert window_start_s(onset, (0.8, 2.1), 2.15) == 0.8
+    assert window_start_s(onset, (0.05, 1.35), 1.4) == 0.3  # placed rock settles first
+    assert window_start_s(RunSettings(window_from="onset", settle_s=5.0), (0.0, 1.3), 1.4) == 1.4
+    assert window_start_s(onset, None, 3.0) == 2.5
+    assert window_start_s(onset, None, 0.2) == 0.0
+
+
+@pytest.mark.parametrize("target", [math.inf, 1e-9])
+def test_window_from_onset_reuses_the_steady_windows(target):
+    """From the onset the two steady windows are measured, not simulated again: met targets stop the run
+    at the chunk that detected steady state; unmet ones run to max_measure_s of window counted from the onset."""
+    run = _run(window_from="onset", settle_s=0.0, max_measure_s=0.6, target_streams_se=target,
+               target_hit_probability_se=target, target_velocity_rel_se=target, target_count_mean_rel_se=target,
+               target_velocity_sampling_kl=target)
+    assert run.outcome == "steady"
+    t0, t1 = run.window_s
+    assert t0 == run.steady_state_time_s < run.steady_state_detected_s
+    if math.isinf(target):  # detection is tested at chunk ends
+        assert run.steady_state_detected_s - 1e-9 <= t1 <= run.steady_state_detected_s + BASE["chunk_s"] + 1e-9
+    else:
+        assert t1 - t0 == pytest.approx(0.6, abs=0.011)

@@ -163,9 +163,12 @@ def test_refuses_a_used_scene_and_bad_inputs():
 
 def test_run_mill_starts_from_the_table_and_records_it(monkeypatch):
     """``RunSettings(start="table")`` fills the mill at t = 0 and the report goes into the provenance."""
-    seen = []
+    seen, stats_settings = [], []
     real = run_mod.place_table_start
     monkeypatch.setattr(run_mod, "place_table_start", lambda scene, **kw: seen.append(kw) or real(scene, **kw))
+    real_stats = run_mod.compute_statistics
+    monkeypatch.setattr(run_mod, "compute_statistics",
+                        lambda *a, **kw: stats_settings.append(kw["settings"]) or real_stats(*a, **kw))
     # declare steady state at once and measure 0.2 ms: only the start and the bookkeeping are under test
     monkeypatch.setattr(run_mod, "_first_steady", lambda ts, feed, crit: (0.0, float(ts["time_s"].iloc[-1])))
     rs = RunSettings(chunk_s=1e-4, measure_s=2e-4, snapshot_every_s=1e-4, start="table", seed=7)
@@ -177,3 +180,6 @@ def test_run_mill_starts_from_the_table_and_records_it(monkeypatch):
     prov = run.stats.run.provenance
     assert prov["warm_start"]["kind"] == "table" and prov["run_settings"]["start"] == "table"
     assert prov["warm_start"]["placed_fraction"] > 0.95
+    # the mill never filled: no filling transport from the placed rock settling
+    assert stats_settings and not any(ss.with_filling_transport for ss in stats_settings)
+    assert run.stats.run.filling_transport is None

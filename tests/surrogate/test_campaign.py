@@ -94,8 +94,9 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
     assert cli(["campaign", "status", "k", "--db", db]) == 0
     assert "planned=5" in capsys.readouterr().out
     st = Store(db)
-    # the campaign defaults (warm start from the stage table, adaptive window) are stored with the campaign
-    assert st.campaign("k").run_settings == {"max_time_s": 0.8, "seed": 2, "start": "table", "adaptive": True}
+    # the campaign defaults (warm start from the stage table, adaptive window from the onset) are stored
+    assert st.campaign("k").run_settings == {"max_time_s": 0.8, "seed": 2, "start": "table", "adaptive": True,
+                                             "window_from": "onset"}
     assert {r.seed for r in st.runs(campaign="k")} == {2}
     assert cli(["campaign", "create", "bad", "--db", db, "--set", "warp=9"]) == 2
     assert cli(["campaign", "status", "nope", "--db", db]) == 2
@@ -108,18 +109,23 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
 
 def test_campaign_default_is_warm_start_and_adaptive_window(tmp_path, monkeypatch, capsys):
     """A campaign created with defaults runs every point from the stage table's hold-up with the adaptive
-    window; ``--set start=empty --set adaptive=false`` switches both off; the worker passes them to run_mill."""
+    window from the steady-state onset; ``--set start=empty --set adaptive=false --set window_from=detection``
+    switches each off; the worker passes them to run_mill."""
     import msmill.dem.mill.run as run_mod
     from msmill.surrogate import campaign as cm
 
     db = f"sqlite:///{tmp_path / 's.sqlite'}"
     assert cli(["campaign", "create", "warm", "--db", db]) == 0
-    assert cli(["campaign", "create", "cold", "--db", db, "--set", "start=empty", "--set", "adaptive=false"]) == 0
+    assert cli(["campaign", "create", "cold", "--db", db, "--set", "start=empty", "--set", "adaptive=false",
+                "--set", "window_from=detection"]) == 0
     assert cli(["campaign", "create", "bad", "--db", db, "--set", "start=hot"]) == 2
     assert "settings.start" in capsys.readouterr().err
+    assert cli(["campaign", "create", "bad", "--db", db, "--set", "window_from=start"]) == 2
+    assert "settings.window_from" in capsys.readouterr().err
     st = Store(db)
-    assert st.campaign("warm").run_settings == {"start": "table", "adaptive": True} == cm.CAMPAIGN_RUN_DEFAULTS
-    assert st.campaign("cold").run_settings == {"start": "empty", "adaptive": False}
+    assert (st.campaign("warm").run_settings == {"start": "table", "adaptive": True, "window_from": "onset"}
+            == cm.CAMPAIGN_RUN_DEFAULTS)
+    assert st.campaign("cold").run_settings == {"start": "empty", "adaptive": False, "window_from": "detection"}
 
     seen = {}
 
@@ -135,12 +141,13 @@ def test_campaign_default_is_warm_start_and_adaptive_window(tmp_path, monkeypatc
         return FakeRun(settings)
 
     monkeypatch.setattr(run_mod, "run_mill", fake_run_mill)
-    for name, start, adaptive in (("warm", "table", True), ("cold", "empty", False)):
+    for name, start, adaptive, window_from in (("warm", "table", True, "onset"), ("cold", "empty", False, "detection")):
         info = st.campaign(name)
         st.add_points(name, design_grid(info.machine, [20.0], [30.0], [1500.0], [40.0]))
         [claim] = st.claim(name, 1, "w", new_token())
         out = cm.execute_run(cm._task(info, claim))
         assert seen["settings"].start == start and seen["settings"].adaptive is adaptive
+        assert seen["settings"].window_from == window_from
         assert out["outcome"] == "steady"
 
 

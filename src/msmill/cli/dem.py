@@ -42,6 +42,12 @@ def run_cmd(
         "(coarse rock needs long windows for 500 impacts per stage).")] = None,
     warm_start: Annotated[Path | None, typer.Option(
         "--warm-start", help="Start from the hold-up of this finished run (same gate and slice).")] = None,
+    start: Annotated[str, typer.Option(
+        "--start", help="empty: start from an empty mill; table: from the default stage table's expected "
+        "hold-up (what campaign runs do). --warm-start takes precedence.")] = "empty",
+    window_from: Annotated[str, typer.Option(
+        "--window-from", help="detection: measure from the time steady state is detected; onset: from its "
+        "onset (the two steady windows are not simulated again; what campaign runs do).")] = "detection",
 ) -> None:
     """Run the mill DEM to steady state, record a window, write events, statistics and plots."""
     from msmill.cli.output import atomic_output, check_writable
@@ -61,17 +67,17 @@ def run_cmd(
         raise MsmillInputError(field, exc.value, exc.allowed) from None
     extra = {} if max_measure_s is None else {"max_measure_s": max_measure_s}
     settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive,
-                           feed_speed_m_s=feed_speed_m_s, **extra)
+                           feed_speed_m_s=feed_speed_m_s, start=start, window_from=window_from, **extra)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
     mode = "slice" if slice_ else "full"
-    start = None
+    warm = None
     if warm_start is not None:
         from msmill.dem.mill.warmstart import WarmStart
 
-        start = WarmStart.from_dir(warm_start)
+        warm = WarmStart.from_dir(warm_start)
     if no_progress:
-        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, start=start)
+        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, start=warm)
     else:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -83,12 +89,13 @@ def run_cmd(
             def cb(t: float, n: int, phase: str) -> None:
                 bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
 
-            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb, start=start)
+            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb, start=warm)
     from msmill.plots.dem import plot_run
 
     inputs = [] if str(machine_toml) == "default" else [machine_toml]
     run_settings = {"size_mm": size_mm, "mode": mode, "operating_point": op.model_dump(), "seed": seed,
-                    "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk}
+                    "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk, "start": start,
+                    "window_from": window_from, "adaptive": adaptive}
     with atomic_output(out, inputs=inputs, settings=run_settings) as stage:
         save_run(result, stage, vtk=vtk)
         plot_run(result, stage)

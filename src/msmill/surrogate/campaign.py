@@ -8,8 +8,9 @@ A campaign created through :func:`run_settings_dict` (``msmill campaign
 create``, ``scripts/campaign_loop.py``) starts from
 :data:`CAMPAIGN_RUN_DEFAULTS`: every run starts from the default stage
 table's expected hold-up (``start = "table"``) and measures with the adaptive
-window (``adaptive = true``); ``--set start=empty`` or ``--set adaptive=false``
-switches either off. The settings are stored with the campaign, so they are
+window (``adaptive = true``) from the steady-state onset (``window_from =
+"onset"``); ``--set start=empty``, ``--set adaptive=false`` or ``--set
+window_from=detection`` switches each off. The settings are stored with the campaign, so they are
 explicit in the store and in every run's provenance.
 
 :func:`run_campaign` is the driver. It keeps every worker thread of a Dask
@@ -63,8 +64,8 @@ DEFAULT_STALE_S = 120.0
 #: planner name -> planner(store, campaign, n) -> list of DesignPoint (filled by the surrogate's active learning)
 PLANNERS: dict[str, Callable[[Store, str, int], list[DesignPoint]]] = {}
 #: ``RunSettings`` fields a new campaign gets unless set (issue 12): warm start from the stage
-#: table's hold-up, adaptive measurement window
-CAMPAIGN_RUN_DEFAULTS: dict[str, Any] = {"start": "table", "adaptive": True}
+#: table's hold-up, adaptive measurement window from the steady-state onset
+CAMPAIGN_RUN_DEFAULTS: dict[str, Any] = {"start": "table", "adaptive": True, "window_from": "onset"}
 
 
 def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: float = 1.0) -> list[DesignPoint]:
@@ -117,7 +118,7 @@ def run_settings_dict(values: dict[str, Any], defaults: dict[str, Any] | None = 
         Fields added where ``values`` does not set them; None (default):
         :data:`CAMPAIGN_RUN_DEFAULTS`; ``{}`` validates ``values`` alone.
     """
-    from msmill.dem.mill.checks import check_start
+    from msmill.dem.mill.checks import check_start, check_window_from
     from msmill.dem.mill.run import RunSettings
 
     values = {**(CAMPAIGN_RUN_DEFAULTS if defaults is None else defaults), **values}
@@ -137,6 +138,7 @@ def run_settings_dict(values: dict[str, Any], defaults: dict[str, Any] | None = 
         except (TypeError, ValueError):
             raise MsmillInputError(k, v, f"a {type(d).__name__}") from None
     check_start(out.get("start", "empty"))
+    check_window_from(out.get("window_from", "detection"))
     return out
 
 

@@ -55,7 +55,9 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     integer(settings.seed, "--seed", ge=0, le=2**32 - 1)
     # the feed enters the chute downwards, at most as fast as a free fall of about 5 m
     number(getattr(settings, "feed_speed_m_s", 2.0), "--feed-speed-m-s", unit="m/s", gt=0, le=MAX_FEED_SPEED_M_S)
-    check_start(getattr(settings, "start", "empty"))
+    check_start(getattr(settings, "start", "empty"), "--start")
+    check_window_from(getattr(settings, "window_from", "detection"), "--window-from")
+    number(getattr(settings, "settle_s", 0.0), "settings.settle_s", unit="s", ge=0)
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
         raise MsmillInputError("--max-time-s", settings.max_time_s,
@@ -70,12 +72,22 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
                                    "feed chute, the gaps between stages and the liner gaps)")
 
 
-def check_start(start: Any) -> None:
+def check_start(start: Any, field: str = "settings.start") -> None:
     """Raise :class:`MsmillInputError` unless ``start`` is a kind of start (``RunSettings.start``)."""
     from msmill.dem.mill.warmstart import START_KINDS
 
     if start not in START_KINDS:
-        raise MsmillInputError("settings.start", start, " or ".join(repr(k) for k in START_KINDS))
+        raise MsmillInputError(field, start, " or ".join(repr(k) for k in START_KINDS))
+
+
+#: where a run's measurement window starts (``RunSettings.window_from``)
+WINDOW_FROM = ("detection", "onset")
+
+
+def check_window_from(window_from: Any, field: str = "settings.window_from") -> None:
+    """Raise :class:`MsmillInputError` unless ``window_from`` is in :data:`WINDOW_FROM`."""
+    if window_from not in WINDOW_FROM:
+        raise MsmillInputError(field, window_from, " or ".join(repr(k) for k in WINDOW_FROM))
 
 
 def estimated_dt_s(scene: Any, settings: Any) -> float:

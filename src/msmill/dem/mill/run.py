@@ -10,9 +10,14 @@ Procedure (documented in ``docs/mill-dem.md``):
    ``steady_window_s``). The onset (start of the first passing pair of
    windows) is ``steady_state_time_s``; the time it was detected is
    ``steady_state_detected_s``.
-2. From the detection time the run continues for ``measure_s`` (the
-   measurement window), or with ``adaptive`` until the sampling errors meet
-   their targets (between ``min_measure_s`` and ``max_measure_s``);
+2. The measurement window starts at the detection time, or with
+   ``window_from = "onset"`` at the onset (but not before ``settle_s``, so
+   that rock placed at rest by a warm start has been set moving): the two
+   windows the criterion passed are steady by its own test, so they need not
+   be simulated again. The run continues until the window is ``measure_s``
+   long, or with ``adaptive`` until the sampling errors meet their targets
+   (between ``min_measure_s`` and ``max_measure_s`` of window; a window from
+   the onset may have met them when steady state is detected);
    snapshots every ``snapshot_every_s`` throughout.
 3. The statistics (:func:`msmill.dem.mill.stats.compute_statistics`) use the
    measurement window only; they carry the run's ``outcome``.
@@ -123,6 +128,10 @@ class RunSettings:
     target_velocity_sampling_kl: float = 0.005
     # start of the run (issue 12): "empty" or "table" (msmill.dem.mill.warmstart.START_KINDS)
     start: str = "empty"
+    # start of the measurement window (issue 12): "detection" (the time steady state is detected) or
+    # "onset" (the start of the two windows that passed the criterion, at the earliest settle_s)
+    window_from: str = "detection"
+    settle_s: float = 0.3
 
     def targets(self) -> dict[str, float]:
         """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
@@ -258,7 +267,7 @@ def run_mill(
         if found is not None:
             break
     verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
-    t_start = sim.time_s if found is not None else max(0.0, sim.time_s - rs.measure_s)
+    t_start = window_start_s(rs, found, sim.time_s)
     extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm, "outcome": verdict.outcome}
 
     def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
@@ -268,21 +277,34 @@ def run_mill(
     # errors do not depend on them
     quick = replace(stats_settings or StatsSettings(), min_fit_samples=2**62, with_filling_transport=False)
     if found is not None:
-        t_measure0 = sim.time_s
-        t_stop = t_measure0 + (rs.max_measure_s if rs.adaptive else rs.measure_s)
-        t_check = t_measure0 + rs.min_measure_s
+        t_stop = t_start + (rs.max_measure_s if rs.adaptive else rs.measure_s)
+        t_check = t_start + rs.min_measure_s
         while remaining(t_stop) > 0:
+            if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check:
+                # every check recomputes the window's statistics: a geometric interval keeps long windows linear
+                t_check = sim.time_s + max(rs.check_every_s, 0.25 * (sim.time_s - t_start))
+                if _converged(finish(quick), rs):
+                    break
             sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
                 progress(sim.time_s, int(sim.n_particles), "measure")
-            if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check and remaining(t_stop) > 0:
-                # every check recomputes the window's statistics: a geometric interval keeps long windows linear
-                t_check = sim.time_s + max(rs.check_every_s, 0.25 * (sim.time_s - t_measure0))
-                if _converged(finish(quick), rs):
-                    break
     run = finish()
     run.wall_s = time.perf_counter() - wall0
     return run
+
+
+def window_start_s(rs: RunSettings, found: tuple[float, float] | None, now_s: float) -> float:
+    """Start of the measurement window (s) of a run at ``now_s`` whose steady state is ``found``.
+
+    ``(onset_s, detected_s)`` found: the detection time, or (``window_from =
+    "onset"``) the onset but not before ``settle_s`` (nor after now). Not found:
+    the last ``measure_s`` of the record.
+    """
+    if found is None:
+        return max(0.0, now_s - rs.measure_s)
+    if rs.window_from == "onset":
+        return min(max(found[0], rs.settle_s), now_s)
+    return now_s
 
 
 def _finish(scene: MillScene, rs: RunSettings, found: tuple[float, float] | None, verdict: SteadyStateVerdict,
@@ -412,10 +434,19 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
     ms = compute_statistics(
         sc.machine, design_point(sc.machine, sc.op, sc.size_mm), run.events, run.removed, run.timeseries,
         run.snapshots, run.window_s, mode=sc.mode, rock_density_kg_m3=sc.rock.density_kg_m3,
-        steady_state_time_s=run.steady_state_time_s, settings=stats_settings, size_edges_m=edges,
-        provenance=_provenance(run),
+        steady_state_time_s=run.steady_state_time_s,
+        settings=_filling_only_from_empty(stats_settings, run.extra.get("warm_start") is not None),
+        size_edges_m=edges, provenance=_provenance(run),
     )
     return mark_statistics(ms, run.outcome, float(sc.info.get("feed_scale", 1.0)))
+
+
+def _filling_only_from_empty(stats_settings: StatsSettings | None, warm: bool) -> StatsSettings | None:
+    """The settings, without the filling transport for a warm-started run: its mill never filled, and the
+    tags before its window (placed rock settling) say nothing about how rock moves in a filling mill."""
+    if not warm:
+        return stats_settings
+    return replace(stats_settings or StatsSettings(), with_filling_transport=False)
 
 
 # --------------------------------------------------------------------------- saving
@@ -447,7 +478,8 @@ def save_run(run: MillRun, out_dir: str | Path, vtk: bool = False) -> Path:
                    if run.steady_state_detected_s is not None else -1.0,
                    "window_start_s": run.window_s[0], "window_end_s": run.window_s[1], "wall_s": run.wall_s,
                    "dt_s": run.extra.get("dt_s", 0.0), "outcome": run.outcome,
-                   "feed_scale": float(sc.info.get("feed_scale", 1.0))},
+                   "feed_scale": float(sc.info.get("feed_scale", 1.0)),
+                   "warm_start": (run.extra.get("warm_start") or {}).get("kind", "none")},
     }
     (out / "run.toml").write_text(tomli_w.dumps(_toml_safe(settings)), encoding="utf-8")
     if run.stats is not None:
@@ -508,11 +540,13 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
             "source_dir": str(run_dir), "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}
     design = DesignPoint(size_mm=d["size_mm"], feed_tph=op.feed_tph, speed_rpm=d["speed_rpm"], gate_deg=op.gate_deg,
                          stage_speeds_rpm=op.stage_speeds(m.n_stages))
+    # runs saved before the field: a table start is in the run settings, a run's warm start is not recorded
+    warm = res.get("warm_start", "none") != "none" or s.get("run", {}).get("start", "empty") != "empty"
     ms = compute_statistics(
         m, design, raw["events"], raw["removed"], raw["timeseries"], raw["snapshots"],
         (res["window_start_s"], res["window_end_s"]), mode=d["mode"],
-        rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady, settings=stats_settings,
-        size_edges_m=edges, provenance=prov,
+        rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady,
+        settings=_filling_only_from_empty(stats_settings, warm), size_edges_m=edges, provenance=prov,
     )
     feed_scale = res.get("feed_scale")
     outcome = res.get("outcome")
