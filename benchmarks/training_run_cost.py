@@ -28,7 +28,8 @@ With ``--results DIR`` every finished run's statistics, wall time and summary ar
 run already there is not run again, so a long benchmark (a cold 6 mm run costs about an hour) resumes
 after an interruption, and ``--variants old`` / ``new`` can run the two halves as separate jobs (the
 summary lines are printed for the sizes with both).
-Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x>``.
+Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x> cpu_ratio_median=<new/old
+CPU time>`` (the last where every run has its CPU time).
 """
 
 from __future__ import annotations
@@ -72,6 +73,37 @@ def deviations(a, b) -> list[tuple[float, str]]:
     return devs
 
 
+def _batches(run) -> int:
+    return int(((run.provenance or {}).get("stats") or {}).get("n_batches", 5))
+
+
+def normal_equivalent(a, b) -> list[tuple[float, str]]:
+    """:func:`deviations` as the normal deviate of the same two-sided p-value.
+
+    The batch-means errors (streams, hit probability, lambda) come from
+    ``n_batches`` (5) batches, so each is itself uncertain and the deviation is
+    Student-t distributed with the Welch-Satterthwaite degrees of freedom
+    (``n_batches - 1`` per run); the velocity means' errors are from hundreds of
+    impacts (normal). With 5 batches |t| > 2 has a chance of about 0.1, not 0.046.
+    """
+    from scipy import stats
+
+    na, nb = _batches(a) - 1, _batches(b) - 1
+    out = []
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        va, vb = _values(sa), _values(sb)
+        for k, (x, ex) in va.items():
+            y, ey = vb[k]
+            if not (ex and ey):
+                continue
+            t = abs(x - y) / float(np.hypot(ex, ey))
+            if k in KEYS:
+                nu = (ex**2 + ey**2) ** 2 / (ex**4 / na + ey**4 / nb)
+                t = float(stats.norm.isf(stats.t.sf(t, nu)))
+            out.append((t, f"stage {sa.stage} {k}"))
+    return out
+
+
 def describe(run, wall_s: float) -> str:
     """One line on a finished run: outcome, onset, window, wall, product / feed, warm placement, errors reached."""
     st = run.stats.run
@@ -89,19 +121,25 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
-def cached_or_run(results: Path | None, tag: str, fn) -> tuple[RunStatistics, float, str]:
-    """``(statistics, wall_s, summary line)`` of a run, from ``results`` if it holds it, else run and keep it."""
+def cached_or_run(results: Path | None, tag: str, fn) -> tuple[RunStatistics, float, float | None, str]:
+    """``(statistics, wall_s, cpu_s, summary line)`` of a run, from ``results`` if it holds it, else run it
+    and keep it there. ``cpu_s`` is the process's CPU time over the run (one numba thread: its work,
+    much less sensitive than the wall time to other jobs on a shared machine)."""
     if results is not None and (results / f"{tag}.meta.json").exists():
         meta = json.loads((results / f"{tag}.meta.json").read_text())
-        return RunStatistics.from_json(results / f"{tag}.json"), float(meta["wall_s"]), meta["summary"] + " (kept)"
+        return (RunStatistics.from_json(results / f"{tag}.json"), float(meta["wall_s"]), meta.get("cpu_s"),
+                meta["summary"] + " (kept)")
+    cpu0 = time.process_time()
     run, wall = timed(fn)
-    line = describe(run, wall)
+    cpu = time.process_time() - cpu0
+    line = f"{describe(run, wall)}, cpu {cpu:.1f} s"
     if results is not None:
         run.stats.run.to_json(results / f"{tag}.json")
-        meta = {"wall_s": wall, "summary": line, "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        meta = {"wall_s": wall, "cpu_s": cpu, "summary": line,
+                "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "load_average": [round(x, 2) for x in os.getloadavg()]}
         (results / f"{tag}.meta.json").write_text(json.dumps(meta, indent=1))  # written last: marks the run done
-    return run.stats.run, wall, line
+    return run.stats.run, wall, cpu, line
 
 
 def main() -> None:
@@ -125,7 +163,7 @@ def main() -> None:
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
     near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
-    ratios, worst = [], (0.0, "")
+    ratios, cpu_ratios, worst, z_all = [], [], (0.0, ""), []
     n_dev = n_over = 0
     for i, size in enumerate(args.sizes_mm):
         start = None
@@ -152,8 +190,8 @@ def main() -> None:
             if name in ("old", "new") and name not in args.variants:
                 if args.results is None or not (args.results / f"{tag}.meta.json").exists():
                     continue
-            st, wall, line = cached_or_run(args.results, tag, fn)
-            res[name] = (st, wall)
+            st, wall, cpu, line = cached_or_run(args.results, tag, fn)
+            res[name] = (st, wall, cpu)
             print(f"{size:g} mm {name}: {line}")
         if "old" not in res or "new" not in res:
             continue
@@ -162,19 +200,38 @@ def main() -> None:
         n_dev += len(devs)
         n_over += sum(d > 2 for d, _ in devs)
         worst = max(worst, d_max)
+        zs = normal_equivalent(res["old"][0], res["new"][0])
+        z_all += [z for z, _ in zs]
         if "cold_adaptive" in res:
             dc = deviations(res["cold_adaptive"][0], res["new"][0])
             print(f"{size:g} mm cold adaptive vs warm adaptive: max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
                   f"{sum(d > 2 for d, _ in dc)} of {len(dc)} beyond 2 sigma")
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
-        print(f"{size:g} mm: cost ratio {ratio:.3f}; max deviation {d_max[0]:.2f} sigma ({d_max[1]}); "
+        if res["new"][2] and res["old"][2]:
+            cpu_ratios.append(res["new"][2] / res["old"][2])
+        cpu_txt = f" (CPU time {cpu_ratios[-1]:.3f})" if len(cpu_ratios) == len(ratios) else ""
+        print(f"{size:g} mm: cost ratio {ratio:.3f}{cpu_txt}; max deviation {d_max[0]:.2f} sigma ({d_max[1]}); "
               f"{sum(d > 2 for d, _ in devs)} of {len(devs)} beyond 2 sigma")
-    print(f"beyond 2 sigma: {n_over} of {n_dev} (about {0.046 * n_dev:.1f} expected by chance); worst: {worst[1]}")
+    print(f"beyond 2 sigma: {n_over} of {n_dev} (about {0.046 * n_dev:.1f} expected by chance with exact errors); "
+          f"worst: {worst[1]}")
+    if z_all:
+        from scipy import stats
+
+        z_max = max(z_all)
+        # chance that the largest of n independent normal-equivalent deviations is at least z_max
+        p_family = 1.0 - (1.0 - 2.0 * stats.norm.sf(z_max)) ** len(z_all)
+        print(f"normal-equivalent deviations (Student t, Welch dof, for the batch-means errors): largest "
+              f"{z_max:.2f}, {sum(z > 2 for z in z_all)} of {len(z_all)} beyond 2 ({0.046 * len(z_all):.1f} "
+              f"by chance); chance of a largest deviation at least this large among {len(z_all)} with no "
+              f"start dependence: {p_family:.2f}; of none beyond 2: {(1 - 0.0455) ** len(z_all):.3f}")
     if not ratios:
         print("points=0 (no size with both runs yet)")
         return
-    print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}")
+    cpu_txt = (f" cpu_ratio_median={float(np.median(cpu_ratios)):.3f}" if len(cpu_ratios) == len(ratios)
+               else "")
+    print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}"
+          f"{cpu_txt}")
 
 
 if __name__ == "__main__":
