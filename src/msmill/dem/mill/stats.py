@@ -576,18 +576,83 @@ def compute_statistics(
         Stored in ``RunStatistics.provenance``.
     """
     s_ = settings or StatsSettings()
-    n = machine.n_stages
     t0, t1 = map(float, window_s)
-    snaps_all = snapshots_frame(snapshots)
-    # contacts opened without approach (vn <= 0) are touches, not impacts
+    clean = _drop_blow_ups(machine, design, events, removed, snapshots_frame(snapshots))
+    snaps = clean.snapshots[(clean.snapshots["time_s"] >= t0 - 1e-9) & (clean.snapshots["time_s"] <= t1 + 1e-9)]
+    clock = _tag_clock(machine, snaps, characteristic_time_s)
+    tr = _transport(machine, snaps, clean.removed, clock, rock_density_kg_m3, s_.n_batches)
+    ev = identify_impacts(machine, clean.events, clean.snapshots)
+    prim = ev[ev["is_primary"]]
+    hits, hits_b = _hit_probabilities(tr.pairs, prim)
+    counts = _secondary_counts(ev, (t0, t1), clock.tau_s, s_)
+    region_streams = _region_streams(machine, snaps, tr.pairs) if mode == "full" and len(tr.pairs) else None
+    holdup = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
+                          m=rock_density_kg_m3 * 4 / 3 * np.pi * snaps["radius_m"].to_numpy() ** 3)
+    holdup_kg = holdup.groupby("stage")["m"].sum() / max(clock.times.size, 1)
+
+    stages: list[StageStatistics] = []
+    samples: dict[int, dict[str, np.ndarray]] = {}
+    fits: dict[int, dict[str, Any]] = {}
+    for s in range(1, machine.n_stages + 1):
+        st, samples[s], fits[s] = _stage_statistics(s, tr, hits, hits_b, prim, counts, (t0, t1), s_,
+                                                     region_streams, float(holdup_kg.get(s, 0.0)))
+        stages.append(st)
+
+    # ---- run level
+    out_rate, hold_total = _outflow(clean.removed, timeseries, (t0, t1), rock_density_kg_m3, holdup_kg)
+    prov = dict(provenance or {})
+    prov.setdefault("stats", {}).update({
+        "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
+        "count_criterion": s_.count_criterion, "velocity_fit": s_.velocity_fit,
+        "velocity_em_tol": EM_TOL,
+        "n_tag_times": int(clock.tag_times.size), "snapshot_interval_s": clock.interval_s,
+        "mean_holdup_kg": hold_total, "blow_up_speed_limit_m_s": clean.speed_limit_m_s,
+        "n_rocks_dropped_as_blow_ups": clean.n_rocks_dropped, "n_events_blow_up": clean.n_events_blow_up,
+        "n_touch_events_vn_le_0": clean.n_touch,
+    })
+    by_size = None
+    if size_edges_m is not None and len(tr.pairs):
+        pairs = tr.pairs
+        pairs["size_class"] = np.searchsorted(np.asarray(size_edges_m), pairs["radius_m"].to_numpy(), side="right") - 1
+        by_size = _streams(pairs, ["stage_from", "size_class"]).reset_index()
+        prov["streams_by_size"] = by_size.to_dict(orient="records")
+    run = RunStatistics(
+        design=design, mode="full" if mode == "full" else "slice", characteristic_time_s=clock.tau_s, stages=stages,
+        steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
+        mass_out_rate_kg_s=out_rate, residence_time_s=hold_total / out_rate if out_rate > 0 else None,
+        mean_centre_velocity_m_s=clock.speed_m_s, inlet_destinations=tr.destinations.get(0),
+        inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
+        filling_transport=(filling_transport(machine, clean.snapshots, clean.removed, (t0, t1), clock.lag,
+                                             rock_density_kg_m3) if s_.with_filling_transport else None),
+    )
+    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+
+
+@dataclass(frozen=True)
+class _Clean:
+    """The engine's tables without touches and without rocks that blew up (and what was dropped)."""
+
+    events: pd.DataFrame
+    removed: pd.DataFrame
+    snapshots: pd.DataFrame
+    speed_limit_m_s: float
+    n_rocks_dropped: int
+    n_events_blow_up: int
+    n_touch: int
+
+
+def _drop_blow_ups(machine: Machine, design: DesignPoint, events: pd.DataFrame, removed: pd.DataFrame,
+                   snaps: pd.DataFrame) -> _Clean:
+    """Drop touches (contacts opened at ``vn <= 0``) and every trace of rocks with an impossible contact speed.
+
+    A contact at a non-finite speed or faster than 3 x the fastest tip speed +
+    20 m/s is a numerical blow-up of the engine (module docstring): such rocks
+    leave every table, and are counted in the provenance.
+    """
     vn_all = events["vn_m_s"].to_numpy(dtype=float)
     touch = np.isfinite(vn_all) & (vn_all <= 0)
-    n_touch = int(touch.sum())
     events = events[~touch]
     vn_all = vn_all[~touch]
-    # guard against numerical blow-ups of the engine: a rock with a contact at a non-finite speed or
-    # faster than 3 x the fastest tip speed + 20 m/s is physically impossible here (module docstring);
-    # such rocks are dropped from every table (and counted in the provenance)
     v_bad = 3.0 * max(machine.tip_speed_m_s(v) for v in design.stage_speeds_rpm) + 20.0
     bad_ev = ~np.isfinite(vn_all) | (vn_all > v_bad)
     bad_ids = np.unique(np.concatenate([
@@ -597,10 +662,25 @@ def compute_statistics(
     if bad_ids.size:
         events = events[~events["particle_id"].isin(bad_ids)
                         & ~((events["partner_kind"] == 0) & events["partner_id"].isin(bad_ids))]
-        snaps_all = snaps_all[~snaps_all["particle_id"].isin(bad_ids)]
+        snaps = snaps[~snaps["particle_id"].isin(bad_ids)]
         removed = removed[~removed["particle_id"].isin(bad_ids)]
-    snaps = snaps_all
-    snaps = snaps[(snaps["time_s"] >= t0 - 1e-9) & (snaps["time_s"] <= t1 + 1e-9)]
+    return _Clean(events, removed, snaps, v_bad, int(bad_ids.size), int(bad_ev.sum()), int(touch.sum()))
+
+
+@dataclass(frozen=True)
+class _Clock:
+    """Snapshot times of the window, ``tau`` as a whole number (``lag``) of snapshot intervals, tag times."""
+
+    times: np.ndarray
+    interval_s: float | None
+    tau_s: float
+    speed_m_s: float
+    lag: int
+    tag_times: np.ndarray
+
+
+def _tag_clock(machine: Machine, snaps: pd.DataFrame, characteristic_time_s: float | None) -> _Clock:
+    """The window's clock: tags at snapshot ``i`` are located at snapshot ``i + lag``."""
     times = np.sort(snaps["time_s"].unique())
     interval = float(np.median(np.diff(times))) if times.size > 1 else None
     if characteristic_time_s is None:
@@ -608,139 +688,174 @@ def compute_statistics(
     else:
         tau = float(characteristic_time_s)
         speed = machine.stage_spacing_m / tau
-    # tau as a whole number of snapshot intervals: tags at snapshot i, located at snapshot i + lag
     lag = max(1, round(tau / interval)) if interval else 1
     if interval:
         tau = lag * interval
-    tag_times = times[: max(times.size - lag, 0)]
+    return _Clock(times, interval, tau, speed, lag, times[: max(times.size - lag, 0)])
 
-    # ---- transport
-    pairs_all = _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
+
+@dataclass(frozen=True)
+class _Transport:
+    """Tagged moves (stages 1..n, with their batch), one-lag destinations (inlet zone too), streams."""
+
+    pairs: pd.DataFrame
+    destinations: dict[int, list[float]]
+    streams: pd.DataFrame | None
+    batch_streams: pd.DataFrame | None
+
+
+def _transport(machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, clock: _Clock,
+               rock_density_kg_m3: float, n_batches: int) -> _Transport:
+    pairs_all = _tag_pairs(machine, snaps, removed, clock.times, clock.lag, rock_density_kg_m3, first_stage=0)
     pairs = pairs_all[pairs_all["stage_from"] >= 1].copy()
-    dest = _destinations(pairs_all, n)
     streams = _streams(pairs, ["stage_from"]) if len(pairs) else None
-    tag_batch = {t: b for b, chunk in enumerate(np.array_split(tag_times, s_.n_batches)) for t in chunk}
+    tag_batch = {t: b for b, chunk in enumerate(np.array_split(clock.tag_times, n_batches)) for t in chunk}
     pairs["batch"] = pairs["time_s"].map(tag_batch)
     bstreams = _streams(pairs, ["stage_from", "batch"]) if len(pairs) else None
+    return _Transport(pairs, _destinations(pairs_all, machine.n_stages), streams, bstreams)
 
-    # ---- impacts
-    ev = identify_impacts(machine, events, snaps_all)
-    prim = ev[ev["is_primary"]]
-    # hit probability: tagged rock hit by a rotor of its stage within (t, t + tau]
-    hits = pd.Series(dtype=float)
-    hits_b = pd.DataFrame()
-    if len(pairs):
-        tags = pairs[["time_s", "t_to", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
-            columns={"stage_from": "stage"}).sort_values("time_s")
-        p = prim[["time_s", "particle_id", "stage"]].rename(columns={"time_s": "t_hit"}).sort_values("t_hit")
-        p = p.astype({"particle_id": np.int64, "stage": np.int64})
-        tags = tags.astype({"particle_id": np.int64, "stage": np.int64})
-        nxt = pd.merge_asof(tags, p, left_on="time_s", right_on="t_hit", by=["particle_id", "stage"],
-                            direction="forward", allow_exact_matches=False)
-        nxt["hit"] = nxt["t_hit"] <= nxt["t_to"] + 1e-12
-        nxt["mh"] = nxt["mass_kg"] * nxt["hit"]
-        g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
-        hits = g["mh"] / g["mass_kg"]
-        gb = nxt.groupby(["stage", "batch"])[["mh", "mass_kg"]].sum()
-        hits_b = (gb["mh"] / gb["mass_kg"]).rename("p").reset_index()
 
-    # secondary counts per primary impact (primaries inside the window with a full follow-up)
+def _hit_probabilities(pairs: pd.DataFrame, prim: pd.DataFrame) -> tuple[pd.Series, pd.DataFrame]:
+    """Per stage (and per stage and batch): mass share of tagged rock hit by a rotor of its stage in (t, t + tau]."""
+    if not len(pairs):
+        return pd.Series(dtype=float), pd.DataFrame()
+    tags = pairs[["time_s", "t_to", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
+        columns={"stage_from": "stage"}).sort_values("time_s")
+    p = prim[["time_s", "particle_id", "stage"]].rename(columns={"time_s": "t_hit"}).sort_values("t_hit")
+    p = p.astype({"particle_id": np.int64, "stage": np.int64})
+    tags = tags.astype({"particle_id": np.int64, "stage": np.int64})
+    nxt = pd.merge_asof(tags, p, left_on="time_s", right_on="t_hit", by=["particle_id", "stage"],
+                        direction="forward", allow_exact_matches=False)
+    nxt["hit"] = nxt["t_hit"] <= nxt["t_to"] + 1e-12
+    nxt["mh"] = nxt["mass_kg"] * nxt["hit"]
+    g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
+    gb = nxt.groupby(["stage", "batch"])[["mh", "mass_kg"]].sum()
+    return g["mh"] / g["mass_kg"], (gb["mh"] / gb["mass_kg"]).rename("p").reset_index()
+
+
+@dataclass(frozen=True)
+class _Counts:
+    """Primary impacts inside the window with a full follow-up, and their counted secondary impacts."""
+
+    pr_rows: np.ndarray  # rows of ``ev``
+    pr_stage: np.ndarray
+    pr_batch: np.ndarray
+    counts_all: np.ndarray  # secondary count per row of ``ev`` (non-zero on primaries)
+    sec_rows: np.ndarray
+    sec_stage: np.ndarray  # stage of each secondary's primary
+    vn_m_s: np.ndarray
+
+
+def _secondary_counts(ev: pd.DataFrame, window_s: tuple[float, float], tau_s: float, s_: StatsSettings) -> _Counts:
+    t0, t1 = window_s
     pr_rows = np.flatnonzero(ev["is_primary"].to_numpy())
     t_ev = ev["time_s"].to_numpy()
-    in_win = (t_ev[pr_rows] >= t0) & (t_ev[pr_rows] <= t1 - tau)
-    pr_rows = pr_rows[in_win]
+    pr_rows = pr_rows[(t_ev[pr_rows] >= t0) & (t_ev[pr_rows] <= t1 - tau_s)]
     vn = ev["vn_m_s"].to_numpy()
-    sec = (ev["primary_row"].to_numpy() >= 0) & (vn >= s_.min_secondary_speed_m_s)
-    counts_all = np.bincount(ev["primary_row"].to_numpy()[sec], minlength=len(ev))
-    pr_stage = ev["stage"].to_numpy()[pr_rows]
+    primary_row = ev["primary_row"].to_numpy()
+    sec = (primary_row >= 0) & (vn >= s_.min_secondary_speed_m_s)
+    counts_all = np.bincount(primary_row[sec], minlength=len(ev))
     counted = np.zeros(len(ev), dtype=bool)
     counted[pr_rows] = True
-    sec_rows = np.flatnonzero(sec & counted[np.maximum(ev["primary_row"].to_numpy(), 0)])
-    sec_stage = ev["stage"].to_numpy()[ev["primary_row"].to_numpy()[sec_rows]]
-    pr_batch = np.minimum(((t_ev[pr_rows] - t0) / max(t1 - tau - t0, 1e-12) * s_.n_batches).astype(int),
+    sec_rows = np.flatnonzero(sec & counted[np.maximum(primary_row, 0)])
+    stage = ev["stage"].to_numpy()
+    pr_batch = np.minimum(((t_ev[pr_rows] - t0) / max(t1 - tau_s - t0, 1e-12) * s_.n_batches).astype(int),
                           s_.n_batches - 1)
+    return _Counts(pr_rows, stage[pr_rows], pr_batch, counts_all, sec_rows, stage[primary_row[sec_rows]], vn)
 
-    # ---- horizontal (full mode): solid-volume weights and streams of 6 regions along the shafts
-    regions = mode == "full"
-    if regions and len(pairs):
-        edges_y = np.linspace(0.0, machine.casing_length_m, N_REGIONS + 1)
-        sn_in = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
-                             region=np.clip(np.searchsorted(edges_y, snaps["y_m"].to_numpy(), side="right") - 1,
-                                            0, N_REGIONS - 1),
-                             vol=4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3)
-        vol = sn_in.pivot_table(index="stage", columns="region", values="vol", aggfunc="sum", fill_value=0.0)
-        vol = vol.reindex(columns=range(N_REGIONS), fill_value=0.0)
-        pairs["region"] = np.clip(np.searchsorted(edges_y, pairs["y_m"].to_numpy(), side="right") - 1,
-                                  0, N_REGIONS - 1)
-        rstreams = _streams(pairs, ["stage_from", "region"])
 
-    # ---- per stage
-    stages: list[StageStatistics] = []
-    samples: dict[int, dict[str, np.ndarray]] = {}
-    fits: dict[int, dict[str, Any]] = {}
-    holdup = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
-                          m=rock_density_kg_m3 * 4 / 3 * np.pi * snaps["radius_m"].to_numpy() ** 3)
-    holdup_kg = holdup.groupby("stage")["m"].sum() / max(times.size, 1)
-    for s in range(1, n + 1):
-        se: dict[str, float] = {}
-        if streams is not None and s in streams.index:
-            kick, ref, pt = (float(streams.at[s, c]) for c in ("kickback", "refeed", "pass_through"))
-            bs = bstreams.xs(s, level="stage_from")
-            for c in ("kickback", "refeed", "pass_through"):
-                se[c] = _batch_se(bs[c].to_numpy())
-            n_tr = int((pairs["stage_from"] == s).sum())
+def _region_streams(machine: Machine, snaps: pd.DataFrame, pairs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Full mode: solid volume per (stage, region) and streams of the tagged moves per (stage, region)."""
+    edges_y = np.linspace(0.0, machine.casing_length_m, N_REGIONS + 1)
+    sn_in = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
+                         region=np.clip(np.searchsorted(edges_y, snaps["y_m"].to_numpy(), side="right") - 1,
+                                        0, N_REGIONS - 1),
+                         vol=4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3)
+    vol = sn_in.pivot_table(index="stage", columns="region", values="vol", aggfunc="sum", fill_value=0.0)
+    vol = vol.reindex(columns=range(N_REGIONS), fill_value=0.0)
+    pairs["region"] = np.clip(np.searchsorted(edges_y, pairs["y_m"].to_numpy(), side="right") - 1,
+                              0, N_REGIONS - 1)
+    return vol, _streams(pairs, ["stage_from", "region"])
+
+
+def _stage_regions(s: int, region_streams: tuple[pd.DataFrame, pd.DataFrame] | None,
+                   mean: list[float]) -> tuple[list[float] | None, list[list[float]] | None]:
+    """Region weights and streams of stage ``s`` (full mode; a region without tagged rock gets ``mean``)."""
+    if region_streams is None:
+        return None, None
+    vol, rstreams = region_streams
+    if s not in vol.index or vol.loc[s].sum() <= 0:
+        return None, None
+    w = vol.loc[s].to_numpy()
+    rs = []
+    for r in range(N_REGIONS):
+        if (s, r) in rstreams.index and rstreams.at[(s, r), "mass_kg"] > 0:
+            row = rstreams.loc[(s, r), ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float)
+            rs.append(list(map(float, row / row.sum())))
         else:
-            kick, ref, pt, n_tr = 0.0, 1.0, 0.0, 0
-        tot = kick + ref + pt
-        kick, ref, pt = kick / tot, ref / tot, pt / tot
-        ph = float(hits.get(s, 0.0)) if len(hits) else 0.0
-        if len(hits_b):
-            se["primary_hit_probability"] = _batch_se(hits_b.loc[hits_b["stage"] == s, "p"].to_numpy())
+            rs.append(mean)
+    return list(map(float, w / w.sum())), rs
 
-        v_prim = prim["vn_m_s"].to_numpy()[(prim["stage"].to_numpy() == s)
-                                           & (prim["time_s"].to_numpy() >= t0) & (prim["time_s"].to_numpy() <= t1)]
-        gm_p, kl_p, fit_p = _fit_velocity(v_prim, s_)
-        sel = pr_stage == s
-        cnt = counts_all[pr_rows[sel]]
-        v_sec = vn[sec_rows[sec_stage == s]]
-        count_fit = _fit_counts(cnt, pr_batch[sel], s_, se)
-        pf = count_fit["fit"]
-        gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
-        if v_prim.size > 1:
-            se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
-        if v_sec.size > 1:
-            se["secondary_velocity_mean_m_s"] = float(v_sec.std(ddof=1) / np.sqrt(v_sec.size))
-        se = {k: v for k, v in se.items() if np.isfinite(v)}
 
-        rw = rs = None
-        if regions and len(pairs) and s in vol.index and vol.loc[s].sum() > 0:
-            w = vol.loc[s].to_numpy()
-            rw = list(map(float, w / w.sum()))
-            rs = []
-            for r in range(N_REGIONS):
-                if (s, r) in rstreams.index and rstreams.at[(s, r), "mass_kg"] > 0:
-                    row = rstreams.loc[(s, r), ["kickback", "refeed", "pass_through"]].to_numpy(dtype=float)
-                    rs.append(list(map(float, row / row.sum())))
-                else:  # no tagged rock in this region: use the stage average
-                    rs.append([kick, ref, pt])
-        stages.append(StageStatistics(
-            stage=s, kickback=kick, refeed=ref, pass_through=pt,
-            region_weights=rw, region_streams=rs,
-            primary_hit_probability=min(max(ph, 0.0), 1.0),
-            primary_velocity=gm_p, primary_velocity_kl=kl_p,
-            secondary_lambda=count_fit["lambda"], secondary_lambda_kl=count_fit["poisson_kl"],
-            secondary_count=count_fit["distribution"], secondary_count_histogram=count_fit["histogram"],
-            secondary_count_selection=count_fit["selection"],
-            secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
-            n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
-            n_transport_samples=n_tr, mean_holdup_kg=float(holdup_kg.get(s, 0.0)),
-            sampling_error=se, destinations=dest.get(s),
-        ))
-        samples[s] = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
-        fits[s] = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": pf,
-                   "secondary_count_families": count_fit["families"]}
+def _stage_statistics(
+    s: int, tr: _Transport, hits: pd.Series, hits_b: pd.DataFrame, prim: pd.DataFrame, counts: _Counts,
+    window_s: tuple[float, float], s_: StatsSettings,
+    region_streams: tuple[pd.DataFrame, pd.DataFrame] | None, holdup_kg: float,
+) -> tuple[StageStatistics, dict[str, np.ndarray], dict[str, Any]]:
+    """Statistics of stage ``s``, its samples and its fits."""
+    t0, t1 = window_s
+    se: dict[str, float] = {}
+    if tr.streams is not None and s in tr.streams.index:
+        kick, ref, pt = (float(tr.streams.at[s, c]) for c in ("kickback", "refeed", "pass_through"))
+        bs = tr.batch_streams.xs(s, level="stage_from")
+        for c in ("kickback", "refeed", "pass_through"):
+            se[c] = _batch_se(bs[c].to_numpy())
+        n_tr = int((tr.pairs["stage_from"] == s).sum())
+    else:
+        kick, ref, pt, n_tr = 0.0, 1.0, 0.0, 0
+    tot = kick + ref + pt
+    kick, ref, pt = kick / tot, ref / tot, pt / tot
+    ph = float(hits.get(s, 0.0)) if len(hits) else 0.0
+    if len(hits_b):
+        se["primary_hit_probability"] = _batch_se(hits_b.loc[hits_b["stage"] == s, "p"].to_numpy())
 
-    # ---- run level
+    t_prim = prim["time_s"].to_numpy()
+    v_prim = prim["vn_m_s"].to_numpy()[(prim["stage"].to_numpy() == s) & (t_prim >= t0) & (t_prim <= t1)]
+    gm_p, kl_p, fit_p = _fit_velocity(v_prim, s_)
+    sel = counts.pr_stage == s
+    cnt = counts.counts_all[counts.pr_rows[sel]]
+    v_sec = counts.vn_m_s[counts.sec_rows[counts.sec_stage == s]]
+    count_fit = _fit_counts(cnt, counts.pr_batch[sel], s_, se)
+    gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
+    if v_prim.size > 1:
+        se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
+    if v_sec.size > 1:
+        se["secondary_velocity_mean_m_s"] = float(v_sec.std(ddof=1) / np.sqrt(v_sec.size))
+    se = {k: v for k, v in se.items() if np.isfinite(v)}
+    rw, rs = _stage_regions(s, region_streams, [kick, ref, pt])
+    stage = StageStatistics(
+        stage=s, kickback=kick, refeed=ref, pass_through=pt,
+        region_weights=rw, region_streams=rs,
+        primary_hit_probability=min(max(ph, 0.0), 1.0),
+        primary_velocity=gm_p, primary_velocity_kl=kl_p,
+        secondary_lambda=count_fit["lambda"], secondary_lambda_kl=count_fit["poisson_kl"],
+        secondary_count=count_fit["distribution"], secondary_count_histogram=count_fit["histogram"],
+        secondary_count_selection=count_fit["selection"],
+        secondary_velocity=gm_s, secondary_velocity_kl=kl_s,
+        n_primary_impacts=int(v_prim.size), n_secondary_impacts=int(v_sec.size),
+        n_transport_samples=n_tr, mean_holdup_kg=holdup_kg,
+        sampling_error=se, destinations=tr.destinations.get(s),
+    )
+    samples = {"primary_velocity_m_s": v_prim, "secondary_counts": cnt, "secondary_velocity_m_s": v_sec}
+    fits = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": count_fit["fit"],
+            "secondary_count_families": count_fit["families"]}
+    return stage, samples, fits
+
+
+def _outflow(removed: pd.DataFrame, timeseries: pd.DataFrame, window_s: tuple[float, float],
+             rock_density_kg_m3: float, holdup_kg: pd.Series) -> tuple[float, float]:
+    """Product mass rate out of the outlet over the window (kg/s) and the mean hold-up (kg)."""
+    t0, t1 = window_s
     rem = removed
     if "tag" in rem:
         rem = rem[rem["tag"].astype(str) == "outlet"]
@@ -748,31 +863,7 @@ def compute_statistics(
     mass_col = rem_w["mass_kg"] if "mass_kg" in rem_w else rock_density_kg_m3 * 4 / 3 * np.pi * rem_w["radius_m"] ** 3
     out_rate = float(mass_col.sum()) / (t1 - t0) if t1 > t0 else 0.0
     ts = timeseries[(timeseries["time_s"] >= t0) & (timeseries["time_s"] <= t1)]
-    hold_total = float(ts["mass_kg"].mean()) if len(ts) else float(holdup_kg.sum())
-    residence = hold_total / out_rate if out_rate > 0 else None
-    prov = dict(provenance or {})
-    prov.setdefault("stats", {}).update({
-        "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
-        "count_criterion": s_.count_criterion, "velocity_fit": s_.velocity_fit,
-        "velocity_em_tol": EM_TOL,
-        "n_tag_times": int(tag_times.size), "snapshot_interval_s": interval, "mean_holdup_kg": hold_total,
-        "blow_up_speed_limit_m_s": v_bad, "n_rocks_dropped_as_blow_ups": int(bad_ids.size),
-        "n_events_blow_up": int(bad_ev.sum()), "n_touch_events_vn_le_0": n_touch,
-    })
-    by_size = None
-    if size_edges_m is not None and len(pairs):
-        pairs["size_class"] = np.searchsorted(np.asarray(size_edges_m), pairs["radius_m"].to_numpy(), side="right") - 1
-        by_size = _streams(pairs, ["stage_from", "size_class"]).reset_index()
-        prov["streams_by_size"] = by_size.to_dict(orient="records")
-    run = RunStatistics(
-        design=design, mode="full" if mode == "full" else "slice", characteristic_time_s=tau, stages=stages,
-        steady_state_time_s=steady_state_time_s, measurement_window_s=t1 - t0,
-        mass_out_rate_kg_s=out_rate, residence_time_s=residence, mean_centre_velocity_m_s=speed,
-        inlet_destinations=dest.get(0), inlet_holdup_kg=float(holdup_kg.get(0, 0.0)), provenance=prov,
-        filling_transport=(filling_transport(machine, snaps_all, removed, (t0, t1), lag, rock_density_kg_m3)
-                           if s_.with_filling_transport else None),
-    )
-    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+    return out_rate, float(ts["mass_kg"].mean()) if len(ts) else float(holdup_kg.sum())
 
 
 def _fit_counts(cnt: np.ndarray, batch: np.ndarray, s_: StatsSettings, se: dict[str, float]) -> dict[str, Any]:
