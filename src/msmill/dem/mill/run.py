@@ -12,7 +12,8 @@ Procedure (documented in ``docs/mill-dem.md``):
    ``steady_state_detected_s``.
 2. The measurement window starts at the detection time, or with
    ``window_from = "onset"`` at the onset (but not before ``settle_s``, so
-   that rock placed at rest by a warm start has been set moving): the two
+   that rock a warm start placed with made-up velocities has joined the
+   flow): the two
    windows the criterion passed are steady by its own test, so they need not
    be simulated again. The run continues until the window is ``measure_s``
    long, or with ``adaptive`` until the sampling errors meet their targets
