@@ -67,6 +67,7 @@ Schema version 2 (secondary-impact count families)
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -182,6 +183,15 @@ def _gauss_rule(x: np.ndarray, w: np.ndarray, n: int) -> tuple[np.ndarray, np.nd
     return nodes, total * vec[0] ** 2
 
 
+@functools.cache
+def _legendre_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``n``-point Gauss-Legendre rule on [-1, 1] (an eigenvalue problem: computed once per ``n``)."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.flags.writeable = False
+    w.flags.writeable = False
+    return x, w
+
+
 def negative_binomial_mixture(mean: float, size: float, n_nodes: int = NB_QUADRATURE_NODES
                               ) -> tuple[np.ndarray, np.ndarray]:
     """Poisson-mixture ``(weights, means)`` of a negative binomial by Gauss quadrature.
@@ -207,7 +217,7 @@ def negative_binomial_mixture(mean: float, size: float, n_nodes: int = NB_QUADRA
         s, w = np.sqrt(theta * u), w / special.gamma(size)
     else:
         lo, hi = np.sqrt(stats.gamma.ppf([1e-15, 1 - 1e-15], size, scale=theta))
-        x, gw = np.polynomial.legendre.leggauss(_NB_FINE_NODES)
+        x, gw = _legendre_rule(_NB_FINE_NODES)
         s = 0.5 * (hi - lo) * x + 0.5 * (hi + lo)
         w = 0.5 * (hi - lo) * gw * 2 * s * stats.gamma.pdf(s * s, size, scale=theta)
     nodes, weights = _gauss_rule(s, w / w.sum(), n_nodes)

@@ -293,25 +293,25 @@ def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame
     is_fl = (ev["partner_kind"].to_numpy() != 0) & (ev["partner_tag"].to_numpy() == "flinger")
     grp = ev["partner_group"].fillna(-1).to_numpy().astype(np.int64)
     stage = np.where(is_fl, grp // 2 + 1, stage_of_z(machine, ev["z_m"].to_numpy()))
-    ev = ev.assign(stage=stage, rotor=np.where(is_fl, grp, -1), is_flinger=is_fl, kind=1)
-    if len(snaps):
-        sn = pd.DataFrame({
-            "time_s": snaps["time_s"].to_numpy(),
-            "particle_id": snaps["particle_id"].to_numpy().astype(np.int64),
-            "stage": stage_of_z(machine, snaps["z_m"].to_numpy()),
-            "kind": 0,
-        })
-        tl = pd.concat([sn, ev], ignore_index=True)
-    else:
-        tl = ev
-    tl = tl.sort_values(["particle_id", "time_s", "kind"], kind="stable", ignore_index=True)
-    pid = tl["particle_id"].to_numpy()
-    st = tl["stage"].to_numpy()
-    new_pass = np.ones(len(tl), dtype=bool)
+    ev = ev.assign(stage=stage, rotor=np.where(is_fl, grp, -1), is_flinger=is_fl)
+    # one time line per rock, snapshots before contacts at equal times: sort keys only (numpy, stable),
+    # then take the contacts in that order
+    n_sn = len(snaps)
+    sn_pid = snaps["particle_id"].to_numpy().astype(np.int64) if n_sn else np.zeros(0, np.int64)
+    sn_t = snaps["time_s"].to_numpy(dtype=float) if n_sn else np.zeros(0)
+    sn_stage = stage_of_z(machine, snaps["z_m"].to_numpy()) if n_sn else np.zeros(0, stage.dtype)
+    pid = np.concatenate([sn_pid, ev["particle_id"].to_numpy().astype(np.int64)])
+    t = np.concatenate([sn_t, ev["time_s"].to_numpy(dtype=float)])
+    st = np.concatenate([sn_stage, stage])
+    is_ev = np.arange(pid.size) >= n_sn
+    order = np.lexsort((is_ev, t, pid))
+    pid, st = pid[order], st[order]
+    new_pass = np.ones(pid.size, dtype=bool)
     new_pass[1:] = (pid[1:] != pid[:-1]) | (st[1:] != st[:-1])
-    tl["pass_id"] = np.cumsum(new_pass)
-    ev = tl[tl["kind"] == 1].reset_index(drop=True)
-    ev["is_flinger"] = ev["is_flinger"].astype(bool)
+    pass_id = np.cumsum(new_pass)
+    rows = is_ev[order]
+    ev = ev.take(order[rows] - n_sn).reset_index(drop=True)
+    ev["pass_id"] = pass_id[rows]
     fl = ev["is_flinger"].to_numpy()
     first = ~ev.duplicated(["pass_id", "rotor"])
     is_primary = fl & first.to_numpy()
@@ -324,7 +324,7 @@ def identify_impacts(machine: Machine, events: pd.DataFrame, snaps: pd.DataFrame
         ev["pass_id"].to_numpy()[lp] == ev["pass_id"].to_numpy()
     )
     ev["primary_row"] = np.where(same & ~is_primary, last_primary, -1)
-    return ev.drop(columns=["kind"])
+    return ev
 
 
 # --------------------------------------------------------------------------- streams
