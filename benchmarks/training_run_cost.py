@@ -202,9 +202,12 @@ def main() -> None:
         worst = max(worst, d_max)
         zs = normal_equivalent(res["old"][0], res["new"][0])
         z_all += [z for z, _ in zs]
-        if "cold_adaptive" in res:
+        if "cold_adaptive" in res:  # the same error targets, empty mill, window from detection
             dc = deviations(res["cold_adaptive"][0], res["new"][0])
-            print(f"{size:g} mm cold adaptive vs warm adaptive: max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
+            ca = res["cold_adaptive"]
+            cpu_ca = f", CPU time {res['new'][2] / ca[2]:.3f}" if res["new"][2] and ca[2] else ""
+            print(f"{size:g} mm cold adaptive vs new: cost ratio new / cold adaptive {res['new'][1] / ca[1]:.3f}"
+                  f"{cpu_ca}; max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
                   f"{sum(d > 2 for d, _ in dc)} of {len(dc)} beyond 2 sigma")
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
