@@ -250,3 +250,20 @@ def test_characteristic_time_hand_table():
     # rounded to whole snapshot intervals: 0.045 / 0.02 = 2.25 -> 2 intervals; never below 1
     assert characteristic_time(M2, snaps, 0.02)[0] == pytest.approx(0.04)
     assert characteristic_time(M2, snaps, 0.1)[0] == pytest.approx(0.1)
+
+
+def test_velocity_mean_error_is_by_batch_means():
+    """Impacts clustered in time: the error of the mean is that of the batch means, not std / sqrt(n)."""
+    from msmill.dem.mill.stats import _mean_se
+
+    levels = np.array([20.0, 22.0, 19.0, 23.0, 21.0])  # one level per fifth of the window
+    t = np.linspace(0.0, 1.0, 1000, endpoint=False)
+    v = levels[(t * 5).astype(int)]
+    se = _mean_se(v, t, (0.0, 1.0), 5)
+    assert se == pytest.approx(levels.std(ddof=1) / np.sqrt(5), rel=1e-12)
+    assert se > 10 * v.std(ddof=1) / np.sqrt(v.size)  # the independent-sample error understates it
+    # all samples in one batch: no batch estimate, the independent-sample error
+    early = t < 0.1
+    w = v[early] + np.random.default_rng(1).normal(0.0, 1.0, early.sum())
+    assert _mean_se(w, t[early], (0.0, 1.0), 5) == pytest.approx(w.std(ddof=1) / np.sqrt(w.size), rel=1e-12)
+    assert np.isnan(_mean_se(v[:1], t[:1], (0.0, 1.0), 5))

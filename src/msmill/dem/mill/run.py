@@ -339,8 +339,8 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
 
     ``streams``, ``hit_probability``: absolute standard errors (batch means);
     ``velocity_mean_rel``, ``velocity_spread_rel``: standard error of the
-    mean and of the standard deviation (``s / sqrt(2 (n - 1))``) of the primary
-    and secondary impact velocities over their mean; ``count_mean_rel``: of
+    mean (batch means) and of the standard deviation (``s / sqrt(2 (n - 1))``)
+    of the primary and secondary impact velocities over their mean; ``count_mean_rel``: of
     the secondary count mean ``lambda`` over ``lambda``;
     ``velocity_sampling_kl``: the expected KL divergence of a fitted velocity
     distribution from the true one due to sampling alone, ``p / (2 n)``
@@ -364,7 +364,8 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
                 continue
             out["velocity_sampling_kl"] = max(out["velocity_sampling_kl"], VELOCITY_FIT_PARAMETERS / (2 * v.size))
             sd = float(v.std(ddof=1))
-            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], sd / np.sqrt(v.size) / float(v.mean()))
+            se_mean = se.get(key.replace("_m_s", "_mean_m_s"), inf)  # batch means (compute_statistics)
+            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], se_mean / float(v.mean()))
             out["velocity_spread_rel"] = max(out["velocity_spread_rel"],
                                              sd / np.sqrt(2 * (v.size - 1)) / float(v.mean()))
     return out

@@ -55,9 +55,11 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
   the lowest ``StatsSettings.count_criterion`` (BIC) becomes
   ``secondary_count``, ``secondary_lambda`` is its mean.
 * **Sampling errors**: standard errors by batch means: the tag times (or
-  primary impacts, for the secondary statistics) are split into
-  ``n_batches`` consecutive blocks, the statistic is computed per block and
-  ``SE = std(blocks, ddof=1) / sqrt(n_batches)``.
+  primary impacts, for the secondary counts; the impact times, for the mean
+  velocities) are split into ``n_batches`` consecutive blocks, the statistic
+  is computed per block and ``SE = std(blocks, ddof=1) / sqrt(n_batches)``.
+  (Until 2026-12-02 the mean velocities had ``std / sqrt(n)``, which ignores
+  that impacts come in clusters and understated their error.)
 """
 
 from __future__ import annotations
@@ -744,6 +746,7 @@ class _Counts:
     sec_rows: np.ndarray
     sec_stage: np.ndarray  # stage of each secondary's primary
     vn_m_s: np.ndarray
+    time_s: np.ndarray  # of every row of ``ev``
 
 
 def _secondary_counts(ev: pd.DataFrame, window_s: tuple[float, float], tau_s: float, s_: StatsSettings) -> _Counts:
@@ -761,7 +764,7 @@ def _secondary_counts(ev: pd.DataFrame, window_s: tuple[float, float], tau_s: fl
     stage = ev["stage"].to_numpy()
     pr_batch = np.minimum(((t_ev[pr_rows] - t0) / max(t1 - tau_s - t0, 1e-12) * s_.n_batches).astype(int),
                           s_.n_batches - 1)
-    return _Counts(pr_rows, stage[pr_rows], pr_batch, counts_all, sec_rows, stage[primary_row[sec_rows]], vn)
+    return _Counts(pr_rows, stage[pr_rows], pr_batch, counts_all, sec_rows, stage[primary_row[sec_rows]], vn, t_ev)
 
 
 def _region_streams(machine: Machine, snaps: pd.DataFrame, pairs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -820,17 +823,17 @@ def _stage_statistics(
         se["primary_hit_probability"] = _batch_se(hits_b.loc[hits_b["stage"] == s, "p"].to_numpy())
 
     t_prim = prim["time_s"].to_numpy()
-    v_prim = prim["vn_m_s"].to_numpy()[(prim["stage"].to_numpy() == s) & (t_prim >= t0) & (t_prim <= t1)]
+    in_prim = (prim["stage"].to_numpy() == s) & (t_prim >= t0) & (t_prim <= t1)
+    v_prim, t_prim = prim["vn_m_s"].to_numpy()[in_prim], t_prim[in_prim]
     gm_p, kl_p, fit_p = _fit_velocity(v_prim, s_)
     sel = counts.pr_stage == s
     cnt = counts.counts_all[counts.pr_rows[sel]]
-    v_sec = counts.vn_m_s[counts.sec_rows[counts.sec_stage == s]]
+    sec_rows = counts.sec_rows[counts.sec_stage == s]
+    v_sec, t_sec = counts.vn_m_s[sec_rows], counts.time_s[sec_rows]
     count_fit = _fit_counts(cnt, counts.pr_batch[sel], s_, se)
     gm_s, kl_s, fit_s = _fit_velocity(v_sec, s_)
-    if v_prim.size > 1:
-        se["primary_velocity_mean_m_s"] = float(v_prim.std(ddof=1) / np.sqrt(v_prim.size))
-    if v_sec.size > 1:
-        se["secondary_velocity_mean_m_s"] = float(v_sec.std(ddof=1) / np.sqrt(v_sec.size))
+    se["primary_velocity_mean_m_s"] = _mean_se(v_prim, t_prim, window_s, s_.n_batches)
+    se["secondary_velocity_mean_m_s"] = _mean_se(v_sec, t_sec, window_s, s_.n_batches)
     se = {k: v for k, v in se.items() if np.isfinite(v)}
     rw, rs = _stage_regions(s, region_streams, [kick, ref, pt])
     stage = StageStatistics(
@@ -850,6 +853,26 @@ def _stage_statistics(
     fits = {"primary": fit_p, "secondary_velocity": fit_s, "secondary_count": count_fit["fit"],
             "secondary_count_families": count_fit["families"]}
     return stage, samples, fits
+
+
+def _mean_se(v: np.ndarray, t_s: np.ndarray, window_s: tuple[float, float], n_batches: int) -> float:
+    """Standard error of the mean of ``v`` (samples at times ``t_s``) by batch means over the window.
+
+    Impacts are not independent (a rock's secondary impacts cluster after its
+    primary, a rock-rock contact counts for both rocks, the flow pulsates), so
+    ``std / sqrt(n)`` understates the error; the means of ``n_batches`` equal
+    time slices carry the correlation. Fewer than two batches with samples:
+    ``std / sqrt(n)`` (NaN below two samples).
+    """
+    if v.size < 2:
+        return float("nan")
+    t0, t1 = window_s
+    b = np.minimum(((t_s - t0) / max(t1 - t0, 1e-12) * n_batches).astype(int), n_batches - 1)
+    n_b = np.bincount(b, minlength=n_batches)
+    if np.count_nonzero(n_b) < 2:
+        return float(v.std(ddof=1) / np.sqrt(v.size))
+    means = np.bincount(b, weights=v, minlength=n_batches)[n_b > 0] / n_b[n_b > 0]
+    return _batch_se(means)
 
 
 def _outflow(removed: pd.DataFrame, timeseries: pd.DataFrame, window_s: tuple[float, float],
