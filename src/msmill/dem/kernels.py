@@ -48,6 +48,9 @@ N_EVI = 3
 D_DISP2, D_OVER, D_SPEED2, D_HOVF, D_EVOVF, D_FLAGGED = range(6)
 N_DIAG = 6
 
+# per-particle work flags of the step passes (particle_kinds)
+K_OWN, K_REV = 1, 2
+
 # advance() return reasons
 R_DONE, R_REBUILD, R_FLAGGED, R_EVFULL = 0, 1, 2, 3
 
@@ -363,15 +366,16 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 @njit(cache=True, fastmath=False)
-def _close_untouched_rows(i0, i1, keys, n, st, ev, pk, ds, tch, evf, t):
+def _close_untouched_rows(i0, i1, kind, keys, n, st, ev, pk, ds, tch, evf, t):
     """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
-    Serves particle and geometry partners alike.
+    Serves particle and geometry partners alike. Only particles with
+    ``kind & K_OWN`` can hold slots (see :func:`particle_kinds`).
     """
     for i in range(i0, i1):
-        if n[i] > 0:
+        if (kind[i] & K_OWN) != 0 and n[i] > 0:
             _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
 
 
@@ -419,13 +423,19 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 
 @njit(cache=True, fastmath=False)
-def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
-    """Forces and torques on the particles of chunk ``c`` (see module docstring)."""
+    """Forces and torques on the particles of chunk ``c`` (see module docstring).
+
+    Only particles with entries of their own (``kind & K_OWN``: half-list row,
+    geometry candidates or open history slots) are visited; they get ``frc``
+    and ``trq``. The force on any other particle is its weight alone, which
+    the integration pass takes without reading these arrays.
+    """
     n = pos.shape[0]
     nch = diag.shape[0]
     smax = h_pid.shape[1]
@@ -434,6 +444,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
     for i in range(i0, i1):
+        if (kind[i] & K_OWN) == 0:
+            continue
         mi = mass[i]
         fx = mi * gravity[0]
         fy = mi * gravity[1]
@@ -643,13 +655,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     # entry of a helper with array arguments, inlined or not, in atomic reference counting
     # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
     # look-ups above are written out
-    _close_untouched_rows(i0, i1, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
-    _close_untouched_rows(i0, i1, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -657,11 +669,11 @@ def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, t
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -669,46 +681,87 @@ def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, t
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _weight_free(gravity):
+    """Whether every gravity component is +0.0 (then ``m g`` is +0.0 for any mass)."""
+    ok = True
+    for k in range(3):
+        if gravity[k] != 0.0 or np.copysign(1.0, gravity[k]) < 0.0:
+            ok = False
+    return ok
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
-    """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf,
+                     pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+    """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags.
+
+    Per-particle memory traffic is kept to what the particle needs: the force
+    pass's ``frc``/``trq`` are read only for ``kind & K_OWN``, the partner
+    shares only for ``kind & K_REV`` (then the total is written back); any
+    other particle feels its weight alone. A zero force leaves ``vel``
+    unchanged and a zero torque ``omg`` (bit for bit the same as adding the
+    zero increment: velocities and spins are never -0.0, see
+    :func:`particle_kinds`), so neither is written then.
+    """
     n = pos.shape[0]
     nch = diag.shape[0]
     nsink = sinks.shape[0]
     i0, i1 = chunk_bounds(n, nch, c)
     vmax = 0.0
     nflag = 0
+    no_weight = _weight_free(gravity)
+    g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     for i in range(i0, i1):
-        im = invm[i]
-        ii = invi[i]
-        f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
-        t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
-        for q in range(rv_start[i], rv_start[i + 1]):
-            if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
-                f0 -= pf[q, 0]
-                f1 -= pf[q, 1]
-                f2 -= pf[q, 2]
-                t0 += pt[q, 0]
-                t1 += pt[q, 1]
-                t2 += pt[q, 2]
-        frc[i, 0] = f0
-        frc[i, 1] = f1
-        frc[i, 2] = f2
-        trq[i, 0] = t0
-        trq[i, 1] = t1
-        trq[i, 2] = t2
-        v0 = vel[i, 0] + f0 * im * dt
-        v1 = vel[i, 1] + f1 * im * dt
-        v2 = vel[i, 2] + f2 * im * dt
-        vel[i, 0] = v0
-        vel[i, 1] = v1
-        vel[i, 2] = v2
-        omg[i, 0] += t0 * ii * dt
-        omg[i, 1] += t1 * ii * dt
-        omg[i, 2] += t2 * ii * dt
+        ki = kind[i]
+        if (ki & K_OWN) != 0:
+            f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
+            t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
+        else:
+            if no_weight:
+                f0 = 0.0
+                f1 = 0.0
+                f2 = 0.0
+            else:
+                mi = mass[i]
+                f0 = mi * g0
+                f1 = mi * g1
+                f2 = mi * g2
+            t0 = 0.0
+            t1 = 0.0
+            t2 = 0.0
+        if (ki & K_REV) != 0:
+            for q in range(rv_start[i], rv_start[i + 1]):
+                if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                    f0 -= pf[q, 0]
+                    f1 -= pf[q, 1]
+                    f2 -= pf[q, 2]
+                    t0 += pt[q, 0]
+                    t1 += pt[q, 1]
+                    t2 += pt[q, 2]
+            frc[i, 0] = f0
+            frc[i, 1] = f1
+            frc[i, 2] = f2
+            trq[i, 0] = t0
+            trq[i, 1] = t1
+            trq[i, 2] = t2
+        v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
+        if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
+            im = invm[i]
+            v0 = v0 + f0 * im * dt
+            v1 = v1 + f1 * im * dt
+            v2 = v2 + f2 * im * dt
+            vel[i, 0] = v0
+            vel[i, 1] = v1
+            vel[i, 2] = v2
+        if t0 != 0.0 or t1 != 0.0 or t2 != 0.0:
+            ii = invi[i]
+            omg[i, 0] += t0 * ii * dt
+            omg[i, 1] += t1 * ii * dt
+            omg[i, 2] += t2 * ii * dt
         x = pos[i, 0] + v0 * dt
         y = pos[i, 1] + v1 * dt
         z = pos[i, 2] + v2 * dt
@@ -745,22 +798,64 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc,
     diag[c, D_FLAGGED] += nflag
 
 
+@njit(cache=True, fastmath=False)
+def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
+    """Per-particle work flags of the step passes for the list just built.
+
+    ``K_OWN``: the particle owns entries (half-list row, geometry candidates)
+    or open history slots, so the force pass visits it; ``K_REV``: it is the
+    partner of half-list entries, so the integration pass gathers shares.
+    Also turns -0.0 velocity and spin components into +0.0 (what adding a
+    zero increment does), so that skipping a zero increment is exact.
+    """
+    n = nb_start.shape[0] - 1
+    kind = np.zeros(n, np.uint8)
+    for i in range(n):
+        k = 0
+        if (nb_start[i + 1] > nb_start[i] or gc_start[i + 1] > gc_start[i] or h_n[i] > 0
+                or g_n[i] > 0):
+            k |= K_OWN
+        if rv_start[i + 1] > rv_start[i]:
+            k |= K_REV
+        kind[i] = k
+        for a in range(3):
+            if vel[i, a] == 0.0:
+                vel[i, a] = 0.0
+            if omg[i, a] == 0.0:
+                omg[i, a] = 0.0
+    return kind
+
+
+@njit(cache=True, fastmath=False)
+def weight_only_forces(kind, mass, gravity, frc, trq):
+    """``frc``/``trq`` of the particles the passes skip (``kind == 0``): weight, no torque."""
+    for i in range(kind.shape[0]):
+        if kind[i] == 0:
+            mi = mass[i]
+            frc[i, 0] = mi * gravity[0]
+            frc[i, 1] = mi * gravity[1]
+            frc[i, 2] = mi * gravity[2]
+            trq[i, 0] = 0.0
+            trq[i, 1] = 0.0
+            trq[i, 2] = 0.0
+
+
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
             flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -779,18 +874,18 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
         update_geometry(gref, grot, gkind, t, gcur)
         stamp = stamp0 + step
         if parallel:
-            force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+            force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
                 nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
-            force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
+            force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
                 nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0

@@ -608,6 +608,9 @@ class Simulation:
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            par, self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
+        self._kind = K.particle_kinds(self._nb[0], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
+                                      p["vel"], p["omg"])
+        self._kind_fresh = True  # frc/trq of the particles the passes skip are set after the next call
         self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
@@ -862,7 +865,7 @@ class Simulation:
                 tic = _time.perf_counter()
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
-                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
+                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
                     p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
                     self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[1],
                     self._pair[2],
@@ -873,6 +876,11 @@ class Simulation:
                     p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
                     self._rec.evn, diag, use_par)
                 elapsed = _time.perf_counter() - tic
+                if self._kind_fresh and k > 0:
+                    # the passes never write frc/trq of a particle without list entries: its force
+                    # is its weight until the next rebuild
+                    K.weight_only_forces(self._kind, p["mass"], self._gravity, p["frc"], p["trq"])
+                    self._kind_fresh = False
                 self.stats["loop_time_s"] += elapsed
                 self._tune(use_par, elapsed, k)
                 self.stats["steps"] += k
