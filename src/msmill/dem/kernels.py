@@ -48,8 +48,10 @@ N_EVI = 3
 D_DISP2, D_OVER, D_SPEED2, D_HOVF, D_EVOVF, D_FLAGGED = range(6)
 N_DIAG = 6
 
-# per-particle work flags of the step passes (particle_kinds)
-K_OWN, K_REV = 1, 2
+# per-particle work flags of the step passes (particle_kinds): owns half-list entries or
+# particle history slots, is the partner of entries, has geometry candidates or slots;
+# K_HIT is set by the force pass for this step when the particle's own contacts gave it a force
+K_OWN, K_REV, K_GEO, K_HIT = 1, 2, 4, 8
 
 # advance() return reasons
 R_DONE, R_REBUILD, R_FLAGGED, R_EVFULL = 0, 1, 2, 3
@@ -366,16 +368,16 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 @njit(cache=True, fastmath=False)
-def _close_untouched_rows(i0, i1, kind, keys, n, st, ev, pk, ds, tch, evf, t):
+def _close_untouched_rows(i0, i1, kind, mask, keys, n, st, ev, pk, ds, tch, evf, t):
     """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
     Serves particle and geometry partners alike. Only particles with
-    ``kind & K_OWN`` can hold slots (see :func:`particle_kinds`).
+    ``kind & mask`` can hold slots (see :func:`particle_kinds`).
     """
     for i in range(i0, i1):
-        if (kind[i] & K_OWN) != 0 and n[i] > 0:
+        if (kind[i] & mask) != 0 and n[i] > 0:
             _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
 
 
@@ -431,10 +433,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                evf, evi, evn, diag):
     """Forces and torques on the particles of chunk ``c`` (see module docstring).
 
-    Only particles with entries of their own (``kind & K_OWN``: half-list row,
-    geometry candidates or open history slots) are visited; they get ``frc``
-    and ``trq``. The force on any other particle is its weight alone, which
-    the integration pass takes without reading these arrays.
+    Only particles with entries of their own (``kind & (K_OWN | K_GEO)``:
+    half-list row, geometry candidates or open history slots) are visited;
+    those in contact get ``frc`` and ``trq`` (the weight plus their own
+    contacts, summed in the same order as always) and ``K_HIT``. The force on
+    any other particle is its weight alone, which the integration pass takes
+    without reading these arrays (see :func:`settle_forces` for ``frc`` and
+    ``trq`` as outputs).
     """
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -444,22 +449,24 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
     for i in range(i0, i1):
-        if (kind[i] & K_OWN) == 0:
+        ki = kind[i]
+        if (ki & (K_OWN | K_GEO)) == 0:
             continue
-        mi = mass[i]
-        fx = mi * gravity[0]
-        fy = mi * gravity[1]
-        fz = mi * gravity[2]
+        hit = False  # the weight is read, and frc/trq written, only for a particle in contact
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
         tx = 0.0
         ty = 0.0
         tz = 0.0
         ri = rad[i]
-        idi = pid[i]
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+        k0 = nb_start[i]
+        k1 = nb_start[i + 1] if (ki & K_OWN) != 0 else k0
         # ---- particle-particle: half list, row i holds partners with a larger id, so
         # i is the canonical owner (force on i, history, events); the partner's
         # share is stored per entry and gathered in the integration pass
-        for k in range(nb_start[i], nb_start[i + 1]):
+        for k in range(k0, k1):
             j = nb_j[k]
             rj = rad[j]
             rs = ri + rj
@@ -469,6 +476,12 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs or d2 == 0.0:
                 continue
+            if not hit:
+                hit = True
+                mi = mass[i]
+                fx = mi * gravity[0]
+                fy = mi * gravity[1]
+                fz = mi * gravity[2]
             idj = pid[j]
             d = np.sqrt(d2)
             s = rs - d
@@ -553,7 +566,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     vty = vy - vn * ny
                     vtz = vz - vn * nz
                     h_ev[i, slot] = _record_onset(
-                        evf, evi, evn, c, t, idi, 0, idj, ri, rj,
+                        evf, evi, evn, c, t, pid[i], 0, idj, ri, rj,
                         xi + nx * la, yi + ny * la, zi + nz * la,
                         vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
                 if s > h_pk[i, slot]:
@@ -562,12 +575,20 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                                             invm[i] + invm[j],
                                             la * la * invi[i] + lb * lb * invi[j], dt)
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
-        for k in range(gc_start[i], gc_start[i + 1]):
+        g0 = gc_start[i] if (ki & K_GEO) != 0 else 0
+        g1 = gc_start[i + 1] if (ki & K_GEO) != 0 else 0
+        for k in range(g0, g1):
             key = gc_g[k]
             g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, lx, ly, lz)
             ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
+            mi = mass[i]
+            if not hit:
+                hit = True
+                fx = mi * gravity[0]
+                fy = mi * gravity[1]
+                fz = mi * gravity[2]
             li = ri - s
             wvx = 0.0
             wvy = 0.0
@@ -636,27 +657,32 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     vtz = vz - vn * nz
                     # contact point reported in the particle's frame
                     g_ev[i, slot] = _record_onset(
-                        evf, evi, evn, c, t, idi, 1, g, ri, np.nan, cx + xi - xg, cy + yi - yg,
+                        evf, evi, evn, c, t, pid[i], 1, g, ri, np.nan, cx + xi - xg, cy + yi - yg,
                         cz + zi - zg, vn,
                         np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
                 if s > g_pk[i, slot]:
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
-        frc[i, 0] = fx
-        frc[i, 1] = fy
-        frc[i, 2] = fz
-        trq[i, 0] = tx
-        trq[i, 1] = ty
-        trq[i, 2] = tz
+        if hit:
+            frc[i, 0] = fx
+            frc[i, 1] = fy
+            frc[i, 2] = fz
+            trq[i, 0] = tx
+            trq[i, 1] = ty
+            trq[i, 2] = tz
+            if (ki & K_HIT) == 0:
+                kind[i] = ki | K_HIT
+        elif (ki & K_HIT) != 0:
+            kind[i] = ki & ~K_HIT
     # ---- end of contacts: slots not touched this step, once per chunk after its forces
     # (a row's history is only read and written by its own particle, so this is the same
     # as closing after each particle). Once per chunk, not per particle: numba wraps every
     # entry of a helper with array arguments, inlined or not, in atomic reference counting
     # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
     # look-ups above are written out
-    _close_untouched_rows(i0, i1, kind, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
-    _close_untouched_rows(i0, i1, kind, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, K_OWN, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, K_GEO, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
@@ -700,9 +726,9 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags.
 
     Per-particle memory traffic is kept to what the particle needs: the force
-    pass's ``frc``/``trq`` are read only for ``kind & K_OWN``, the partner
-    shares only for ``kind & K_REV`` (then the total is written back); any
-    other particle feels its weight alone. A zero force leaves ``vel``
+    pass's ``frc``/``trq`` are read only for ``kind & K_HIT``, the partner
+    shares only for ``kind & K_REV`` (the total is written back if there
+    were any); any other particle feels its weight alone. A zero force leaves ``vel``
     unchanged and a zero torque ``omg`` (bit for bit the same as adding the
     zero increment: velocities and spins are never -0.0, see
     :func:`particle_kinds`), so neither is written then.
@@ -717,7 +743,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
     for i in range(i0, i1):
         ki = kind[i]
-        if (ki & K_OWN) != 0:
+        if (ki & K_HIT) != 0:
             f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
             t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
         else:
@@ -734,14 +760,19 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
             t1 = 0.0
             t2 = 0.0
         if (ki & K_REV) != 0:
+            got = False
             for q in range(rv_start[i], rv_start[i + 1]):
                 if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                    got = True
                     f0 -= pf[q, 0]
                     f1 -= pf[q, 1]
                     f2 -= pf[q, 2]
                     t0 += pt[q, 0]
                     t1 += pt[q, 1]
                     t2 += pt[q, 2]
+        else:
+            got = False
+        if got:
             frc[i, 0] = f0
             frc[i, 1] = f1
             frc[i, 2] = f2
@@ -802,9 +833,10 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
 def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
     """Per-particle work flags of the step passes for the list just built.
 
-    ``K_OWN``: the particle owns entries (half-list row, geometry candidates)
-    or open history slots, so the force pass visits it; ``K_REV``: it is the
-    partner of half-list entries, so the integration pass gathers shares.
+    ``K_OWN``: the particle owns half-list entries or particle history slots
+    and ``K_GEO`` geometry candidates or slots, so the force pass visits it;
+    ``K_REV``: it is the partner of half-list entries, so the integration
+    pass gathers shares.
     Also turns -0.0 velocity and spin components into +0.0 (what adding a
     zero increment does), so that skipping a zero increment is exact.
     """
@@ -812,9 +844,10 @@ def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
     kind = np.zeros(n, np.uint8)
     for i in range(n):
         k = 0
-        if (nb_start[i + 1] > nb_start[i] or gc_start[i + 1] > gc_start[i] or h_n[i] > 0
-                or g_n[i] > 0):
+        if nb_start[i + 1] > nb_start[i] or h_n[i] > 0:
             k |= K_OWN
+        if gc_start[i + 1] > gc_start[i] or g_n[i] > 0:
+            k |= K_GEO
         if rv_start[i + 1] > rv_start[i]:
             k |= K_REV
         kind[i] = k
@@ -827,17 +860,32 @@ def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
 
 
 @njit(cache=True, fastmath=False)
-def weight_only_forces(kind, mass, gravity, frc, trq):
-    """``frc``/``trq`` of the particles the passes skip (``kind == 0``): weight, no torque."""
+def settle_forces(kind, mass, gravity, frc, trq, rv_start, pc, stamp):
+    """Make ``frc``/``trq`` those of the force pass of step ``stamp`` for every particle.
+
+    The step passes write them only for particles in contact; any other
+    particle had its weight and no torque. Call before the kinds or the
+    partner shares of that step are replaced.
+    """
     for i in range(kind.shape[0]):
-        if kind[i] == 0:
-            mi = mass[i]
-            frc[i, 0] = mi * gravity[0]
-            frc[i, 1] = mi * gravity[1]
-            frc[i, 2] = mi * gravity[2]
-            trq[i, 0] = 0.0
-            trq[i, 1] = 0.0
-            trq[i, 2] = 0.0
+        ki = kind[i]
+        if (ki & K_HIT) != 0:
+            continue
+        got = False
+        if (ki & K_REV) != 0:
+            for q in range(rv_start[i], rv_start[i + 1]):
+                if pc[q] == stamp:
+                    got = True
+                    break
+        if got:
+            continue
+        mi = mass[i]
+        frc[i, 0] = mi * gravity[0]
+        frc[i, 1] = mi * gravity[1]
+        frc[i, 2] = mi * gravity[2]
+        trq[i, 0] = 0.0
+        trq[i, 1] = 0.0
+        trq[i, 2] = 0.0
 
 
 @njit(cache=True, fastmath=False, parallel=True)
@@ -1501,29 +1549,32 @@ def geometry_overlap(pos, rad, gcur, gkind, box_len, periodic):
 
 
 @njit(cache=True, fastmath=False)
-def permute_slots(perm, cnt, ids, st, ev, pk, ds, tch):
-    """Gather history slots by ``perm``, copying only the used slots of each particle.
+def permute_slot_records(perm, cnt, words):
+    """Gather slot records by ``perm``, copying only the used slots of each particle.
 
-    Returns new arrays (``ids, st, ev, pk, ds, tch``); unused slots hold
-    ``ev = -1`` and otherwise undefined values (kernels bound access by ``cnt``).
+    ``words`` is the records' raw view, shape (particles, slots, words per
+    record). Returns a new array of that shape; unused slots hold undefined
+    values (every reader bounds its access by ``cnt``; a slot is initialised
+    when it is taken).
     """
     n = perm.shape[0]
-    s = ids.shape[1]
-    ids2 = np.empty((n, s), ids.dtype)
-    st2 = np.empty((n, s, 3))
-    ev2 = np.full((n, s), -1, np.int64)  # read unbounded by flush / deletion
-    pk2 = np.empty((n, s))
-    ds2 = np.empty((n, s))
-    tch2 = np.zeros((n, s), np.uint8)
+    out = np.empty((n, words.shape[1], words.shape[2]), words.dtype)
+    nw = words.shape[2]
     for i in range(n):
         o = perm[i]
         for q in range(cnt[o]):
-            ids2[i, q] = ids[o, q]
-            st2[i, q, 0] = st[o, q, 0]
-            st2[i, q, 1] = st[o, q, 1]
-            st2[i, q, 2] = st[o, q, 2]
-            ev2[i, q] = ev[o, q]
-            pk2[i, q] = pk[o, q]
-            ds2[i, q] = ds[o, q]
-            tch2[i, q] = tch[o, q]
-    return ids2, st2, ev2, pk2, ds2, tch2
+            for w in range(nw):
+                out[i, q, w] = words[o, q, w]
+    return out
+
+
+@njit(cache=True, fastmath=False)
+def remap_event_refs(ev, cnt, new_row):
+    """Remap the used slots' event references after a flush (``new_row[row, chunk]``, -1: moved out)."""
+    nch = new_row.shape[1]
+    for i in range(ev.shape[0]):
+        for q in range(cnt[i]):
+            v = ev[i, q]
+            if v >= 0:
+                row = new_row[v // nch, v % nch]
+                ev[i, q] = row * nch + v % nch if row >= 0 else -1
