@@ -426,7 +426,7 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 @njit(cache=True, fastmath=False)
 def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
@@ -546,6 +546,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             # without contact is written
             q = rv_pos[k]
             pc[q] = stamp
+            shs[j] = stamp  # j has a share this step (owners may write it concurrently: same value)
             pf[q, 0] = cfx
             pf[q, 1] = cfy
             pf[q, 2] = cfz
@@ -688,26 +689,26 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
 
 @njit(cache=True, fastmath=False, parallel=True)
 def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
 def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False, inline='always')
@@ -721,7 +722,7 @@ def _weight_free(gravity):
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf,
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf,
                      pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags.
 
@@ -759,7 +760,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
             t0 = 0.0
             t1 = 0.0
             t2 = 0.0
-        if (ki & K_REV) != 0:
+        if (ki & K_REV) != 0 and shs[i] == stamp:
             got = False
             for q in range(rv_start[i], rv_start[i + 1]):
                 if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
@@ -860,7 +861,7 @@ def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
 
 
 @njit(cache=True, fastmath=False)
-def settle_forces(kind, mass, gravity, frc, trq, rv_start, pc, stamp):
+def settle_forces(kind, mass, gravity, frc, trq, shs, stamp):
     """Make ``frc``/``trq`` those of the force pass of step ``stamp`` for every particle.
 
     The step passes write them only for particles in contact; any other
@@ -871,13 +872,7 @@ def settle_forces(kind, mass, gravity, frc, trq, rv_start, pc, stamp):
         ki = kind[i]
         if (ki & K_HIT) != 0:
             continue
-        got = False
-        if (ki & K_REV) != 0:
-            for q in range(rv_start[i], rv_start[i + 1]):
-                if pc[q] == stamp:
-                    got = True
-                    break
-        if got:
+        if shs[i] == stamp:  # shares of partners were added in that step's integration
             continue
         mi = mass[i]
         frc[i, 0] = mi * gravity[0]
@@ -889,22 +884,22 @@ def settle_forces(kind, mass, gravity, frc, trq, rv_start, pc, stamp):
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
 def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, pf, pt, box_len, gc_start,
+            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, shs, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
@@ -912,8 +907,9 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
 
     ``parallel`` selects the threaded passes (worth it from a few thousand
     particles; below that the thread wake-up per pass dominates). Step
-    ``stamp0 + step`` stamps the partner shares it writes to ``pc`` (step
-    numbers are unique over the run, so the array needs no clearing).
+    ``stamp0 + step`` stamps the partner shares it writes to ``pc``, and in
+    ``shs`` the partners that got one (step numbers are unique over the run,
+    so neither array needs clearing).
     """
     half_skin = 0.5 * skin
     ev_limit = evf.shape[1] // 2
@@ -923,17 +919,17 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
         stamp = stamp0 + step
         if parallel:
             force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0
@@ -1321,9 +1317,12 @@ def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, peri
     grid (:func:`build_geom_grid`) are tested; entries are keys
     ``g * KEY_STRIDE + image code`` (see :func:`_geom_key_frame`). One sweep
     fills padded rows of width ``maxg_hint`` (widened and redone if a row
-    overflows). Returns ``(start, keys, widest row)``.
+    overflows). Returns ``(start, keys, widest row)``. Without primitives
+    (a periodic gas) every row is empty and nothing is swept.
     """
     n = pos.shape[0]
+    if gkind.shape[0] == 0:
+        return np.zeros(n + 1, np.int64), np.empty(0, np.int32), 0
     counts = np.zeros(n, np.int64)
     maxg = max(maxg_hint, 1)
     while True:

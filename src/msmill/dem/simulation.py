@@ -590,8 +590,8 @@ class Simulation:
         """
         if self._frc_stale:
             p = self._p
-            K.settle_forces(self._kind, p["mass"], self._gravity, p["frc"], p["trq"], self._nb[3],
-                            self._pair[0], self._stamp)
+            K.settle_forces(self._kind, p["mass"], self._gravity, p["frc"], p["trq"], self._pair[3],
+                            self._stamp)
             self._frc_stale = False
 
     def _rebuild(self) -> None:
@@ -617,7 +617,9 @@ class Simulation:
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         # partner shares in reverse-list order, stamped with the step that wrote them
-        self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)))
+        # (the fourth: the step in which each particle last got a partner share)
+        self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)),
+                      np.zeros(p["pos"].shape[0], np.int64))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
         margin = self._rmax_cells + self._skin
         if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
@@ -892,8 +894,8 @@ class Simulation:
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
                     p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
-                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[1],
-                    self._pair[2],
+                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
+                    self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
                     self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
                     self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
