@@ -995,11 +995,17 @@ def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, gspan):
 
 @njit(cache=True, fastmath=False)
 def bin_cells(pos, lo, cell_len, ncell):
-    """Counting sort of particles into cells; return (cell of each, cell start, order)."""
+    """Counting sort of particles into cells.
+
+    Returns (cell of each, cell start, order, cell coordinates of each (n, 3)):
+    the coordinates spare the neighbour sweep three integer divisions per
+    particle.
+    """
     n = pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
     ntot = nx * ny * nz
     cell = np.empty(n, np.int64)
+    cc = np.empty((n, 3), np.int32)
     for i in range(n):
         cx = int(np.floor((pos[i, 0] - lo[0]) / cell_len[0]))
         cy = int(np.floor((pos[i, 1] - lo[1]) / cell_len[1]))
@@ -1008,6 +1014,9 @@ def bin_cells(pos, lo, cell_len, ncell):
         cy = min(max(cy, 0), ny - 1)
         cz = min(max(cz, 0), nz - 1)
         cell[i] = (cz * ny + cy) * nx + cx
+        cc[i, 0] = cx
+        cc[i, 1] = cy
+        cc[i, 2] = cz
     start = np.zeros(ntot + 1, np.int64)
     for i in range(n):
         start[cell[i] + 1] += 1
@@ -1018,7 +1027,7 @@ def bin_cells(pos, lo, cell_len, ncell):
     for i in range(n):
         order[fill[cell[i]]] = i
         fill[cell[i]] += 1
-    return cell, start, order
+    return cell, start, order, cc
 
 
 @njit(cache=True, fastmath=False, inline='always')
@@ -1079,10 +1088,9 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
     """
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
     for i in range(i0, i1):
-        ci = cell[i]
-        cx = ci % nx
-        cy = (ci // nx) % ny
-        cz = ci // (nx * ny)
+        cx = np.int64(cell[i, 0])
+        cy = np.int64(cell[i, 1])
+        cz = np.int64(cell[i, 2])
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
         ri = rad[i]
         idi = pid[i]
@@ -1153,6 +1161,9 @@ def _row_starts(counts):
 def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel,
                      maxn_hint):
     """Half Verlet list (partners with a larger id) in CSR form plus its reverse.
+
+    ``cell`` holds each particle's cell coordinates (n, 3), ``start`` and
+    ``order`` the cell lists (see :func:`bin_cells`).
 
     One cell sweep fills padded rows of width ``maxn_hint`` (widened and
     redone if a row overflows), then rows are packed. Returns ``(start,

@@ -605,11 +605,11 @@ class Simulation:
             self._cells(rmax)
         elif p["rad"].size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
             self._cells(self._rmax_cells)
-        cell, start, order = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
+        _cell, start, order, cell = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
         par = self._last_par and threads_usable()  # rebuilds follow the step kernels' choice
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
             self._keep(order)
-            cell = cell[order]
+            cell = cell[order]  # cell coordinates (n, 3)
             order = np.arange(cell.size, dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
