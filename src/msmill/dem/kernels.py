@@ -803,21 +803,23 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
         sp = v0 * v0 + v1 * v1 + v2 * v2
         if sp > vmax:
             vmax = sp
-        if flag[i] != F_OK:
-            continue
+        # every flag is F_OK when a pass starts (a flagged particle ends the call, R_FLAGGED,
+        # and is removed before the next), so flags are written here, never read
         if not (np.isfinite(x + y + z) and np.isfinite(sp)):
             flag[i] = F_NONFINITE
             flag_t[i] = t_new
             nflag += 1
             continue
+        sunk = False
         for k in range(nsink):
             if (x >= sinks[k, 0] and x <= sinks[k, 3] and y >= sinks[k, 1]
                     and y <= sinks[k, 4] and z >= sinks[k, 2] and z <= sinks[k, 5]):
                 flag[i] = 2 + k
                 flag_t[i] = t_new
                 nflag += 1
+                sunk = True
                 break
-        if flag[i] != F_OK:
+        if sunk:
             continue
         if ((periodic[0] == 0 and (x < lo[0] or x > hi[0]))
                 or (periodic[1] == 0 and (y < lo[1] or y > hi[1]))
