@@ -448,7 +448,9 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     lx, ly, lz = box_len[0], box_len[1], box_len[2]
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
-    for i in range(i0, i1):
+    one = np.uint64(1)
+    # unsigned particle and entry indices: no negative-index wrap-around on every access
+    for i in range(np.uint64(i0), np.uint64(i1)):
         ki = kind[i]
         if (ki & (K_OWN | K_GEO)) == 0:
             continue
@@ -461,13 +463,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         tz = 0.0
         ri = rad[i]
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
-        k0 = nb_start[i]
-        k1 = nb_start[i + 1] if (ki & K_OWN) != 0 else k0
+        k0 = np.uint64(nb_start[i])
+        k1 = np.uint64(nb_start[i + one]) if (ki & K_OWN) != 0 else k0
         # ---- particle-particle: half list, row i holds partners with a larger id, so
         # i is the canonical owner (force on i, history, events); the partner's
         # share is stored per entry and gathered in the integration pass
         for k in range(k0, k1):
-            j = nb_j[k]
+            j = np.uint64(nb_j[k])
             rj = rad[j]
             rs = ri + rj
             dx = pos[j, 0] - xi + nb_sh[k, 0] * lx
@@ -577,7 +579,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                                             la * la * invi[i] + lb * lb * invi[j], dt)
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
         g0 = gc_start[i] if (ki & K_GEO) != 0 else 0
-        g1 = gc_start[i + 1] if (ki & K_GEO) != 0 else 0
+        g1 = gc_start[i + one] if (ki & K_GEO) != 0 else 0
         for k in range(g0, g1):
             key = gc_g[k]
             g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, lx, ly, lz)
@@ -742,7 +744,14 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     nflag = 0
     no_weight = _weight_free(gravity)
     g0, g1, g2 = gravity[0], gravity[1], gravity[2]
-    for i in range(i0, i1):
+    # loop constants as scalars (array reads would be repeated after every store: numba's
+    # arrays may alias) and an unsigned index (no negative-index wrap-around per access)
+    bx = periodic[0] == 0
+    by = periodic[1] == 0
+    bz = periodic[2] == 0
+    lo0, lo1, lo2, hi0, hi1, hi2 = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    one = np.uint64(1)
+    for i in range(np.uint64(i0), np.uint64(i1)):
         ki = kind[i]
         if (ki & K_HIT) != 0:
             f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
@@ -762,7 +771,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
             t2 = 0.0
         if (ki & K_REV) != 0 and shs[i] == stamp:
             got = False
-            for q in range(rv_start[i], rv_start[i + 1]):
+            for q in range(rv_start[i], rv_start[i + one]):
                 if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
                     got = True
                     f0 -= pf[q, 0]
@@ -821,9 +830,8 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
                 break
         if sunk:
             continue
-        if ((periodic[0] == 0 and (x < lo[0] or x > hi[0]))
-                or (periodic[1] == 0 and (y < lo[1] or y > hi[1]))
-                or (periodic[2] == 0 and (z < lo[2] or z > hi[2]))):
+        if ((bx and (x < lo0 or x > hi0)) or (by and (y < lo1 or y > hi1))
+                or (bz and (z < lo2 or z > hi2))):
             flag[i] = F_LOST
             flag_t[i] = t_new
             nflag += 1
