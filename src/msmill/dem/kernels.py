@@ -523,12 +523,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     h_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
+            us = np.uint64(slot if slot >= 0 else 0)
             if slot >= 0:
-                sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
+                sx, sy, sz = h_st[i, us, 0], h_st[i, us, 1], h_st[i, us, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            ma = mat[i]
-            mb = mat[j]
+            ma = np.uint64(mat[i])
+            mb = np.uint64(mat[j])
             rstar = ri * rj / rs
             mstar = 1.0 / (invm[i] + invm[j])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
@@ -546,35 +547,35 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             # the partner's share, stored in its reverse-list order and stamped with this
             # step: the integration pass reads its shares contiguously and no entry
             # without contact is written
-            q = rv_pos[k]
-            pc[q] = stamp
+            rq = np.uint64(rv_pos[k])
+            pc[rq] = stamp
             shs[j] = stamp  # j has a share this step (owners may write it concurrently: same value)
-            pf[q, 0] = cfx
-            pf[q, 1] = cfy
-            pf[q, 2] = cfz
-            pt[q, 0] = lb * cx_
-            pt[q, 1] = lb * cy_
-            pt[q, 2] = lb * cz_
+            pf[rq, 0] = cfx
+            pf[rq, 1] = cfy
+            pf[rq, 2] = cfz
+            pt[rq, 0] = lb * cx_
+            pt[rq, 1] = lb * cy_
+            pt[rq, 2] = lb * cz_
             rmin = min(ri, rj)
             if s > ovmax * rmin:
                 ovmax = s / rmin
             if slot >= 0:
-                h_st[i, slot, 0] = sx
-                h_st[i, slot, 1] = sy
-                h_st[i, slot, 2] = sz
-                h_tch[i, slot] = 1
+                h_st[i, us, 0] = sx
+                h_st[i, us, 1] = sy
+                h_st[i, us, 2] = sz
+                h_tch[i, us] = 1
                 if new:
                     vn = vx * nx + vy * ny + vz * nz
                     vtx = vx - vn * nx
                     vty = vy - vn * ny
                     vtz = vz - vn * nz
-                    h_ev[i, slot] = _record_onset(
+                    h_ev[i, us] = _record_onset(
                         evf, evi, evn, c, t, pid[i], 0, idj, ri, rj,
                         xi + nx * la, yi + ny * la, zi + nz * la,
                         vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
-                if s > h_pk[i, slot]:
-                    h_pk[i, slot] = s
-                h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
+                if s > h_pk[i, us]:
+                    h_pk[i, us] = s
+                h_ds[i, us] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i] + invm[j],
                                             la * la * invi[i] + lb * lb * invi[j], dt)
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
@@ -635,8 +636,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 sx, sy, sz = g_st[i, slot, 0], g_st[i, slot, 1], g_st[i, slot, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            ma = mat[i]
-            mb = gmat[g]
+            ma = np.uint64(mat[i])
+            mb = np.uint64(gmat[g])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
                 s, nx, ny, nz, vx, vy, vz, ri, mi, ptab[ma, mb, 0], ptab[ma, mb, 1],
                 ptab[ma, mb, 2], ptab[ma, mb, 3], ptab[ma, mb, 4], dt, sx, sy, sz)
@@ -1068,12 +1069,16 @@ def _candidates(i, p0, p1, sx, sy, sz, idi, xi, yi, zi, ri, skin, cxyzr, cpid, o
                 pad_sh, cnt):
     """Add the candidates ``p0 <= p < p1`` (cell order) within the cut-off to row ``i``."""
     maxn = pad_j.shape[1]
-    for p in range(p0, p1):
+    # the image offsets once per run (read in the loop they are reloaded after every store)
+    ox = sx * box_len[0]
+    oy = sy * box_len[1]
+    oz = sz * box_len[2]
+    for p in range(np.uint64(p0), np.uint64(p1)):  # unsigned: no wrap-around per access
         if cpid[p] <= idi:
             continue
-        dx = cxyzr[p, 0] + sx * box_len[0] - xi
-        dy = cxyzr[p, 1] + sy * box_len[1] - yi
-        dz = cxyzr[p, 2] + sz * box_len[2] - zi
+        dx = cxyzr[p, 0] + ox - xi
+        dy = cxyzr[p, 1] + oy - yi
+        dz = cxyzr[p, 2] + oz - zi
         cut = ri + cxyzr[p, 3] + skin
         if dx * dx + dy * dy + dz * dz < cut * cut:
             if cnt < maxn:
@@ -1097,7 +1102,8 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
     reference counting (~100 ns per particle here, docs/dem.md, Performance).
     """
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
-    for i in range(i0, i1):
+    perx, pery, perz = periodic[0], periodic[1], periodic[2]
+    for i in range(np.uint64(i0), np.uint64(i1)):
         cx = np.int64(cell[i, 0])
         cy = np.int64(cell[i, 1])
         cz = np.int64(cell[i, 2])
@@ -1106,27 +1112,28 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
         idi = pid[i]
         cnt = 0
         for oz in range(-1, 2):
-            qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
+            qz, sz, ok = _neighbour_cell(cz + oz, nz, perz)
             if not ok:
                 continue
             for oy in range(-1, 2):
-                qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
+                qy, sy, ok = _neighbour_cell(cy + oy, ny, pery)
                 if not ok:
                     continue
                 row = (qz * ny + qy) * nx
                 if 0 < cx < nx - 1:
                     # the three cells along x are contiguous in cell order and unshifted:
                     # one run of candidates, visited in the same order as cell by cell
-                    cnt = _candidates(i, start[row + cx - 1], start[row + cx + 2], 0, sy, sz, idi,
+                    cnt = _candidates(i, start[np.uint64(row + cx - 1)], start[np.uint64(row + cx + 2)],
+                                      0, sy, sz, idi,
                                       xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
                                       pad_sh, cnt)
                     continue
                 for ox in range(-1, 2):
-                    qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
+                    qx, sx, ok = _neighbour_cell(cx + ox, nx, perx)
                     if not ok:
                         continue
-                    q = row + qx
-                    cnt = _candidates(i, start[q], start[q + 1], sx, sy, sz, idi, xi, yi, zi, ri,
+                    q = np.uint64(row + qx)
+                    cnt = _candidates(i, start[q], start[q + np.uint64(1)], sx, sy, sz, idi, xi, yi, zi, ri,
                                       skin, cxyzr, cpid, order, box_len, pad_j, pad_sh, cnt)
         counts[i] = cnt
 
