@@ -610,7 +610,7 @@ class Simulation:
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
             self._keep(order)
             cell = cell[order]  # cell coordinates (n, 3)
-            order = np.arange(cell.size, dtype=np.int64)
+            order = np.arange(cell.shape[0], dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
                                       par, self._maxn)
