@@ -48,6 +48,11 @@ N_EVI = 3
 D_DISP2, D_OVER, D_SPEED2, D_HOVF, D_EVOVF, D_FLAGGED = range(6)
 N_DIAG = 6
 
+# per-particle work flags of the step passes (particle_kinds): owns half-list entries or
+# particle history slots, is the partner of entries, has geometry candidates or slots;
+# K_HIT is set by the force pass for this step when the particle's own contacts gave it a force
+K_OWN, K_REV, K_GEO, K_HIT = 1, 2, 4, 8
+
 # advance() return reasons
 R_DONE, R_REBUILD, R_FLAGGED, R_EVFULL = 0, 1, 2, 3
 
@@ -363,15 +368,16 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 @njit(cache=True, fastmath=False)
-def _close_untouched_rows(i0, i1, keys, n, st, ev, pk, ds, tch, evf, t):
+def _close_untouched_rows(i0, i1, kind, mask, keys, n, st, ev, pk, ds, tch, evf, t):
     """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
-    Serves particle and geometry partners alike.
+    Serves particle and geometry partners alike. Only particles with
+    ``kind & mask`` can hold slots (see :func:`particle_kinds`).
     """
     for i in range(i0, i1):
-        if n[i] > 0:
+        if (kind[i] & mask) != 0 and n[i] > 0:
             _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
 
 
@@ -419,13 +425,22 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 
 @njit(cache=True, fastmath=False)
-def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
-    """Forces and torques on the particles of chunk ``c`` (see module docstring)."""
+    """Forces and torques on the particles of chunk ``c`` (see module docstring).
+
+    Only particles with entries of their own (``kind & (K_OWN | K_GEO)``:
+    half-list row, geometry candidates or open history slots) are visited;
+    those in contact get ``frc`` and ``trq`` (the weight plus their own
+    contacts, summed in the same order as always) and ``K_HIT``. The force on
+    any other particle is its weight alone, which the integration pass takes
+    without reading these arrays (see :func:`settle_forces` for ``frc`` and
+    ``trq`` as outputs).
+    """
     n = pos.shape[0]
     nch = diag.shape[0]
     smax = h_pid.shape[1]
@@ -433,22 +448,28 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     lx, ly, lz = box_len[0], box_len[1], box_len[2]
     i0, i1 = chunk_bounds(n, nch, c)
     ovmax = 0.0
-    for i in range(i0, i1):
-        mi = mass[i]
-        fx = mi * gravity[0]
-        fy = mi * gravity[1]
-        fz = mi * gravity[2]
+    one = np.uint64(1)
+    # unsigned particle and entry indices: no negative-index wrap-around on every access
+    for i in range(np.uint64(i0), np.uint64(i1)):
+        ki = kind[i]
+        if (ki & (K_OWN | K_GEO)) == 0:
+            continue
+        hit = False  # the weight is read, and frc/trq written, only for a particle in contact
+        fx = 0.0
+        fy = 0.0
+        fz = 0.0
         tx = 0.0
         ty = 0.0
         tz = 0.0
         ri = rad[i]
-        idi = pid[i]
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
+        k0 = np.uint64(nb_start[i])
+        k1 = np.uint64(nb_start[i + one]) if (ki & K_OWN) != 0 else k0
         # ---- particle-particle: half list, row i holds partners with a larger id, so
         # i is the canonical owner (force on i, history, events); the partner's
         # share is stored per entry and gathered in the integration pass
-        for k in range(nb_start[i], nb_start[i + 1]):
-            j = nb_j[k]
+        for k in range(k0, k1):
+            j = np.uint64(nb_j[k])
             rj = rad[j]
             rs = ri + rj
             dx = pos[j, 0] - xi + nb_sh[k, 0] * lx
@@ -457,6 +478,12 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs or d2 == 0.0:
                 continue
+            if not hit:
+                hit = True
+                mi = mass[i]
+                fx = mi * gravity[0]
+                fy = mi * gravity[1]
+                fz = mi * gravity[2]
             idj = pid[j]
             d = np.sqrt(d2)
             s = rs - d
@@ -496,12 +523,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     h_ds[i, slot] = 0.0
             if slot < 0:
                 diag[c, D_HOVF] += 1.0
+            us = np.uint64(slot if slot >= 0 else 0)
             if slot >= 0:
-                sx, sy, sz = h_st[i, slot, 0], h_st[i, slot, 1], h_st[i, slot, 2]
+                sx, sy, sz = h_st[i, us, 0], h_st[i, us, 1], h_st[i, us, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            ma = mat[i]
-            mb = mat[j]
+            ma = np.uint64(mat[i])
+            mb = np.uint64(mat[j])
             rstar = ri * rj / rs
             mstar = 1.0 / (invm[i] + invm[j])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
@@ -519,43 +547,52 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             # the partner's share, stored in its reverse-list order and stamped with this
             # step: the integration pass reads its shares contiguously and no entry
             # without contact is written
-            q = rv_pos[k]
-            pc[q] = stamp
-            pf[q, 0] = cfx
-            pf[q, 1] = cfy
-            pf[q, 2] = cfz
-            pt[q, 0] = lb * cx_
-            pt[q, 1] = lb * cy_
-            pt[q, 2] = lb * cz_
+            rq = np.uint64(rv_pos[k])
+            pc[rq] = stamp
+            shs[j] = stamp  # j has a share this step (owners may write it concurrently: same value)
+            pf[rq, 0] = cfx
+            pf[rq, 1] = cfy
+            pf[rq, 2] = cfz
+            pt[rq, 0] = lb * cx_
+            pt[rq, 1] = lb * cy_
+            pt[rq, 2] = lb * cz_
             rmin = min(ri, rj)
             if s > ovmax * rmin:
                 ovmax = s / rmin
             if slot >= 0:
-                h_st[i, slot, 0] = sx
-                h_st[i, slot, 1] = sy
-                h_st[i, slot, 2] = sz
-                h_tch[i, slot] = 1
+                h_st[i, us, 0] = sx
+                h_st[i, us, 1] = sy
+                h_st[i, us, 2] = sz
+                h_tch[i, us] = 1
                 if new:
                     vn = vx * nx + vy * ny + vz * nz
                     vtx = vx - vn * nx
                     vty = vy - vn * ny
                     vtz = vz - vn * nz
-                    h_ev[i, slot] = _record_onset(
-                        evf, evi, evn, c, t, idi, 0, idj, ri, rj,
+                    h_ev[i, us] = _record_onset(
+                        evf, evi, evn, c, t, pid[i], 0, idj, ri, rj,
                         xi + nx * la, yi + ny * la, zi + nz * la,
                         vn, np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
-                if s > h_pk[i, slot]:
-                    h_pk[i, slot] = s
-                h_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
+                if s > h_pk[i, us]:
+                    h_pk[i, us] = s
+                h_ds[i, us] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i] + invm[j],
                                             la * la * invi[i] + lb * lb * invi[j], dt)
         # ---- particle-geometry (a key is a primitive or one of its periodic images)
-        for k in range(gc_start[i], gc_start[i + 1]):
+        g0 = gc_start[i] if (ki & K_GEO) != 0 else 0
+        g1 = gc_start[i + one] if (ki & K_GEO) != 0 else 0
+        for k in range(g0, g1):
             key = gc_g[k]
             g, xg, yg, zg = _geom_key_frame(key, xi, yi, zi, lx, ly, lz)
             ok, s, nx, ny, nz, cx, cy, cz = geom_contact(gkind[g], gcur, g, xg, yg, zg, ri)
             if not ok:
                 continue
+            mi = mass[i]
+            if not hit:
+                hit = True
+                fx = mi * gravity[0]
+                fy = mi * gravity[1]
+                fz = mi * gravity[2]
             li = ri - s
             wvx = 0.0
             wvy = 0.0
@@ -599,8 +636,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 sx, sy, sz = g_st[i, slot, 0], g_st[i, slot, 1], g_st[i, slot, 2]
             else:
                 sx, sy, sz = 0.0, 0.0, 0.0
-            ma = mat[i]
-            mb = gmat[g]
+            ma = np.uint64(mat[i])
+            mb = np.uint64(gmat[g])
             cfx, cfy, cfz, sx, sy, sz, fn = contact_law(
                 s, nx, ny, nz, vx, vy, vz, ri, mi, ptab[ma, mb, 0], ptab[ma, mb, 1],
                 ptab[ma, mb, 2], ptab[ma, mb, 3], ptab[ma, mb, 4], dt, sx, sy, sz)
@@ -624,91 +661,149 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     vtz = vz - vn * nz
                     # contact point reported in the particle's frame
                     g_ev[i, slot] = _record_onset(
-                        evf, evi, evn, c, t, idi, 1, g, ri, np.nan, cx + xi - xg, cy + yi - yg,
+                        evf, evi, evn, c, t, pid[i], 1, g, ri, np.nan, cx + xi - xg, cy + yi - yg,
                         cz + zi - zg, vn,
                         np.sqrt(vtx * vtx + vty * vty + vtz * vtz), diag)
                 if s > g_pk[i, slot]:
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
-        frc[i, 0] = fx
-        frc[i, 1] = fy
-        frc[i, 2] = fz
-        trq[i, 0] = tx
-        trq[i, 1] = ty
-        trq[i, 2] = tz
+        if hit:
+            frc[i, 0] = fx
+            frc[i, 1] = fy
+            frc[i, 2] = fz
+            trq[i, 0] = tx
+            trq[i, 1] = ty
+            trq[i, 2] = tz
+            if (ki & K_HIT) == 0:
+                kind[i] = ki | K_HIT
+        elif (ki & K_HIT) != 0:
+            kind[i] = ki & ~K_HIT
     # ---- end of contacts: slots not touched this step, once per chunk after its forces
     # (a row's history is only read and written by its own particle, so this is the same
     # as closing after each particle). Once per chunk, not per particle: numba wraps every
     # entry of a helper with array arguments, inlined or not, in atomic reference counting
     # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
     # look-ups above are written out
-    _close_untouched_rows(i0, i1, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
-    _close_untouched_rows(i0, i1, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, K_OWN, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(i0, i1, kind, K_GEO, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g,
+def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+               nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch,
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+
+
+@njit(cache=True, fastmath=False, inline='always')
+def _weight_free(gravity):
+    """Whether every gravity component is +0.0 (then ``m g`` is +0.0 for any mass)."""
+    ok = True
+    for k in range(3):
+        if gravity[k] != 0.0 or np.copysign(1.0, gravity[k]) < 0.0:
+            ok = False
+    return ok
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
-    """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags."""
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf,
+                     pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+    """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags.
+
+    Per-particle memory traffic is kept to what the particle needs: the force
+    pass's ``frc``/``trq`` are read only for ``kind & K_HIT``, the partner
+    shares only for ``kind & K_REV`` (the total is written back if there
+    were any); any other particle feels its weight alone. A zero force leaves ``vel``
+    unchanged and a zero torque ``omg`` (bit for bit the same as adding the
+    zero increment: velocities and spins are never -0.0, see
+    :func:`particle_kinds`), so neither is written then.
+    """
     n = pos.shape[0]
     nch = diag.shape[0]
     nsink = sinks.shape[0]
     i0, i1 = chunk_bounds(n, nch, c)
     vmax = 0.0
     nflag = 0
-    for i in range(i0, i1):
-        im = invm[i]
-        ii = invi[i]
-        f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
-        t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
-        for q in range(rv_start[i], rv_start[i + 1]):
-            if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
-                f0 -= pf[q, 0]
-                f1 -= pf[q, 1]
-                f2 -= pf[q, 2]
-                t0 += pt[q, 0]
-                t1 += pt[q, 1]
-                t2 += pt[q, 2]
-        frc[i, 0] = f0
-        frc[i, 1] = f1
-        frc[i, 2] = f2
-        trq[i, 0] = t0
-        trq[i, 1] = t1
-        trq[i, 2] = t2
-        v0 = vel[i, 0] + f0 * im * dt
-        v1 = vel[i, 1] + f1 * im * dt
-        v2 = vel[i, 2] + f2 * im * dt
-        vel[i, 0] = v0
-        vel[i, 1] = v1
-        vel[i, 2] = v2
-        omg[i, 0] += t0 * ii * dt
-        omg[i, 1] += t1 * ii * dt
-        omg[i, 2] += t2 * ii * dt
+    no_weight = _weight_free(gravity)
+    g0, g1, g2 = gravity[0], gravity[1], gravity[2]
+    # loop constants as scalars (array reads would be repeated after every store: numba's
+    # arrays may alias) and an unsigned index (no negative-index wrap-around per access)
+    bx = periodic[0] == 0
+    by = periodic[1] == 0
+    bz = periodic[2] == 0
+    lo0, lo1, lo2, hi0, hi1, hi2 = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    one = np.uint64(1)
+    for i in range(np.uint64(i0), np.uint64(i1)):
+        ki = kind[i]
+        if (ki & K_HIT) != 0:
+            f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
+            t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
+        else:
+            if no_weight:
+                f0 = 0.0
+                f1 = 0.0
+                f2 = 0.0
+            else:
+                mi = mass[i]
+                f0 = mi * g0
+                f1 = mi * g1
+                f2 = mi * g2
+            t0 = 0.0
+            t1 = 0.0
+            t2 = 0.0
+        if (ki & K_REV) != 0 and shs[i] == stamp:
+            got = False
+            for q in range(rv_start[i], rv_start[i + one]):
+                if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                    got = True
+                    f0 -= pf[q, 0]
+                    f1 -= pf[q, 1]
+                    f2 -= pf[q, 2]
+                    t0 += pt[q, 0]
+                    t1 += pt[q, 1]
+                    t2 += pt[q, 2]
+        else:
+            got = False
+        if got:
+            frc[i, 0] = f0
+            frc[i, 1] = f1
+            frc[i, 2] = f2
+            trq[i, 0] = t0
+            trq[i, 1] = t1
+            trq[i, 2] = t2
+        v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
+        if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
+            im = invm[i]
+            v0 = v0 + f0 * im * dt
+            v1 = v1 + f1 * im * dt
+            v2 = v2 + f2 * im * dt
+            vel[i, 0] = v0
+            vel[i, 1] = v1
+            vel[i, 2] = v2
+        if t0 != 0.0 or t1 != 0.0 or t2 != 0.0:
+            ii = invi[i]
+            omg[i, 0] += t0 * ii * dt
+            omg[i, 1] += t1 * ii * dt
+            omg[i, 2] += t2 * ii * dt
         x = pos[i, 0] + v0 * dt
         y = pos[i, 1] + v1 * dt
         z = pos[i, 2] + v2 * dt
@@ -718,25 +813,26 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc,
         sp = v0 * v0 + v1 * v1 + v2 * v2
         if sp > vmax:
             vmax = sp
-        if flag[i] != F_OK:
-            continue
+        # every flag is F_OK when a pass starts (a flagged particle ends the call, R_FLAGGED,
+        # and is removed before the next), so flags are written here, never read
         if not (np.isfinite(x + y + z) and np.isfinite(sp)):
             flag[i] = F_NONFINITE
             flag_t[i] = t_new
             nflag += 1
             continue
+        sunk = False
         for k in range(nsink):
             if (x >= sinks[k, 0] and x <= sinks[k, 3] and y >= sinks[k, 1]
                     and y <= sinks[k, 4] and z >= sinks[k, 2] and z <= sinks[k, 5]):
                 flag[i] = 2 + k
                 flag_t[i] = t_new
                 nflag += 1
+                sunk = True
                 break
-        if flag[i] != F_OK:
+        if sunk:
             continue
-        if ((periodic[0] == 0 and (x < lo[0] or x > hi[0]))
-                or (periodic[1] == 0 and (y < lo[1] or y > hi[1]))
-                or (periodic[2] == 0 and (z < lo[2] or z > hi[2]))):
+        if ((bx and (x < lo0 or x > hi0)) or (by and (y < lo1 or y > hi1))
+                or (bz and (z < lo2 or z > hi2))):
             flag[i] = F_LOST
             flag_t[i] = t_new
             nflag += 1
@@ -745,23 +841,76 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc,
     diag[c, D_FLAGGED] += nflag
 
 
+@njit(cache=True, fastmath=False)
+def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
+    """Per-particle work flags of the step passes for the list just built.
+
+    ``K_OWN``: the particle owns half-list entries or particle history slots
+    and ``K_GEO`` geometry candidates or slots, so the force pass visits it;
+    ``K_REV``: it is the partner of half-list entries, so the integration
+    pass gathers shares.
+    Also turns -0.0 velocity and spin components into +0.0 (what adding a
+    zero increment does), so that skipping a zero increment is exact.
+    """
+    n = nb_start.shape[0] - 1
+    kind = np.zeros(n, np.uint8)
+    for i in range(n):
+        k = 0
+        if nb_start[i + 1] > nb_start[i] or h_n[i] > 0:
+            k |= K_OWN
+        if gc_start[i + 1] > gc_start[i] or g_n[i] > 0:
+            k |= K_GEO
+        if rv_start[i + 1] > rv_start[i]:
+            k |= K_REV
+        kind[i] = k
+        for a in range(3):
+            if vel[i, a] == 0.0:
+                vel[i, a] = 0.0
+            if omg[i, a] == 0.0:
+                omg[i, a] = 0.0
+    return kind
+
+
+@njit(cache=True, fastmath=False)
+def settle_forces(kind, mass, gravity, frc, trq, shs, stamp):
+    """Make ``frc``/``trq`` those of the force pass of step ``stamp`` for every particle.
+
+    The step passes write them only for particles in contact; any other
+    particle had its weight and no torque. Call before the kinds or the
+    partner shares of that step are replaced.
+    """
+    for i in range(kind.shape[0]):
+        ki = kind[i]
+        if (ki & K_HIT) != 0:
+            continue
+        if shs[i] == stamp:  # shares of partners were added in that step's integration
+            continue
+        mi = mass[i]
+        frc[i, 0] = mi * gravity[0]
+        frc[i, 1] = mi * gravity[1]
+        frc[i, 2] = mi * gravity[2]
+        trq[i, 0] = 0.0
+        trq[i, 1] = 0.0
+        trq[i, 2] = 0.0
+
+
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, pf, pt, box_len, gc_start,
+def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, shs, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
@@ -769,8 +918,9 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
 
     ``parallel`` selects the threaded passes (worth it from a few thousand
     particles; below that the thread wake-up per pass dominates). Step
-    ``stamp0 + step`` stamps the partner shares it writes to ``pc`` (step
-    numbers are unique over the run, so the array needs no clearing).
+    ``stamp0 + step`` stamps the partner shares it writes to ``pc``, and in
+    ``shs`` the partners that got one (step numbers are unique over the run,
+    so neither array needs clearing).
     """
     half_skin = 0.5 * skin
     ev_limit = evf.shape[1] // 2
@@ -779,18 +929,18 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
         update_geometry(gref, grot, gkind, t, gcur)
         stamp = stamp0 + step
         if parallel:
-            force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+            force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
-            force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+            force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, rv_start, stamp, pc, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0
@@ -856,11 +1006,17 @@ def wrap_positions(pos, lo, box_len, periodic, g_gid, g_n, gspan):
 
 @njit(cache=True, fastmath=False)
 def bin_cells(pos, lo, cell_len, ncell):
-    """Counting sort of particles into cells; return (cell of each, cell start, order)."""
+    """Counting sort of particles into cells.
+
+    Returns (cell of each, cell start, order, cell coordinates of each (n, 3)):
+    the coordinates spare the neighbour sweep three integer divisions per
+    particle.
+    """
     n = pos.shape[0]
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
     ntot = nx * ny * nz
     cell = np.empty(n, np.int64)
+    cc = np.empty((n, 3), np.int32)
     for i in range(n):
         cx = int(np.floor((pos[i, 0] - lo[0]) / cell_len[0]))
         cy = int(np.floor((pos[i, 1] - lo[1]) / cell_len[1]))
@@ -869,6 +1025,9 @@ def bin_cells(pos, lo, cell_len, ncell):
         cy = min(max(cy, 0), ny - 1)
         cz = min(max(cz, 0), nz - 1)
         cell[i] = (cz * ny + cy) * nx + cx
+        cc[i, 0] = cx
+        cc[i, 1] = cy
+        cc[i, 2] = cz
     start = np.zeros(ntot + 1, np.int64)
     for i in range(n):
         start[cell[i] + 1] += 1
@@ -879,7 +1038,7 @@ def bin_cells(pos, lo, cell_len, ncell):
     for i in range(n):
         order[fill[cell[i]]] = i
         fill[cell[i]] += 1
-    return cell, start, order
+    return cell, start, order, cc
 
 
 @njit(cache=True, fastmath=False, inline='always')
@@ -910,12 +1069,16 @@ def _candidates(i, p0, p1, sx, sy, sz, idi, xi, yi, zi, ri, skin, cxyzr, cpid, o
                 pad_sh, cnt):
     """Add the candidates ``p0 <= p < p1`` (cell order) within the cut-off to row ``i``."""
     maxn = pad_j.shape[1]
-    for p in range(p0, p1):
+    # the image offsets once per run (read in the loop they are reloaded after every store)
+    ox = sx * box_len[0]
+    oy = sy * box_len[1]
+    oz = sz * box_len[2]
+    for p in range(np.uint64(p0), np.uint64(p1)):  # unsigned: no wrap-around per access
         if cpid[p] <= idi:
             continue
-        dx = cxyzr[p, 0] + sx * box_len[0] - xi
-        dy = cxyzr[p, 1] + sy * box_len[1] - yi
-        dz = cxyzr[p, 2] + sz * box_len[2] - zi
+        dx = cxyzr[p, 0] + ox - xi
+        dy = cxyzr[p, 1] + oy - yi
+        dz = cxyzr[p, 2] + oz - zi
         cut = ri + cxyzr[p, 3] + skin
         if dx * dx + dy * dy + dz * dz < cut * cut:
             if cnt < maxn:
@@ -939,37 +1102,38 @@ def _neighbours_rows(i0, i1, pid, pos, rad, skin, cell, start, order, cxyzr, cpi
     reference counting (~100 ns per particle here, docs/dem.md, Performance).
     """
     nx, ny, nz = ncell[0], ncell[1], ncell[2]
-    for i in range(i0, i1):
-        ci = cell[i]
-        cx = ci % nx
-        cy = (ci // nx) % ny
-        cz = ci // (nx * ny)
+    perx, pery, perz = periodic[0], periodic[1], periodic[2]
+    for i in range(np.uint64(i0), np.uint64(i1)):
+        cx = np.int64(cell[i, 0])
+        cy = np.int64(cell[i, 1])
+        cz = np.int64(cell[i, 2])
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
         ri = rad[i]
         idi = pid[i]
         cnt = 0
         for oz in range(-1, 2):
-            qz, sz, ok = _neighbour_cell(cz + oz, nz, periodic[2])
+            qz, sz, ok = _neighbour_cell(cz + oz, nz, perz)
             if not ok:
                 continue
             for oy in range(-1, 2):
-                qy, sy, ok = _neighbour_cell(cy + oy, ny, periodic[1])
+                qy, sy, ok = _neighbour_cell(cy + oy, ny, pery)
                 if not ok:
                     continue
                 row = (qz * ny + qy) * nx
                 if 0 < cx < nx - 1:
                     # the three cells along x are contiguous in cell order and unshifted:
                     # one run of candidates, visited in the same order as cell by cell
-                    cnt = _candidates(i, start[row + cx - 1], start[row + cx + 2], 0, sy, sz, idi,
+                    cnt = _candidates(i, start[np.uint64(row + cx - 1)], start[np.uint64(row + cx + 2)],
+                                      0, sy, sz, idi,
                                       xi, yi, zi, ri, skin, cxyzr, cpid, order, box_len, pad_j,
                                       pad_sh, cnt)
                     continue
                 for ox in range(-1, 2):
-                    qx, sx, ok = _neighbour_cell(cx + ox, nx, periodic[0])
+                    qx, sx, ok = _neighbour_cell(cx + ox, nx, perx)
                     if not ok:
                         continue
-                    q = row + qx
-                    cnt = _candidates(i, start[q], start[q + 1], sx, sy, sz, idi, xi, yi, zi, ri,
+                    q = np.uint64(row + qx)
+                    cnt = _candidates(i, start[q], start[q + np.uint64(1)], sx, sy, sz, idi, xi, yi, zi, ri,
                                       skin, cxyzr, cpid, order, box_len, pad_j, pad_sh, cnt)
         counts[i] = cnt
 
@@ -1014,6 +1178,9 @@ def _row_starts(counts):
 def build_neighbours(pid, pos, rad, skin, cell, start, order, ncell, periodic, box_len, parallel,
                      maxn_hint):
     """Half Verlet list (partners with a larger id) in CSR form plus its reverse.
+
+    ``cell`` holds each particle's cell coordinates (n, 3), ``start`` and
+    ``order`` the cell lists (see :func:`bin_cells`).
 
     One cell sweep fills padded rows of width ``maxn_hint`` (widened and
     redone if a row overflows), then rows are packed. Returns ``(start,
@@ -1178,9 +1345,12 @@ def build_geom_candidates(pos, rad, skin, gcur, grot, gkind, gbound, gspan, peri
     grid (:func:`build_geom_grid`) are tested; entries are keys
     ``g * KEY_STRIDE + image code`` (see :func:`_geom_key_frame`). One sweep
     fills padded rows of width ``maxg_hint`` (widened and redone if a row
-    overflows). Returns ``(start, keys, widest row)``.
+    overflows). Returns ``(start, keys, widest row)``. Without primitives
+    (a periodic gas) every row is empty and nothing is swept.
     """
     n = pos.shape[0]
+    if gkind.shape[0] == 0:
+        return np.zeros(n + 1, np.int64), np.empty(0, np.int32), 0
     counts = np.zeros(n, np.int64)
     maxg = max(maxg_hint, 1)
     while True:
@@ -1406,29 +1576,32 @@ def geometry_overlap(pos, rad, gcur, gkind, box_len, periodic):
 
 
 @njit(cache=True, fastmath=False)
-def permute_slots(perm, cnt, ids, st, ev, pk, ds, tch):
-    """Gather history slots by ``perm``, copying only the used slots of each particle.
+def permute_slot_records(perm, cnt, words):
+    """Gather slot records by ``perm``, copying only the used slots of each particle.
 
-    Returns new arrays (``ids, st, ev, pk, ds, tch``); unused slots hold
-    ``ev = -1`` and otherwise undefined values (kernels bound access by ``cnt``).
+    ``words`` is the records' raw view, shape (particles, slots, words per
+    record). Returns a new array of that shape; unused slots hold undefined
+    values (every reader bounds its access by ``cnt``; a slot is initialised
+    when it is taken).
     """
     n = perm.shape[0]
-    s = ids.shape[1]
-    ids2 = np.empty((n, s), ids.dtype)
-    st2 = np.empty((n, s, 3))
-    ev2 = np.full((n, s), -1, np.int64)  # read unbounded by flush / deletion
-    pk2 = np.empty((n, s))
-    ds2 = np.empty((n, s))
-    tch2 = np.zeros((n, s), np.uint8)
+    out = np.empty((n, words.shape[1], words.shape[2]), words.dtype)
+    nw = words.shape[2]
     for i in range(n):
         o = perm[i]
         for q in range(cnt[o]):
-            ids2[i, q] = ids[o, q]
-            st2[i, q, 0] = st[o, q, 0]
-            st2[i, q, 1] = st[o, q, 1]
-            st2[i, q, 2] = st[o, q, 2]
-            ev2[i, q] = ev[o, q]
-            pk2[i, q] = pk[o, q]
-            ds2[i, q] = ds[o, q]
-            tch2[i, q] = tch[o, q]
-    return ids2, st2, ev2, pk2, ds2, tch2
+            for w in range(nw):
+                out[i, q, w] = words[o, q, w]
+    return out
+
+
+@njit(cache=True, fastmath=False)
+def remap_event_refs(ev, cnt, new_row):
+    """Remap the used slots' event references after a flush (``new_row[row, chunk]``, -1: moved out)."""
+    nch = new_row.shape[1]
+    for i in range(ev.shape[0]):
+        for q in range(cnt[i]):
+            v = ev[i, q]
+            if v >= 0:
+                row = new_row[v // nch, v % nch]
+                ev[i, q] = row * nch + v % nch if row >= 0 else -1

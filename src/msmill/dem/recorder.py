@@ -55,8 +55,9 @@ class EventRecorder:
 
         Parameters
         ----------
-        refs : list of int64 arrays
-            History-slot event references (``-1`` = none) to remap.
+        refs : list of (int64 array, int32 array)
+            History-slot event references (``-1`` = none) to remap, each with
+            the number of used slots per particle (unused slots are not read).
         """
         nch = self.n_chunks
         cap = self.capacity
@@ -77,12 +78,8 @@ class EventRecorder:
             self.evi[c, :k] = i[op]
             self.evn[c] = k
             n_open[c] = k
-        for r in refs:
-            m = r >= 0
-            if m.any():
-                v = r[m]
-                row = new_row[v // nch, v % nch]
-                r[m] = np.where(row >= 0, row * nch + v % nch, -1)
+        for r, cnt in refs:
+            K.remap_event_refs(r, cnt, new_row)
         if n_open.max() > cap // 4:
             self._grow(2 * cap)
 

@@ -52,9 +52,26 @@ class DemRuntimeError(MsmillError, RuntimeError):
 # per-particle arrays and their trailing shapes; every one is permuted together
 _P_FLOAT3 = ("pos", "vel", "omg", "frc", "trq")
 _P_SCALAR = ("rad", "mass", "invm", "invi", "flag_t")
-# contact-history slot arrays (prefix -> names); only the used slots are copied on reordering
-_SLOTS = {"h": ("h_pid", "h_st", "h_ev", "h_pk", "h_ds", "h_tch"),
-          "g": ("g_gid", "g_st", "g_ev", "g_pk", "g_ds", "g_tch")}
+# contact-history slots: one 64-byte record per slot (``h_rec`` particle partners, ``g_rec``
+# geometry), so a contact's history is one cache line (was: six arrays, six lines); the
+# kernels see each field as a strided view (prefix -> (view name, field))
+_SLOT_REC = {"h": np.dtype([("pid", "<i8"), ("st", "<f8", (3,)), ("ev", "<i8"), ("pk", "<f8"),
+                            ("ds", "<f8"), ("tch", "u1")], align=True),
+             "g": np.dtype([("gid", "<i4"), ("st", "<f8", (3,)), ("ev", "<i8"), ("pk", "<f8"),
+                            ("ds", "<f8"), ("tch", "u1")], align=True)}
+_SLOTS = {"h": (("h_pid", "pid"), ("h_st", "st"), ("h_ev", "ev"), ("h_pk", "pk"), ("h_ds", "ds"),
+                ("h_tch", "tch")),
+          "g": (("g_gid", "gid"), ("g_st", "st"), ("g_ev", "ev"), ("g_pk", "pk"), ("g_ds", "ds"),
+                ("g_tch", "tch"))}
+_SLOT_VIEWS = {name for fields in _SLOTS.values() for name, _f in fields}
+
+
+def _slot_views(p: dict[str, np.ndarray]) -> None:
+    """(Re)bind the per-field views of the slot records after they were reallocated."""
+    for pre, fields in _SLOTS.items():
+        rec = p[f"{pre}_rec"]
+        for name, field in fields:
+            p[name] = rec[field]
 
 
 def _pos_number(name: str, value: Any, *, allow_zero: bool = False, allow_inf: bool = False
@@ -164,6 +181,7 @@ class Simulation:
         self._n_lost = 0
         self._dirty = True  # geometry/material tables need packing
         self._need_rebuild = True
+        self._frc_stale = False  # frc/trq lag the last force pass (_settle_forces)
         self._n_rebuilds = 0
         self._maxn = 16
         self._maxg = 4
@@ -376,27 +394,18 @@ class Simulation:
         p["pid"] = np.zeros(0, np.int64)
         p["flag"] = np.zeros(0, np.int32)
         s, sg = self._smax, self._sgmax
-        p["h_pid"] = np.zeros((0, s), np.int64)
-        p["h_st"] = np.zeros((0, s, 3))
-        p["h_ev"] = np.zeros((0, s), np.int64)
-        p["h_pk"] = np.zeros((0, s))
-        p["h_ds"] = np.zeros((0, s))
+        p["h_rec"] = np.zeros((0, s), _SLOT_REC["h"])
         p["h_n"] = np.zeros(0, np.int32)
-        p["h_tch"] = np.zeros((0, s), np.uint8)
-        p["g_gid"] = np.zeros((0, sg), np.int32)
-        p["g_st"] = np.zeros((0, sg, 3))
-        p["g_ev"] = np.zeros((0, sg), np.int64)
-        p["g_pk"] = np.zeros((0, sg))
-        p["g_ds"] = np.zeros((0, sg))
+        p["g_rec"] = np.zeros((0, sg), _SLOT_REC["g"])
         p["g_n"] = np.zeros(0, np.int32)
-        p["g_tch"] = np.zeros((0, sg), np.uint8)
+        _slot_views(p)
         return p
 
     def _append(self, pos, rad, vel, omg, mat: int) -> np.ndarray:
         n = pos.shape[0]
         rho = self._materials[mat]["rho"]
         mass = rho * 4.0 / 3.0 * np.pi * rad**3
-        new = self._empty_particles()
+        new = {k: v for k, v in self._empty_particles().items() if k not in _SLOT_VIEWS}
         for k, v in new.items():
             new[k] = np.zeros((n, *v.shape[1:]), v.dtype)
         new["pos"] = pos.copy()
@@ -410,25 +419,29 @@ class Simulation:
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         new["pid"] = ids
-        for k in ("h_ev", "g_ev"):
-            new[k][:] = -1
-        for k in self._p:
+        for k in ("h_rec", "g_rec"):
+            new[k]["ev"] = -1
+        for k in new:
             self._p[k] = np.concatenate([self._p[k], new[k]])
+        _slot_views(self._p)
         self._need_rebuild = True
         return ids
 
     def _keep(self, keep: np.ndarray) -> None:
         """Reorder / compact every per-particle array (boolean mask or index array)."""
+        self._settle_forces()
         p = self._p
         idx = np.nonzero(keep)[0] if keep.dtype == np.bool_ else np.asarray(keep, np.int64)
-        for pre, names in _SLOTS.items():
-            out = K.permute_slots(idx, p[f"{pre}_n"], *(p[k] for k in names))
-            for k, v in zip(names, out, strict=True):
-                p[k] = v
-        slot_names = {k for names in _SLOTS.values() for k in names}
+        for pre in _SLOTS:
+            rec = p[f"{pre}_rec"]
+            nw = rec.dtype.itemsize // 8
+            words = rec.view(np.int64).reshape(rec.shape[0], rec.shape[1], nw)
+            out = K.permute_slot_records(idx, p[f"{pre}_n"], words)
+            p[f"{pre}_rec"] = out.reshape(out.shape[0], rec.shape[1] * nw).view(rec.dtype)
         for k in p:
-            if k not in slot_names:
+            if k not in _SLOT_VIEWS and k not in ("h_rec", "g_rec"):
                 p[k] = p[k][idx]
+        _slot_views(p)
 
     # ------------------------------------------------------------------ packing
     def _pack(self) -> None:
@@ -569,7 +582,20 @@ class Simulation:
         self._cell_len = L / nc
         self._box_len = L.copy()
 
+    def _settle_forces(self) -> None:
+        """Bring ``frc``/``trq`` up to the last force pass (the passes skip particles out of contact).
+
+        Needs the kinds and partner shares of that pass: call before they are
+        replaced (rebuild) or the particles reordered.
+        """
+        if self._frc_stale:
+            p = self._p
+            K.settle_forces(self._kind, p["mass"], self._gravity, p["frc"], p["trq"], self._pair[3],
+                            self._stamp)
+            self._frc_stale = False
+
     def _rebuild(self) -> None:
+        self._settle_forces()
         p = self._p
         K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic, p["g_gid"], p["g_n"],
                          self._gspan)
@@ -579,19 +605,21 @@ class Simulation:
             self._cells(rmax)
         elif p["rad"].size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
             self._cells(self._rmax_cells)
-        cell, start, order = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
+        _cell, start, order, cell = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
         par = self._last_par and threads_usable()  # rebuilds follow the step kernels' choice
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
             self._keep(order)
-            cell = cell[order]
-            order = np.arange(cell.size, dtype=np.int64)
+            cell = cell[order]  # cell coordinates (n, 3)
+            order = np.arange(cell.shape[0], dtype=np.int64)
         self._nb = K.build_neighbours(p["pid"], p["pos"], p["rad"], self._skin, cell, start, order,
                                       self._ncell, self._periodic, self._box_len,
                                       par, self._maxn)
         self._maxn = int(self._nb[5] * 1.25) + 4
         m = self._nb[1].shape[0]
         # partner shares in reverse-list order, stamped with the step that wrote them
-        self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)))
+        # (the fourth: the step in which each particle last got a partner share)
+        self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)),
+                      np.zeros(p["pos"].shape[0], np.int64))
         K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
         margin = self._rmax_cells + self._skin
         if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
@@ -608,6 +636,8 @@ class Simulation:
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            par, self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
+        self._kind = K.particle_kinds(self._nb[0], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
+                                      p["vel"], p["omg"])
         self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
@@ -862,10 +892,10 @@ class Simulation:
                 tic = _time.perf_counter()
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
-                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"],
+                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
                     p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
-                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[1],
-                    self._pair[2],
+                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
+                    self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
                     self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
                     self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
@@ -873,6 +903,8 @@ class Simulation:
                     p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
                     self._rec.evn, diag, use_par)
                 elapsed = _time.perf_counter() - tic
+                if k > 0:
+                    self._frc_stale = True  # see _settle_forces
                 self.stats["loop_time_s"] += elapsed
                 self._tune(use_par, elapsed, k)
                 self.stats["steps"] += k
@@ -915,7 +947,7 @@ class Simulation:
                     "boundary meet its end; extend it by that much or make it shorter than the period")
 
     def _flush_events(self) -> None:
-        self._rec.flush([self._p["h_ev"], self._p["g_ev"]])
+        self._rec.flush([(self._p["h_ev"], self._p["h_n"]), (self._p["g_ev"], self._p["g_n"])])
 
     def _check_diag(self, diag, dt, max_over, travel_fraction, lmin, wall_v) -> None:
         top = diag.max(axis=0)  # two reductions per call instead of five (called per kernel call)
@@ -964,6 +996,7 @@ class Simulation:
     def particle_arrays(self) -> dict[str, np.ndarray]:
         """Copies of per-particle arrays: ``pid``, ``pos`` (m), ``vel`` (m/s), ``omg`` (rad/s),
         ``rad`` (m), ``mass`` (kg), ``frc`` (N) and ``trq`` (N m) of the last force pass."""
+        self._settle_forces()
         return {k: self._p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass", "frc",
                                                "trq")}
 
