@@ -61,16 +61,19 @@ def _values(stage) -> dict[str, tuple[float, float | None]]:
     return out
 
 
-def deviations(a, b) -> list[tuple[float, str]]:
-    """``|a - b| / sqrt(se_a^2 + se_b^2)`` for every stage and statistic with both errors."""
-    devs = []
+def _paired(a, b):
+    """``(name, key, x, se_x, y, se_y)`` for every stage and statistic both runs have errors of."""
     for sa, sb in zip(a.stages, b.stages, strict=True):
         va, vb = _values(sa), _values(sb)
         for k, (x, ex) in va.items():
             y, ey = vb[k]
             if ex and ey:
-                devs.append((abs(x - y) / float(np.hypot(ex, ey)), f"stage {sa.stage} {k}"))
-    return devs
+                yield f"stage {sa.stage} {k}", k, x, ex, y, ey
+
+
+def deviations(a, b) -> list[tuple[float, str]]:
+    """``|a - b| / sqrt(se_a^2 + se_b^2)`` for every stage and statistic with both errors."""
+    return [(abs(x - y) / float(np.hypot(ex, ey)), name) for name, _k, x, ex, y, ey in _paired(a, b)]
 
 
 def _batches(run) -> int:
@@ -80,27 +83,24 @@ def _batches(run) -> int:
 def normal_equivalent(a, b) -> list[tuple[float, str]]:
     """:func:`deviations` as the normal deviate of the same two-sided p-value.
 
-    The batch-means errors (streams, hit probability, lambda) come from
+    The errors of the streams, hit probability and lambda come from
     ``n_batches`` (5) batches, so each is itself uncertain and the deviation is
     Student-t distributed with the Welch-Satterthwaite degrees of freedom
-    (``n_batches - 1`` per run); the velocity means' errors are from hundreds of
-    impacts (normal). With 5 batches |t| > 2 has a chance of about 0.1, not 0.046.
+    (``n_batches - 1`` per run); with 5 batches |t| > 2 has a chance of about
+    0.1, not 0.046. The velocity means' deviations are taken as normal (their
+    errors were independent-sample ones of many impacts in runs before
+    2026-12-02; since then they are batch means too, and this overstates them).
     """
     from scipy import stats
 
     na, nb = _batches(a) - 1, _batches(b) - 1
     out = []
-    for sa, sb in zip(a.stages, b.stages, strict=True):
-        va, vb = _values(sa), _values(sb)
-        for k, (x, ex) in va.items():
-            y, ey = vb[k]
-            if not (ex and ey):
-                continue
-            t = abs(x - y) / float(np.hypot(ex, ey))
-            if k in KEYS:
-                nu = (ex**2 + ey**2) ** 2 / (ex**4 / na + ey**4 / nb)
-                t = float(stats.norm.isf(stats.t.sf(t, nu)))
-            out.append((t, f"stage {sa.stage} {k}"))
+    for name, k, x, ex, y, ey in _paired(a, b):
+        t = abs(x - y) / float(np.hypot(ex, ey))
+        if k in KEYS:
+            nu = (ex**2 + ey**2) ** 2 / (ex**4 / na + ey**4 / nb)
+            t = float(stats.norm.isf(stats.t.sf(t, nu)))
+        out.append((t, name))
     return out
 
 
@@ -181,7 +181,7 @@ def main() -> None:
         new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(seed=args.seed, **protocol), start=start)
 
         order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
-        if args.cold_adaptive:  # same window rule as "new", cold start: isolates the start's effect
+        if args.cold_adaptive:  # the error targets of "new" from an empty mill, window from detection
             order += (("cold_adaptive", partial(run_mill, m, point, size_mm=size,
                                                 settings=RunSettings(adaptive=True, seed=args.seed))),)
         res = {}

@@ -154,6 +154,13 @@ def limit(value: float, field: str, name: str | None = None) -> None:
                                f"msmill.validate.LIMITS[{(name or field.rsplit('.', 1)[-1])!r}])")
 
 
+def one_of(value: Any, field: str, allowed: tuple[Any, ...]) -> Any:
+    """``value`` if it is one of ``allowed``; else a one-line error listing them."""
+    if value not in allowed:
+        raise MsmillInputError(field, value, " or ".join(repr(k) for k in allowed))
+    return value
+
+
 def exclusive(field_a: str, a: Any, field_b: str, b: Any) -> None:
     """Reject giving both of two options that exclude each other."""
     if a is not None and b is not None:

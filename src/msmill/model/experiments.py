@@ -54,6 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.runfile import OperatingSection
 from msmill.psd import PSD
+from msmill.validate import one_of
 
 __all__ = ["Experiment", "ExperimentSet", "read_experiment", "read_experiments", "write_experiment"]
 
@@ -225,9 +226,7 @@ def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path:
     if not isinstance(data, dict):
         raise MsmillInputError(origin, type(data).__name__, "a TOML table")
     data = _inline_csv(data, origin, path.parent if path is not None else None)
-    kind = data.get("kind")
-    if kind not in KINDS:
-        raise MsmillInputError(f"{origin}.kind", kind, " or ".join(repr(k) for k in KINDS))
+    kind = one_of(data.get("kind"), f"{origin}.kind", KINDS)
     model = _SurveyFile if kind == "survey" else _ImpactFile
     try:
         v = model.model_validate(data)

@@ -14,7 +14,7 @@ from typing import Any
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
-from msmill.validate import LIMITS, integer, number
+from msmill.validate import LIMITS, integer, number, one_of
 
 G_M_S2 = 9.81
 #: Fraction of the smallest rock radius a rock may travel per step (the engine's default
@@ -76,8 +76,7 @@ def check_start(start: Any, field: str = "settings.start") -> None:
     """Raise :class:`MsmillInputError` unless ``start`` is a kind of start (``RunSettings.start``)."""
     from msmill.dem.mill.warmstart import START_KINDS
 
-    if start not in START_KINDS:
-        raise MsmillInputError(field, start, " or ".join(repr(k) for k in START_KINDS))
+    one_of(start, field, START_KINDS)
 
 
 #: where a run's measurement window starts (``RunSettings.window_from``)
@@ -86,8 +85,7 @@ WINDOW_FROM = ("detection", "onset")
 
 def check_window_from(window_from: Any, field: str = "settings.window_from") -> None:
     """Raise :class:`MsmillInputError` unless ``window_from`` is in :data:`WINDOW_FROM`."""
-    if window_from not in WINDOW_FROM:
-        raise MsmillInputError(field, window_from, " or ".join(repr(k) for k in WINDOW_FROM))
+    one_of(window_from, field, WINDOW_FROM)
 
 
 def estimated_dt_s(scene: Any, settings: Any) -> float:

@@ -357,15 +357,16 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
         out["hit_probability"] = max(out["hit_probability"], se.get("primary_hit_probability", inf))
         lam = st.secondary_lambda
         out["count_mean_rel"] = max(out["count_mean_rel"], se.get("secondary_lambda", inf) / lam if lam > 0 else inf)
-        for key in ("primary_velocity_m_s", "secondary_velocity_m_s"):
+        for key, se_key in (("primary_velocity_m_s", "primary_velocity_mean_m_s"),
+                            ("secondary_velocity_m_s", "secondary_velocity_mean_m_s")):
             v = np.asarray(ms.samples.get(st.stage, {}).get(key, np.zeros(0)), dtype=float)
             if v.size < 3 or v.mean() <= 0:
                 out["velocity_mean_rel"] = out["velocity_spread_rel"] = out["velocity_sampling_kl"] = inf
                 continue
             out["velocity_sampling_kl"] = max(out["velocity_sampling_kl"], VELOCITY_FIT_PARAMETERS / (2 * v.size))
             sd = float(v.std(ddof=1))
-            se_mean = se.get(key.replace("_m_s", "_mean_m_s"), inf)  # batch means (compute_statistics)
-            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], se_mean / float(v.mean()))
+            # batch means (compute_statistics)
+            out["velocity_mean_rel"] = max(out["velocity_mean_rel"], se.get(se_key, inf) / float(v.mean()))
             out["velocity_spread_rel"] = max(out["velocity_spread_rel"],
                                              sd / np.sqrt(2 * (v.size - 1)) / float(v.mean()))
     return out
