@@ -60,9 +60,12 @@ has from rock-count noise alone (collective pulsations add to it).
 With ``--transport dem_matrix_fill`` (the transport's speed depends on the
 mill's fill, docs/model.md section 7.3) every run gets the filling curve
 (``RunStatistics.filling_transport``) of ``--filling``: ``table`` (default)
-the table runs' curves pooled (:func:`msmill.model.providers.pooled_filling`,
-as a table provider gives it), ``own`` the run's own; a run without the field
-is measured from its saved DEM folder
+the curve the table provider gives at the run's size (the table runs' curves
+interpolated in log size, :func:`msmill.model.providers.filling_curves`; at a
+table run's own size its own curve), ``pooled`` the table runs' curves pooled
+into one for every size (:func:`msmill.model.providers.pooled_filling`, the
+provider's rule before 2026-12-02), ``own`` the run's own; a run without the
+field is measured from its saved DEM folder
 (:func:`msmill.dem.mill.run.saved_run_filling_transport`).
 
 Nothing is fitted here: the model reads the run's measured transport
@@ -90,7 +93,7 @@ from msmill.dem.mill.run import (
 from msmill.dem.mill.stats import detect_steady_state
 from msmill.machine import OperatingPoint
 from msmill.model import Mill
-from msmill.model.providers import RunProvider, default_table_path, pooled_filling
+from msmill.model.providers import RunProvider, TableProvider, default_table_path, pooled_filling
 from msmill.model.result import time_to_steady_state
 from msmill.model.submodels import BreakageParameters
 from msmill.psd import PSD, SizeGrid
@@ -346,6 +349,18 @@ def pooled_curve(runs: list[RunStatistics]) -> FillingTransport | None:
                             tag_mass_kg=[total / pooled[0].size] * pooled[0].size)
 
 
+def table_curve_at(table: StageParameterTable, size_mm: float) -> FillingTransport | None:
+    """The filling curve the table provider gives rock of ``size_mm`` (None if its runs carry none)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        params = TableProvider(table).stage_parameters(np.array([size_mm]))
+    if params.filling_fill is None:
+        return None
+    h = np.asarray(params.filling_fill, dtype=float)
+    r = np.asarray(params.filling_residence_ratio, dtype=float).reshape(-1, h.size)[0]
+    return FillingTransport(fill=h.tolist(), residence_ratio=r.tolist(), tag_mass_kg=[1.0] * h.size)
+
+
 def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int,
             curve: FillingTransport | None = None) -> Row:
     """Model against DEM for one run (``curve``: the filling transport to use instead of the run's own)."""
@@ -455,9 +470,9 @@ def main() -> None:
                     help="folder of the table's saved DEM runs (size_<d>mm); default: the runs' provenance")
     ap.add_argument("--campaign", default=None,
                     help="campaign export folder (default: the packaged one); 'none' to skip")
-    ap.add_argument("--filling", choices=("own", "table"), default="table",
-                    help="dem_matrix_fill only: each run's own filling curve, or the table runs' pooled curve "
-                         "for every run (default)")
+    ap.add_argument("--filling", choices=("table", "pooled", "own"), default="table",
+                    help="dem_matrix_fill only: the table provider's curve at each run's size (default), the "
+                         "table runs' curves pooled into one for every run, or each run's own")
     ap.add_argument("--scatter", type=int, default=0, help="rock-count scatter simulations per table run (0: none)")
     ap.add_argument("--replicas", default=None,
                     help="replica runs of the table's points (scripts/transport_replicas.py --export); "
@@ -472,21 +487,35 @@ def main() -> None:
     if args.transport == "dem_matrix" and n_dest < len(table.runs):
         print(f"note: {len(table.runs) - n_dest} of {len(table.runs)} runs have no one-lag destinations: "
               "dem_matrix falls back to their three streams there")
-    curve = None
+    def curve_for(run: RunStatistics) -> FillingTransport | None:  # None: the run's own
+        return None
+
     if args.transport == "dem_matrix_fill":
         n_fill = sum(r.filling_transport is not None for r in table.runs)
         print(f"filling transport: {args.filling} ({n_fill} of {len(table.runs)} table runs carry one; "
               "the others are measured from their saved DEM folders)")
-        if args.filling == "table":
-            curve = pooled_curve([with_filling(r, args.runs_dir) for r in table.runs])
-            print(f"  table's pooled curve: fill {np.round(curve.fill, 2).tolist()} "
-                  f"ratio {np.round(curve.residence_ratio, 3).tolist()}")
+        with_curves = table.model_copy(update={"runs": [with_filling(r, args.runs_dir) for r in table.runs]})
+        if args.filling == "pooled":
+            pooled = pooled_curve(with_curves.runs)
+            print(f"  table's pooled curve: fill {np.round(pooled.fill, 2).tolist()} "
+                  f"ratio {np.round(pooled.residence_ratio, 3).tolist()}")
+
+            def curve_for(run: RunStatistics) -> FillingTransport | None:
+                return pooled
+        elif args.filling == "table":
+            for r in with_curves.runs:
+                c = table_curve_at(with_curves, r.design.size_mm)
+                print(f"  {r.design.size_mm:g} mm: fill {np.round(c.fill, 2).tolist()} "
+                      f"ratio {np.round(c.residence_ratio, 3).tolist()}")
+
+            def curve_for(run: RunStatistics) -> FillingTransport | None:
+                return table_curve_at(with_curves, run.design.size_mm)
     reps = [] if (args.replicas or "").lower() == "none" else load_replicas(
         Path(args.replicas) if args.replicas else DEFAULT_REPLICAS)
     if reps:
         print(f"replicas: {len(reps)} runs at {sorted({round(float(r['size_mm']), 3) for r in reps})} mm")
     crit = RunSettings().criterion()
-    rows = [attach_replicas(compare(r, args.transport, args.runs_dir, args.scatter, curve), reps, crit)
+    rows = [attach_replicas(compare(r, args.transport, args.runs_dir, args.scatter, curve_for(r)), reps, crit)
             for r in table.runs]
     summary = report(rows)
     summary += f" runs_with_destinations={n_dest}"
@@ -497,7 +526,8 @@ def main() -> None:
         if folder.is_dir():
             slices, full = split_runs(read_export(folder))
             print(f"\ncampaign export: {folder} ({len(slices)} steady slice runs, {len(full)} steady full-mill runs)")
-            rows = [compare(e.statistics, args.transport, export_raw_dir(e.path), 0, curve) for e in slices + full]
+            rows = [compare(e.statistics, args.transport, export_raw_dir(e.path), 0, curve_for(e.statistics))
+                    for e in slices + full]
             summary += " " + report(rows, prefix="campaign_")
     print(summary)
 

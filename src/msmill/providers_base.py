@@ -134,10 +134,14 @@ class StageParameters:
     transition_lag_s : ndarray, shape (N,) or None
         Lag (s) at which each class's ``transition`` was measured (the runs'
         characteristic times, interpolated); the transport converts it to the step.
-    filling_fill, filling_residence_ratio : ndarray, shape (K,) or None
+    filling_fill : ndarray, shape (K,) or None
+        Mill fills (share of the steady hold-up) at which ``filling_residence_ratio``
+        is given; used by the ``dem_matrix_fill`` transport.
+    filling_residence_ratio : ndarray, shape (N, K) or (K,), or None
         The transport's mean residence while the mill fills, over its steady one, at
-        mill fills ``filling_fill`` (share of the steady hold-up; the runs'
-        ``filling_transport``, pooled); used by the ``dem_matrix_fill`` transport.
+        ``filling_fill``: per size class (N, K), the runs' ``filling_transport``
+        interpolated in log size like every other quantity and held at the end
+        runs' curves outside the sizes covered; or one curve for all classes (K,).
     """
 
     sizes_mm: np.ndarray

@@ -17,7 +17,7 @@ from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
 from msmill.model import Mill, RunProvider
 from msmill.model.expected_value import assemble
-from msmill.model.providers import pooled_filling
+from msmill.model.providers import TableProvider, pool_filling_curves, pooled_filling
 from msmill.model.submodels import (
     SUBMODELS,
     FillingMatrixTransport,
@@ -27,7 +27,7 @@ from msmill.model.submodels import (
     resolve,
 )
 from msmill.psd import PSD, SizeGrid
-from msmill.stageparams import FillingTransport, RunStatistics
+from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
 
 N_ST = 3
 OP = OperatingPoint(feed_tph=30.0, stage_speeds_rpm=[1500.0] * (N_ST - 1) + [3000.0], gate_deg=40.0)
@@ -139,6 +139,72 @@ def test_a_step_at_speed_g_is_the_mill_assembled_from_the_matrix_at_speed_g(impa
     assert out == pytest.approx(float((ref.out_op @ x).sum()), rel=1e-12)
 
 
+def test_per_class_curves_move_each_class_at_its_own_speed():
+    """Curves per size class (N, K): the speed is per class, and a step at fill ``h`` is the mill assembled
+    from the matrix whose class-``i`` rows run at that class's speed (impacts on the mass that stays)."""
+    rng = np.random.default_rng(5)
+    grid = SizeGrid.geometric(1.0, 4.0)  # 4 classes
+    T = rng.dirichlet(np.ones(N_ST + 2), size=(N_ST + 1, grid.n_classes))
+    ratios = np.array([[0.3, 0.9], [0.5, 0.6], [0.8, 1.1], [1.0, 1.0]])
+    tr = Transition(T, feed_compartment=0, filling=(np.array([0.2, 0.6]), ratios))
+    assert tr.per_class_filling
+    assert np.allclose(tr.speed_at(0.1), 1.0 / ratios[:, 0])  # the first point's below it
+    assert np.allclose(tr.speed_at(0.4), 1.0 / ratios.mean(axis=1))  # halfway between the points
+    assert np.allclose(tr.speed_at(0.8), 1.0 / (0.5 * ratios[:, 1] + 0.5))  # halfway to (1, 1)
+    assert np.allclose(tr.speed_at(1.3), 1.0)
+    mill = Mill("UG2", RunProvider(synthetic_run(8.0, n_stages=N_ST)), grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, stats, _, _ = mill.prepare(grid, OP)
+    lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 2, 4, "refeed")
+    for fill in (0.1, 0.4, 0.8):
+        ref = assemble(grid.edges_mm, Transition(tr.at_speed(tr.speed_at(fill)), feed_compartment=0), stats,
+                       mill.breakage, NoDamage(), 2, 4, "refeed")
+        x = rng.random(lm.n_state)
+        y, out = lm.step(x, fill)
+        assert np.allclose(y, ref.M @ x, rtol=1e-12, atol=1e-15)
+        assert out == pytest.approx(float((ref.out_op @ x).sum()), rel=1e-12)
+    c = np.arange(N_ST + 1)
+    assert np.allclose(tr.at_speed(1e6)[c, :, c], 0.0)  # capped per class where nothing would stay
+
+
+def test_table_gives_each_size_its_runs_curve_interpolated_in_log_size_and_held_outside():
+    r1 = _run(FillingTransport(fill=[0.1, 0.5], residence_ratio=[0.2, 0.6], tag_mass_kg=[1.0, 2.0]), 8.0)
+    r2 = _run(FillingTransport(fill=[0.1, 0.5], residence_ratio=[0.6, 0.9], tag_mass_kg=[3.0, 3.0]), 32.0)
+    params = TableProvider(StageParameterTable(runs=[r1, r2])).stage_parameters(np.array([4.0, 8.0, 16.0, 32.0, 64.0]))
+    assert np.allclose(params.filling_fill, [0.1, 0.5])
+    expect = np.array([[0.2, 0.6], [0.2, 0.6], [0.4, 0.75], [0.6, 0.9], [0.6, 0.9]])  # 16 mm: halfway in ln(size)
+    assert np.allclose(params.filling_residence_ratio, expect)
+    tr = FillingMatrixTransport().transition(params)
+    assert np.allclose(tr.speed_at(0.0), 1.0 / expect[:, 0])
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), ratios=st.lists(st.floats(0.05, 2.0), min_size=8, max_size=8))
+def test_the_march_with_per_class_curves_conserves_mass_and_stays_non_negative(seed, ratios):
+    rng = np.random.default_rng(seed)
+    grid = SizeGrid.geometric(2.0, 8.0)
+    n = grid.n_classes
+    T = rng.dirichlet(np.ones(N_ST + 2), size=(N_ST + 1, n))
+    T[-1, :, -1] += 0.2
+    T /= T.sum(axis=-1, keepdims=True)
+    tr = Transition(T, feed_compartment=0, filling=(np.array([0.2, 0.7]), np.reshape(ratios[: 2 * n], (n, 2))))
+    mill = Mill("UG2", RunProvider(synthetic_run(8.0, n_stages=N_ST)), grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, _, stats, _, _ = mill.prepare(grid, OP)
+    lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 2, 4, "refeed")
+    f = lm.feed_vector(np.full(n, 1.0 / n), 1.0)
+    steady = float(lm.steady_state(f).sum())
+    x, fed, out = np.zeros(lm.n_state), 0.0, 0.0
+    for _ in range(30):
+        x, o = lm.step(x, float(x.sum()) / steady)
+        x = x + f
+        fed, out = fed + 1.0, out + o
+        assert np.all(x >= -1e-14)
+        assert fed == pytest.approx(float(x.sum()) + out, rel=1e-12)
+
+
 # ------------------------------------------------------------------ anchor at steady state
 def test_ratio_one_everywhere_is_dem_matrix_exactly():
     a = _mill_run(_run(_curve([0.3, 0.7], [1.0, 1.0])), "dem_matrix")
@@ -195,7 +261,12 @@ def test_the_march_conserves_mass_and_stays_non_negative(seed, n_st, n_cls, fill
 def test_submodel_leaves_out_points_where_the_mill_could_not_fill_and_notes_it():
     params = RunProvider(_run(_curve([0.2, 0.5, 0.8], [0.4, 0.45, 0.9]))).stage_parameters(np.array([8.0]))
     tr = FillingMatrixTransport().transition(params)
-    assert np.allclose(tr.filling[0], [0.2, 0.8]) and np.allclose(tr.filling[1], [0.4, 0.9])
+    # per size class (the provider's curves are per class): the point at 0.5 is bridged by its neighbours,
+    # so the curve is the one without it
+    without = lambda h: np.interp(h, [0.2, 0.8, 1.0], [0.4, 0.9, 1.0])  # noqa: E731
+    assert tr.per_class_filling and np.allclose(tr.filling[1], without(tr.filling[0]))
+    for fill in (0.1, 0.35, 0.5, 0.65, 0.9, 1.2):
+        assert tr.speed_at(fill) == pytest.approx(1.0 / without(min(fill, 1.0)))
     assert "0.5" in tr.note
     assert np.array_equal(tr.matrix, MatrixTransport().transition(params).matrix)
 
@@ -217,6 +288,39 @@ def test_table_pools_the_runs_curves_by_tagged_mass():
     own2 = np.interp(fill, [0.3, 0.7, 1.0], [0.5, 0.9, 1.0])
     assert np.allclose(ratio, (3.0 * own1 + 6.0 * own2) / 9.0)
     assert pooled_filling([r1, _run(None)]) is None
+
+
+def test_curves_of_one_point_pool_by_tagged_mass_bin_by_bin():
+    a = FillingTransport(fill=[0.1, 0.3, 0.5], residence_ratio=[0.2, 0.4, 0.6], tag_mass_kg=[1.0, 1.0, 2.0])
+    b = FillingTransport(fill=[0.14, 0.5], residence_ratio=[0.5, 0.9], tag_mass_kg=[3.0, 9.0])
+    c = pool_filling_curves([a, b])
+    assert np.allclose(c.fill, [(0.1 + 3 * 0.14) / 4, 0.3, 0.5])  # bins [0, 0.2), [0.2, 0.4), [0.4, 0.6)
+    assert np.allclose(c.tag_mass_kg, [4.0, 1.0, 11.0])
+    expect = (4.0 * a.ratio_at(np.array(c.fill)) + 12.0 * b.ratio_at(np.array(c.fill))) / 16.0
+    assert np.allclose(c.residence_ratio, expect)
+    assert pool_filling_curves([a]) == a
+    with pytest.raises(ValueError):
+        pool_filling_curves([])
+
+
+def test_curves_with_their_window_references_pool_against_the_common_reference():
+    """Two runs of one point whose short windows mis-measured the steady hold-up and chain residence
+    (low by 10 %, high by 10 %): on the common reference (their mean) both are the true curve."""
+    true_fill, true_ratio = np.array([0.15, 0.45, 0.75]), np.array([0.4, 0.7, 0.9])
+
+    def measured(k: float) -> FillingTransport:  # window hold-up and chain residence k times the true ones
+        return FillingTransport(fill=(true_fill / k).tolist(), residence_ratio=(true_ratio / k).tolist(),
+                                tag_mass_kg=[1.0, 2.0, 3.0], window_residence_steps=10.0 * k,
+                                window_holdup_kg=100.0 * k)
+
+    c = pool_filling_curves([measured(0.9), measured(1.1)])
+    assert c.window_holdup_kg == pytest.approx(100.0) and c.window_residence_steps == pytest.approx(10.0)
+    assert np.allclose(c.fill, true_fill) and np.allclose(c.residence_ratio, true_ratio)
+    assert np.allclose(c.tag_mass_kg, [2.0, 4.0, 6.0])
+    # without the references each is taken as it is: the mean of two distorted curves, not the true one
+    plain = [m.model_copy(update={"window_holdup_kg": None, "window_residence_steps": None})
+             for m in (measured(0.9), measured(1.1))]
+    assert not np.allclose(pool_filling_curves(plain).ratio_at(true_fill), true_ratio, atol=0.01)
 
 
 # ------------------------------------------------------------------ schema

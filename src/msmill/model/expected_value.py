@@ -463,13 +463,17 @@ class LinearMill:
         """One step of the mill without feed at mill fill ``fill``: the new state and the mass put out (t).
 
         At speed ``g`` (:meth:`Transition.speed_at`, capped per state by
-        ``max_speed``, one speed per compartment) the transport of compartment ``c``
+        ``max_speed``; one speed per compartment, or per compartment and size class
+        with per-class filling curves) the transport of compartment ``c``
         is ``g P_c + (1 - g) I``, so the step is ``M x + (M - stay) ((g - 1) x)`` and the product
         ``out_op (g x)`` (both linear in the transport; ``g = 1``: ``M x``).
         """
         if not self.fill_dependent:
             return self.M @ x, float((self.out_op @ x).sum())
-        g = np.minimum(self.transition.speed_at(fill), self.max_speed)
+        g = self.transition.speed_at(fill)
+        if np.ndim(g):  # per size class (N,): to the state order (compartment, class, damage)
+            g = np.tile(np.repeat(g, self.n_damage), self.n_stages + 1)
+        g = np.minimum(g, self.max_speed)
         dx = (g - 1.0) * x
         return self.M @ x + (self.M @ dx - self.stay @ dx), float((self.out_op @ (g * x)).sum())
 
@@ -534,7 +538,8 @@ def assemble(edges_mm: np.ndarray, streams, stats: ImpactStatistics, breakage, d
     stay = max_speed = None
     if tr.filling is not None:
         stay = _step_matrices(tr.staying(), batch.G, n, nd, impacted)[0]
-        max_speed = np.repeat(tr.max_speed(), n * nd)  # state order (compartment, class, damage)
+        cap = tr.max_speed()  # (C,) or per class (C, N); state order (compartment, class, damage)
+        max_speed = np.repeat(cap.ravel(), nd if cap.ndim == 2 else n * nd)
     return LinearMill(M=M, out_op=out_op, impacted=imp, stages=stage_ops, n_stages=n_st, n_sizes=n, n_damage=nd,
                       feed_compartment=tr.feed_compartment, transition=tr, stay=stay, max_speed=max_speed)
 

@@ -48,6 +48,7 @@ from msmill.providers_base import (
 )
 from msmill.stageparams import (
     CountDistribution,
+    FillingTransport,
     RunStatistics,
     StageParameterTable,
     StageStatistics,
@@ -146,25 +147,85 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
     return out
 
 
-def pooled_filling(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The runs' filling curves (``filling_transport``) pooled: fills (K,) and residence ratios (K,).
-
-    One point per fill bin (:data:`msmill.dem.mill.stats.FILLING_BINS`) that some run has a
-    point in: the runs' tag-mass-weighted mean fill there, and the mean of the runs'
-    curves (:meth:`~msmill.stageparams.FillingTransport.ratio_at`) at that fill,
-    weighted by the runs' tagged masses. None unless every run has a curve.
-    """
+def _common_fills(curves: list[FillingTransport]) -> tuple[np.ndarray, np.ndarray]:
+    """Fills (K,) and tagged masses (K,) of the fill bins (:data:`msmill.dem.mill.stats.FILLING_BINS`)
+    that some curve has a point in: the curves' tag-mass-weighted mean fill there, and their summed mass."""
     from msmill.dem.mill.stats import FILLING_BINS
 
-    curves = [r.filling_transport for r in runs]
-    if not curves or any(c is None for c in curves):
-        return None
     h = np.concatenate([c.fill for c in curves])
     m = np.concatenate([c.tag_mass_kg for c in curves])
     b = np.searchsorted(FILLING_BINS, h, side="right") - 1
-    fill = np.array([np.average(h[b == k], weights=m[b == k]) for k in np.unique(b)])
-    w = np.array([sum(c.tag_mass_kg) for c in curves])
-    return fill, np.average([c.ratio_at(fill) for c in curves], axis=0, weights=w)
+    bins = np.unique(b)
+    return (np.array([np.average(h[b == k], weights=m[b == k]) for k in bins]),
+            np.array([m[b == k].sum() for k in bins]))
+
+
+def filling_curves(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The runs' filling curves (``filling_transport``) at common fills: fills (K,), ratios (R, K), weights (R,).
+
+    One fill per fill bin that some run has a point in (:func:`_common_fills`); each run's
+    curve (:meth:`~msmill.stageparams.FillingTransport.ratio_at`) at those fills; each run's
+    tagged mass. None unless every run has a curve.
+    """
+    curves = [r.filling_transport for r in runs]
+    if not curves or any(c is None for c in curves):
+        return None
+    fill, _ = _common_fills(curves)
+    return fill, np.array([c.ratio_at(fill) for c in curves]), np.array([sum(c.tag_mass_kg) for c in curves])
+
+
+def pool_filling_curves(curves: list[FillingTransport]) -> FillingTransport:
+    """Several measurements of one point's filling curve (e.g. runs with other feed seeds) as one curve.
+
+    Each run's curve is relative to its own window (fill over the window's mean hold-up,
+    residence over the window chain's), and one short window measures those references to
+    10-20 % for coarse rock. Curves that carry them (``window_holdup_kg``,
+    ``window_residence_steps``) are first put on the common reference, the runs' mean of
+    each: ``fill * holdup / mean holdup``, ``ratio * residence / mean residence`` (points
+    at or above the common steady hold-up are dropped); curves without them are taken as
+    they are. Then the fills of :func:`_common_fills`, there the curves' ratios averaged
+    with their tagged masses as weights, and the bins' summed tagged masses.
+    """
+    if not curves:
+        raise ValueError("no filling curves to pool")
+    if len(curves) == 1:
+        return curves[0]
+    ref = [c for c in curves if c.window_holdup_kg is not None and c.window_residence_steps is not None]
+    hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
+    res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
+    common = []
+    for c in curves:
+        if c not in ref:
+            common.append(c)
+            continue
+        h = np.asarray(c.fill) * c.window_holdup_kg / hold
+        keep = h < 1.0
+        if not keep.any():
+            continue
+        common.append(FillingTransport(
+            fill=h[keep].tolist(), residence_ratio=(np.asarray(c.residence_ratio)[keep] * c.window_residence_steps
+                                                    / res).tolist(),
+            tag_mass_kg=np.asarray(c.tag_mass_kg)[keep].tolist()))
+    if not common:
+        raise ValueError("every filling point lies at or above the runs' mean steady hold-up")
+    fill, mass = _common_fills(common)
+    w = np.array([sum(c.tag_mass_kg) for c in common])
+    ratio = np.average([c.ratio_at(fill) for c in common], axis=0, weights=w)
+    return FillingTransport(fill=fill.tolist(), residence_ratio=ratio.tolist(), tag_mass_kg=mass.tolist(),
+                            window_residence_steps=res, window_holdup_kg=hold)
+
+
+def pooled_filling(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The runs' filling curves pooled into one: fills (K,) and residence ratios (K,).
+
+    :func:`filling_curves` averaged over the runs, weighted by their tagged masses.
+    None unless every run has a curve.
+    """
+    curves = filling_curves(runs)
+    if curves is None:
+        return None
+    fill, ratios, w = curves
+    return fill, np.average(ratios, axis=0, weights=w)
 
 
 def _count_rows(runs: list[RunStatistics]) -> np.ndarray:
@@ -272,7 +333,10 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
                       stacklevel=3)
     d = runs[0].design
     lam = np.maximum(lin(a["lam"]), 0.0)
-    filling = pooled_filling(runs)
+    filling = filling_curves(runs)
+    if filling is not None:  # per class, between the neighbouring runs in log size; held outside them
+        ww = w[:, None]
+        filling = filling[0], (1 - ww) * filling[1][j] + ww * filling[1][j1]
     return StageParameters(
         sizes_mm=sizes.copy(),
         characteristic_time_s=float(times.mean()),

@@ -221,10 +221,11 @@ class Transition:
         Compartment the fresh feed of a step enters at the end of the step.
     note : str
         Remark for the result's notes (e.g. a fallback), or empty.
-    filling : (ndarray (K,), ndarray (K,)) or None
+    filling : (ndarray (K,), ndarray (K,) or (N, K)) or None
         Mill fills (share of the steady hold-up) and the transport's mean residence
-        there over its steady one (:meth:`speed_at`); None: the transport does not
-        depend on the fill (``matrix`` at every step).
+        there over its steady one (:meth:`speed_at`), one curve for every size class
+        (K,) or one per class (N, K); None: the transport does not depend on the
+        fill (``matrix`` at every step).
     """
 
     matrix: np.ndarray
@@ -232,28 +233,46 @@ class Transition:
     note: str = ""
     filling: tuple[np.ndarray, np.ndarray] | None = None
 
-    def speed_at(self, fill: float) -> float:
+    @property
+    def per_class_filling(self) -> bool:
+        """Whether the fill-dependent speed differs by size class (``filling`` ratios of shape (N, K))."""
+        return self.filling is not None and np.ndim(self.filling[1]) == 2
+
+    def speed_at(self, fill: float) -> float | np.ndarray:
         """How many times faster than at steady state the rock moves at mill fill ``fill`` (1 at and above 1).
 
         ``1 / ratio``, the ratio linear in the fill between the ``filling`` points and
-        ``(1, 1)``, the first point's below them. A step at speed ``g`` moves a
-        compartment's rock by ``g (matrix - I)``: the time spent per visit divided by
-        ``g``, the destinations of the rock that leaves kept (docs/model.md).
+        ``(1, 1)``, the first point's below them: a float, or per size class (N,)
+        when the curves are per class. A step at speed ``g`` moves a compartment's
+        rock by ``g (matrix - I)``: the time spent per visit divided by ``g``, the
+        destinations of the rock that leaves kept (docs/model.md).
         """
         if self.filling is None:
             return 1.0
         h, r = self.filling
-        return 1.0 / float(np.interp(min(float(fill), 1.0), [*h, 1.0], [*r, 1.0]))
+        f = min(float(fill), 1.0)
+        hh = np.append(h, 1.0)
+        if np.ndim(r) == 1:
+            return 1.0 / float(np.interp(f, hh, np.append(r, 1.0)))
+        k = int(np.clip(np.searchsorted(hh, f, side="right") - 1, 0, hh.size - 2))
+        t = float(np.clip((f - hh[k]) / (hh[k + 1] - hh[k]), 0.0, 1.0))
+        rr = np.concatenate([r, np.ones((r.shape[0], 1))], axis=1)
+        return 1.0 / ((1.0 - t) * rr[:, k] + t * rr[:, k + 1])
 
     def max_speed(self) -> np.ndarray:
-        """Largest speed per compartment (C,) that keeps its rows non-negative: ``1 / (1 - min_i matrix[c, i, c])``.
+        """Largest speed that keeps the rows non-negative: per compartment (C,), or per class (C, N).
 
-        One speed for all size classes of a compartment, so that a step at speed
-        ``g`` stays linear in the state whether impacts come before or after the
-        move (``impacted``); ``inf`` where the rock always moves.
+        ``1 / (1 - matrix[c, i, c])``; ``inf`` where the rock always moves. With one
+        filling curve for all classes the speed is one per compartment (the
+        smallest over its classes), so that a step at speed ``g`` stays linear in the
+        state whether impacts come before or after the move (``impacted``); with
+        per-class curves (:attr:`per_class_filling`) it is per class (exact for
+        ``impacted="refeed"``; with ``"all"`` fragments move at their parent class's
+        speed in the step they are made).
         """
         c = np.arange(self.matrix.shape[0])
-        leave = 1.0 - self.matrix[c, :, c].min(axis=1)
+        stay = self.matrix[c, :, c]  # (C, N)
+        leave = 1.0 - (stay if self.per_class_filling else stay.min(axis=1))
         return np.where(leave > 1e-12, 1.0 / np.maximum(leave, 1e-12), np.inf)
 
     def staying(self) -> np.ndarray:
@@ -263,9 +282,10 @@ class Transition:
         eye[c, :, c] = 1.0
         return eye
 
-    def at_speed(self, g: float) -> np.ndarray:
-        """The one-step matrix at speed ``g`` (each compartment's speed capped by :meth:`max_speed`)."""
-        gs = np.minimum(g, self.max_speed())[:, None, None]
+    def at_speed(self, g: float | np.ndarray) -> np.ndarray:
+        """The one-step matrix at speed ``g`` (a float, or per class (N,)), capped by :meth:`max_speed`."""
+        cap = self.max_speed()
+        gs = np.minimum(g, cap if cap.ndim == 2 else cap[:, None])[:, :, None]
         return self.matrix + (gs - 1.0) * (self.matrix - self.staying())
 
     @property
@@ -434,9 +454,17 @@ class FillingMatrixTransport:
         ok = r > h  # at r <= h the mill could not fill past h: it did in the DEM, so such a point is noise
         note = tr.note
         if not ok.all():
+            bad = np.round(h[~ok.all(axis=0)] if r.ndim == 2 else h[~ok], 2).tolist()
             note = "; ".join(n for n in (note, "transport: filling points with residence ratio <= fill left out "
-                                         f"(fills {np.round(h[~ok], 2).tolist()})") if n)
-        return dataclasses.replace(tr, note=note, filling=(h[ok], r[ok]) if ok.any() else None)
+                                         f"(fills {bad})") if n)
+        if r.ndim == 1:
+            return dataclasses.replace(tr, note=note, filling=(h[ok], r[ok]) if ok.any() else None)
+        # per class: a point left out is bridged by the class's own neighbours (np.interp), or
+        # by (1, 1) above its last kept point; a class with none kept runs at the steady speed
+        hh = np.append(h, 1.0)
+        r = np.array([np.interp(h, hh[np.append(o, True)], np.append(ri, 1.0)[np.append(o, True)])
+                      for ri, o in zip(r, ok, strict=True)])
+        return dataclasses.replace(tr, note=note, filling=(h, r))
 
     def streams(self, params: StageParameters) -> np.ndarray:
         """The steady streams (as ``dem_matrix``)."""
