@@ -13,7 +13,15 @@ the run's own characteristic time) and writes the table with that field set
 (nothing else changes). Each run's provenance gets ``filling_transport_added_by``
 (command, version, commit, date, source folder) and the table's provenance a
 note. Reads the run folders only; ``--out`` defaults to overwriting ``TABLE``.
-The last line is ``runs=<n> with_filling=<m>``.
+
+``--replicas FILE`` (``scripts/transport_replicas.py --export``, runs of the
+table's points with other feed seeds that carry their ``filling_transport``)
+pools each run's curve with the replicas' at its size
+(:func:`msmill.model.providers.pool_filling_curves`): one run's 0.4 s of tags
+per fill bin is noise (docs/model.md 7.4), several seeds' are not. The run's
+own curve (from its folder, or kept in its provenance as ``own_curve`` by an
+earlier pooling, or the table's) is kept in the provenance, so pooling again
+does not count it twice. The last line is ``runs=<n> with_filling=<m>``.
 """
 
 from __future__ import annotations
@@ -27,7 +35,8 @@ from pathlib import Path
 
 from msmill._version import __version__
 from msmill.dem.mill.run import saved_run_filling_transport
-from msmill.stageparams import RunStatistics, StageParameterTable
+from msmill.model.providers import pool_filling_curves
+from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
 
 
 def run_dir(run: RunStatistics, runs_dir: Path | None) -> Path | None:
@@ -56,7 +65,10 @@ def main() -> None:
     ap.add_argument("table", type=Path)
     ap.add_argument("--runs-dir", type=Path, default=None, help="folder of the runs (size_<d>mm)")
     ap.add_argument("--out", type=Path, default=None, help="output table (default: overwrite TABLE)")
+    ap.add_argument("--replicas", type=Path, default=None,
+                    help="replica runs with filling curves (scripts/transport_replicas.py --export) to pool in")
     args = ap.parse_args()
+    replicas = json.loads(args.replicas.read_text(encoding="utf-8"))["replicas"] if args.replicas else []
     table = StageParameterTable.from_json(args.table)
     raw = json.loads(args.table.read_text(encoding="utf-8"))  # edited as JSON: every other byte stays
     stamp = {"command": " ".join([Path(sys.executable).name, *sys.argv]), "script": "scripts/add_filling_transport.py",
@@ -65,17 +77,31 @@ def main() -> None:
     for r, doc in zip(table.runs, raw["runs"], strict=True):
         d = run_dir(r, args.runs_dir)
         ft = saved_run_filling_transport(d, r.characteristic_time_s) if d else None
+        earlier = (r.provenance or {}).get("filling_transport_added_by") or {}
+        source = str(d) if ft is not None else earlier.get("source_dir")
+        if ft is None and args.replicas:  # the run's own curve: kept by an earlier pooling, or the table's
+            own = earlier.get("own_curve") or (r.filling_transport and r.filling_transport.model_dump(mode="json"))
+            ft = FillingTransport.model_validate(own) if own else None
         if ft is None:
             print(f"{r.design.size_mm:g} mm: no saved folder with a record before the window; left as it is")
             continue
         n_fill += 1
-        print(f"{r.design.size_mm:g} mm ({d}): fill {[round(h, 2) for h in ft.fill]} "
-              f"residence ratio {[round(x, 3) for x in ft.residence_ratio]}")
+        added = {**stamp, "source_dir": source}
+        mine = [x for x in replicas if abs(float(x["size_mm"]) - r.design.size_mm) < 1e-6 * r.design.size_mm
+                and x.get("filling_transport")]
+        if mine:
+            added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
+                      "replica_seeds": [int(x["seed"]) for x in mine]}
+            ft = pool_filling_curves([ft] + [FillingTransport.model_validate(x["filling_transport"]) for x in mine])
+        print(f"{r.design.size_mm:g} mm ({source}; {len(mine)} replicas pooled in): fill "
+              f"{[round(h, 2) for h in ft.fill]} residence ratio {[round(x, 3) for x in ft.residence_ratio]}")
         doc["filling_transport"] = ft.model_dump(mode="json")
-        doc.setdefault("provenance", {})["filling_transport_added_by"] = {**stamp, "source_dir": str(d)}
-    raw.setdefault("provenance", {})["filling_transport"] = {
-        **stamp, "note": "RunStatistics.filling_transport measured from the saved runs' snapshots before the "
-        "measurement window (issue 15); no other field changed"}
+        doc.setdefault("provenance", {})["filling_transport_added_by"] = added
+    note = ("RunStatistics.filling_transport measured from the saved runs' snapshots before the measurement window "
+            "(issue 15)")
+    if args.replicas:
+        note += f", pooled with the filling curves of the replica runs in {args.replicas} at each run's size"
+    raw.setdefault("provenance", {})["filling_transport"] = {**stamp, "note": note + "; no other field changed"}
     path = args.out or args.table
     text = json.dumps(raw, indent=1) + "\n"
     StageParameterTable.model_validate(raw)  # still a valid table

@@ -91,6 +91,9 @@ def run_replica(size_mm: float, seed: int, measure_s: float, every_s: float, end
                    "holdup_kg": np.round(ts["mass_kg"].to_numpy()[idx], 5).tolist(),
                    "product_cum_kg": np.round(ts["mass_out_kg"].to_numpy()[idx], 5).tolist()},
         "end_s": float(sim.time_s), "git_commit": run.extra.get("git_commit"),
+        # the tags of the filling phase binned by fill (RunStatistics.filling_transport): several seeds
+        # of one point pool into a filling curve far less noisy than one run's
+        "filling_transport": st.filling_transport.model_dump() if st.filling_transport is not None else None,
         "run_settings": {"measure_s": measure_s, "seed": seed, **{k: getattr(rs, k) for k in (
             "steady_window_s", "rel_tol", "trend_tol", "balance_tol", "chunk_s")}},
     }

@@ -471,11 +471,19 @@ class FillingTransport(_Frozen):
         window's destinations (> 0; below 1: the transport runs faster than at steady state).
     tag_mass_kg : list of float
         Tagged rock mass of the bin (its weight).
+    window_residence_steps, window_holdup_kg : float or None
+        The two references of the curve: the mean residence (steps of the lag) of the
+        window's chain and the window's mean hold-up (kg). One short window measures
+        both to 10-20 % for coarse rock; with them, runs of one point (other feed seeds)
+        pool against a common reference (:func:`msmill.model.providers.pool_filling_curves`).
+        None in curves measured before 2026-12-02.
     """
 
     fill: list[float] = Field(min_length=1)
     residence_ratio: list[float] = Field(min_length=1)
     tag_mass_kg: list[float] = Field(min_length=1)
+    window_residence_steps: float | None = Field(default=None, gt=0)
+    window_holdup_kg: float | None = Field(default=None, gt=0)
 
     @model_validator(mode="after")
     def _check(self) -> FillingTransport:

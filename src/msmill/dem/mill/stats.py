@@ -521,7 +521,9 @@ def filling_transport(
         out["fill"].append(float(np.average(h[sel], weights=w[sel])))
         out["residence_ratio"].append(float(r))
         out["tag_mass_kg"].append(float(w[sel].sum()))
-    return FillingTransport(**out) if out["fill"] else None
+    if not out["fill"]:
+        return None
+    return FillingTransport(**out, window_residence_steps=float(base), window_holdup_kg=float(held[in_win].mean()))
 
 
 def _batch_se(values: np.ndarray) -> float:
