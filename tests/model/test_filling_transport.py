@@ -382,6 +382,9 @@ def test_filling_measurement_finds_faster_rock_in_the_emptier_mill_and_none_when
     assert ft.fill[k] == pytest.approx(12 / 26, abs=0.05)
     assert ft.residence_ratio[k] == pytest.approx(sum(fast) / sum(slow), rel=0.15)
     assert np.allclose(np.delete(ft.residence_ratio, k), 1.0)  # few tags there: the window's destinations
+    rock_kg = 2700.0 * 4.0 / 3.0 * np.pi * 0.004**3
+    assert ft.window_residence_steps == pytest.approx(sum(slow), rel=0.05)  # the references of the curve
+    assert ft.window_holdup_kg == pytest.approx(sum(slow) * rock_kg, rel=0.05)  # one rock fed per snapshot
     t0 = 0.45  # a window that opens while the mill still fills: its tags at fills below 1 stay out
     early = filling_transport(m, snaps, rem, (t0, win[1]), lag=1)
     rock_kg = 2700.0 * 4.0 / 3.0 * np.pi * 0.004**3
