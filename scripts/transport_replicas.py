@@ -106,12 +106,13 @@ def _operating_point(design):
                           gate_deg=design.gate_deg)
 
 
-def export(out: Path, dest: Path, command: str) -> None:
-    """Gather ``out/replicas.jsonl`` with provenance into ``dest`` (JSON)."""
+def export(outs: list[Path], dest: Path, command: str) -> None:
+    """Gather ``replicas.jsonl`` of the folders ``outs`` (e.g. one per core) with provenance into ``dest`` (JSON)."""
     from msmill._version import __version__
     from msmill.dem.mill.run import git_commit
 
-    rows = [json.loads(s) for s in (out / "replicas.jsonl").read_text(encoding="utf-8").splitlines() if s.strip()]
+    rows = [json.loads(s) for out in outs
+            for s in (out / "replicas.jsonl").read_text(encoding="utf-8").splitlines() if s.strip()]
     rows.sort(key=lambda r: (r["size_mm"], r["seed"]))
     doc = {"kind": "msmill_transport_replicas", "schema_version": 1,
            "description": "replica DEM slice runs (other feed seeds) of the default stage table's points; "
@@ -119,7 +120,7 @@ def export(out: Path, dest: Path, command: str) -> None:
            "provenance": {"command": command, "msmill_version": __version__, "git_commit": git_commit(),
                           "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                           "inputs": "msmill/data/stage_parameters/default.json (operating point and sizes)",
-                          "source": str(out / "replicas.jsonl"), "python": platform.python_version(),
+                          "source": [str(out / "replicas.jsonl") for out in outs], "python": platform.python_version(),
                           "run_commits": sorted({str(r.get("git_commit")) for r in rows})},
            "replicas": rows}
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -129,7 +130,8 @@ def export(out: Path, dest: Path, command: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, required=True, help="folder of replicas.jsonl (resumable)")
+    ap.add_argument("--out", type=Path, nargs="+", required=True,
+                    help="folder of replicas.jsonl (resumable); with --export, one or more folders to gather")
     ap.add_argument("--sizes-mm", type=float, nargs="*", default=[30.0, 20.0, 14.0, 10.0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3, 4, 5])
     ap.add_argument("--measure-s", type=float, default=0.5, help="measurement window (s), as the table's runs")
@@ -141,8 +143,11 @@ def main() -> None:
     if args.export is not None:
         export(args.out, args.export, command)
         return
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "replicas.jsonl"
+    if len(args.out) != 1:
+        raise SystemExit(f"error: --out: {len(args.out)} folders given; runs go to exactly one")
+    out = args.out[0]
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "replicas.jsonl"
     for seed in args.seeds:  # every size at seed 1 before any at seed 2: a partial job covers all sizes
         for size in args.sizes_mm:
             if (round(float(size), 6), int(seed)) in done_keys(path):
