@@ -17,8 +17,16 @@ from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
 from msmill.model import Mill, RunProvider
 from msmill.model.expected_value import assemble
-from msmill.model.providers import TableProvider, pool_filling_curves, pooled_filling
+from msmill.model.providers import (
+    TableProvider,
+    WithFillingCurves,
+    default_table_path,
+    load_provider,
+    pool_filling_curves,
+    pooled_filling,
+)
 from msmill.model.submodels import (
+    DEFAULTS,
     SUBMODELS,
     FillingMatrixTransport,
     MatrixTransport,
@@ -30,6 +38,7 @@ from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
 
 N_ST = 3
+DEFAULT_TRANSPORT = DEFAULTS["transport"]
 OP = OperatingPoint(feed_tph=30.0, stage_speeds_rpm=[1500.0] * (N_ST - 1) + [3000.0], gate_deg=40.0)
 
 
@@ -321,6 +330,30 @@ def test_curves_with_their_window_references_pool_against_the_common_reference()
     plain = [m.model_copy(update={"window_holdup_kg": None, "window_residence_steps": None})
              for m in (measured(0.9), measured(1.1))]
     assert not np.allclose(pool_filling_curves(plain).ratio_at(true_fill), true_ratio, atol=0.01)
+
+
+def test_the_default_provider_takes_its_filling_curves_from_the_shipped_table():
+    """The campaign's runs start from a filled mill and carry no filling curves; the default provider
+    (the shipped surrogate) takes the shipped table's, so the default transport runs fill-dependent."""
+    prov = load_provider("default")
+    assert isinstance(prov, WithFillingCurves)
+    sizes = np.array([0.5, 6.0, 11.0, 30.0, 45.0])
+    speeds = [1500.0] * 4 + [3000.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = prov.stage_parameters(sizes, speeds, 30.0, 40.0)
+        own = prov.provider.stage_parameters(sizes, speeds, 30.0, 40.0)
+        table = TableProvider.from_file(default_table_path()).stage_parameters(sizes)
+        draws = prov.sample_stage_parameters(sizes, 2, speeds, 30.0, 40.0, seed=3)
+    assert np.array_equal(got.filling_fill, table.filling_fill)
+    assert np.array_equal(got.filling_residence_ratio, table.filling_residence_ratio)
+    assert own.filling_fill is None  # the surrogate alone has none
+    assert np.array_equal(got.hit_probability, own.hit_probability) and np.array_equal(got.streams, own.streams)
+    assert all(np.array_equal(d.filling_residence_ratio, table.filling_residence_ratio) for d in draws)
+    assert "filling curves from the shipped stage table" in got.source
+    tr = FillingMatrixTransport().transition(got)
+    assert tr.per_class_filling and "no filling transport" not in tr.note
+    assert SUBMODELS["transport"][DEFAULT_TRANSPORT] is FillingMatrixTransport
 
 
 # ------------------------------------------------------------------ schema

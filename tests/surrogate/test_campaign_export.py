@@ -91,8 +91,10 @@ def test_default_is_the_shipped_surrogate_and_table_stays_by_name():
     from msmill.surrogate.provider import SurrogateProvider
 
     assert default_surrogate_path() is not None
-    prov = load_provider("default")
+    wrapped = load_provider("default")  # the surrogate, with the shipped table's filling curves (cold runs)
+    prov = wrapped.provider
     assert isinstance(prov, SurrogateProvider) and prov.source.startswith("shipped default surrogate")
+    assert wrapped.source.startswith("shipped default surrogate") and wrapped.surrogate is prov.surrogate
     p = prov.surrogate.provenance_
     for key in ("git_commit", "loo", "domain", "runs", "package_versions", "command"):
         assert key in p

@@ -32,6 +32,7 @@ warns.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import warnings
 from pathlib import Path
 from typing import Any
@@ -59,6 +60,7 @@ __all__ = [
     "RunProvider",
     "StageParameterProvider",
     "TableProvider",
+    "WithFillingCurves",
     "load_provider",
     "named_parameter_path",
     "read_simple_table",
@@ -452,6 +454,76 @@ def default_table_path(field: str = "stage_parameters") -> Path:
 TABLE_NAME = "table"
 
 
+class WithFillingCurves:
+    """A provider whose stage parameters take their filling curves from another provider (a table's).
+
+    The filling curves (``StageParameters.filling_*``, the ``dem_matrix_fill``
+    transport) come from DEM runs that start empty; campaign runs start from a
+    filled mill (``RunSettings.start = "table"``) and carry none, so a surrogate
+    trained on them has none. This wrapper gives such a provider the curves of
+    ``filling`` at the same sizes (one rule: the curves are shares of the steady
+    hold-up and residence, not absolute figures, so they are taken as they are at
+    any operating point) and passes everything else through.
+
+    Parameters
+    ----------
+    provider : StageParameterProvider
+        The provider of every other stage parameter (e.g. the surrogate).
+    filling : StageParameterProvider
+        The provider of the filling curves (e.g. the shipped stage table).
+    """
+
+    def __init__(self, provider: Any, filling: Any) -> None:
+        self.provider = provider
+        self.filling = filling
+        self._cache: tuple[bytes, tuple[Any, Any]] | None = None
+
+    @property
+    def source(self) -> str:
+        return f"{self.provider.source}; filling curves from {self.filling.source}"
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages (the provider's)."""
+        return self.provider.n_stages
+
+    @property
+    def velocities_at_requested_speeds(self) -> bool:
+        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
+
+    def __getattr__(self, name: str) -> Any:  # anything else is the provider's (e.g. the surrogate itself)
+        if name in ("provider", "filling", "_cache"):
+            raise AttributeError(name)
+        return getattr(self.provider, name)
+
+    def _curves(self, sizes_mm: np.ndarray) -> tuple[Any, Any]:
+        key = np.asarray(sizes_mm, dtype=float).tobytes()
+        if self._cache is None or self._cache[0] != key:
+            with warnings.catch_warnings():  # the table's operating point is not the question here
+                warnings.simplefilter("ignore")
+                f = self.filling.stage_parameters(np.asarray(sizes_mm, dtype=float))
+            self._cache = key, (f.filling_fill, f.filling_residence_ratio)
+        return self._cache[1]
+
+    def _with(self, params: StageParameters) -> StageParameters:
+        fill, ratio = self._curves(params.sizes_mm)
+        return dataclasses.replace(params, filling_fill=fill, filling_residence_ratio=ratio,
+                                   source=f"{params.source}; filling curves from {self.filling.source}")
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """The provider's parameters at ``sizes_mm`` with ``filling``'s curves there."""
+        return self._with(self.provider.stage_parameters(sizes_mm, stage_speeds_rpm, feed_tph, gate_deg))
+
+    def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
+                                gate_deg=None, seed: int | None = 0) -> list[StageParameters]:
+        """The provider's samples, each with ``filling``'s curves."""
+        return [self._with(p) for p in self.provider.sample_stage_parameters(
+            sizes_mm, n_samples, stage_speeds_rpm, feed_tph, gate_deg, seed=seed)]
+
+    def __repr__(self) -> str:
+        return f"WithFillingCurves({self.provider!r}, filling={self.filling!r})"
+
+
 def default_surrogate_path() -> Path | None:
     """Path of the shipped default surrogate (``msmill/data/surrogates/default.json``), None when absent."""
     from importlib import resources
@@ -501,6 +573,10 @@ def load_provider(path: str | Path) -> Any:
         prov = SurrogateProvider.from_file(p)
         if p == default_surrogate_path():
             prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
+            # its runs start from a filled mill: the filling curves are the shipped table's (cold runs)
+            table = TableProvider.from_file(default_table_path())
+            table.source = "the shipped stage table (cold DEM runs)"
+            return WithFillingCurves(prov, table)
         return prov
     if p.suffix.lower() == ".json" and p.exists():
         try:

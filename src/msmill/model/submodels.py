@@ -454,9 +454,12 @@ class FillingMatrixTransport:
         ok = r > h  # at r <= h the mill could not fill past h: it did in the DEM, so such a point is noise
         note = tr.note
         if not ok.all():
-            bad = np.round(h[~ok.all(axis=0)] if r.ndim == 2 else h[~ok], 2).tolist()
-            note = "; ".join(n for n in (note, "transport: filling points with residence ratio <= fill left out "
-                                         f"(fills {bad})") if n)
+            if r.ndim == 2:
+                what = (f"bridged by their neighbours in {int((~ok).any(axis=1).sum())} of {r.shape[0]} size "
+                        f"classes (fills {np.round(h[~ok.all(axis=0)], 2).tolist()})")
+            else:
+                what = f"left out (fills {np.round(h[~ok], 2).tolist()})"
+            note = "; ".join(n for n in (note, f"transport: filling points with residence ratio <= fill {what}") if n)
         if r.ndim == 1:
             return dataclasses.replace(tr, note=note, filling=(h[ok], r[ok]) if ok.any() else None)
         # per class: a point left out is bridged by the class's own neighbours (np.interp), or
@@ -855,7 +858,7 @@ SUBMODELS: dict[str, dict[str, Any]] = {
     "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "none": NoBreakage},
     "damage": {"tavares": TavaresDamage, "none": NoDamage},
 }
-DEFAULTS: dict[str, str] = {"transport": "dem_matrix", "impacts": "speed_scaled",
+DEFAULTS: dict[str, str] = {"transport": "dem_matrix_fill", "impacts": "speed_scaled",
                             "breakage": "jk_t10", "damage": "tavares"}
 _NEEDS_ORE = ("breakage", "damage")
 _PROTOCOLS = {"transport": TransportModel, "impacts": ImpactModel,
