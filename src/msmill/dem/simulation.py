@@ -638,6 +638,7 @@ class Simulation:
         self._maxg = int(self._gc[2] * 1.25) + 2
         self._kind = K.particle_kinds(self._nb[0], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
                                       p["vel"], p["omg"])
+        self._work = K.work_lists(self._kind, self._nch)
         self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
@@ -893,7 +894,7 @@ class Simulation:
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
-                    p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+                    *self._work, p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
                     self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
                     self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
