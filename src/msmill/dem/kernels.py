@@ -737,10 +737,11 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
     :func:`particle_kinds`), so neither is written then.
 
     Without gravity a particle of kind 0 (no entries, slots or candidates)
-    feels no force, so the velocity and spin updates visit only the chunk's
-    particles of nonzero kind (``act_idx``, see :func:`work_lists`) and a
-    second, branch-light loop moves every particle (each particle's
-    operations are the same as in one loop, in the same order).
+    feels no force, so where fewer than half of a chunk's particles have a
+    nonzero kind the velocity and spin updates visit only those
+    (``act_idx``, see :func:`work_lists`) and a second, branch-light loop
+    moves every particle (each particle's operations are the same as in one
+    loop, in the same order).
     """
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -757,8 +758,12 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
     bz = periodic[2] == 0
     lo0, lo1, lo2, hi0, hi1, hi2 = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
     one = np.uint64(1)
-    if no_weight:
-        for qa in range(np.uint64(act_start[c]), np.uint64(act_start[c + 1])):
+    a0, a1 = np.uint64(act_start[c]), np.uint64(act_start[c + 1])
+    # the two-loop form pays where most particles fly free (a dilute gas); where most have
+    # work, one loop reads each particle once
+    sparse = no_weight and np.uint64(2) * (a1 - a0) < np.uint64(i1 - i0)
+    if sparse:
+        for qa in range(a0, a1):
             i = np.uint64(act_idx[qa])
             ki = kind[i]
             if (ki & K_HIT) != 0:
@@ -802,7 +807,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                 omg[i, 1] += t1 * ii * dt
                 omg[i, 2] += t2 * ii * dt
     for i in range(np.uint64(i0), np.uint64(i1)):
-        if no_weight:  # velocities and spins were updated above
+        if sparse:  # velocities and spins were updated above
             v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
         else:
             ki = kind[i]
@@ -810,10 +815,15 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                 f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
                 t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
             else:
-                mi = mass[i]
-                f0 = mi * g0
-                f1 = mi * g1
-                f2 = mi * g2
+                if no_weight:
+                    f0 = 0.0
+                    f1 = 0.0
+                    f2 = 0.0
+                else:
+                    mi = mass[i]
+                    f0 = mi * g0
+                    f1 = mi * g1
+                    f2 = mi * g2
                 t0 = 0.0
                 t1 = 0.0
                 t2 = 0.0
