@@ -368,15 +368,16 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 @njit(cache=True, fastmath=False)
-def _close_untouched_rows(i0, i1, kind, mask, keys, n, st, ev, pk, ds, tch, evf, t):
-    """End the contacts of particles ``i0 <= i < i1`` whose slot was not touched this step.
+def _close_untouched_rows(own_idx, q0, q1, kind, mask, keys, n, st, ev, pk, ds, tch, evf, t):
+    """End the contacts of the owners ``own_idx[q0:q1]`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
     Serves particle and geometry partners alike. Only particles with
     ``kind & mask`` can hold slots (see :func:`particle_kinds`).
     """
-    for i in range(i0, i1):
+    for q in range(q0, q1):
+        i = own_idx[q]
         if (kind[i] & mask) != 0 and n[i] > 0:
             _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
 
@@ -425,7 +426,7 @@ def _step_work(fx, fy, fz, fn, nx, ny, nz, vx, vy, vz, inv_m, inv_rot, dt):
 
 
 @njit(cache=True, fastmath=False)
-def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, own_idx, own_start,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -441,19 +442,17 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     without reading these arrays (see :func:`settle_forces` for ``frc`` and
     ``trq`` as outputs).
     """
-    n = pos.shape[0]
-    nch = diag.shape[0]
     smax = h_pid.shape[1]
     sgmax = g_gid.shape[1]
     lx, ly, lz = box_len[0], box_len[1], box_len[2]
-    i0, i1 = chunk_bounds(n, nch, c)
+    q0, q1 = np.uint64(own_start[c]), np.uint64(own_start[c + 1])
     ovmax = 0.0
     one = np.uint64(1)
-    # unsigned particle and entry indices: no negative-index wrap-around on every access
-    for i in range(np.uint64(i0), np.uint64(i1)):
+    # unsigned particle and entry indices: no negative-index wrap-around on every access;
+    # only the chunk's owners (kind & (K_OWN | K_GEO), ascending, see work_lists) are visited
+    for qo in range(q0, q1):
+        i = np.uint64(own_idx[qo])
         ki = kind[i]
-        if (ki & (K_OWN | K_GEO)) == 0:
-            continue
         hit = False  # the weight is read, and frc/trq written, only for a particle in contact
         fx = 0.0
         fy = 0.0
@@ -685,13 +684,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
     # entry of a helper with array arguments, inlined or not, in atomic reference counting
     # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
     # look-ups above are written out
-    _close_untouched_rows(i0, i1, kind, K_OWN, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
-    _close_untouched_rows(i0, i1, kind, K_GEO, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
+    _close_untouched_rows(own_idx, q0, q1, kind, K_OWN, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
+    _close_untouched_rows(own_idx, q0, q1, kind, K_GEO, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, own_idx, own_start,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -699,11 +698,11 @@ def force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, t
                evf, evi, evn, diag):
     """Force pass, parallel over particle chunks."""
     for c in prange(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, own_idx, own_start, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False)
-def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
+def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, own_idx, own_start,
                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g,
                gcur, grot, gkind, gmat, ptab, gravity,
                h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
@@ -711,7 +710,7 @@ def force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, t
                evf, evi, evn, diag):
     """Force pass, serial (small systems: no thread wake-up cost)."""
     for c in range(diag.shape[0]):
-        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
+        _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind, own_idx, own_start, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat, ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch, g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
 
 
 @njit(cache=True, fastmath=False, inline='always')
@@ -725,8 +724,8 @@ def _weight_free(gravity):
 
 
 @njit(cache=True, fastmath=False)
-def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf,
-                     pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start,
+                     stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Symplectic Euler on chunk ``c``: v += F/m dt, w += T/I dt, x += v_new dt; flags.
 
     Per-particle memory traffic is kept to what the particle needs: the force
@@ -736,6 +735,13 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     unchanged and a zero torque ``omg`` (bit for bit the same as adding the
     zero increment: velocities and spins are never -0.0, see
     :func:`particle_kinds`), so neither is written then.
+
+    Without gravity a particle of kind 0 (no entries, slots or candidates)
+    feels no force, so where fewer than half of a chunk's particles have a
+    nonzero kind the velocity and spin updates visit only those
+    (``act_idx``, see :func:`work_lists`) and a second, branch-light loop
+    moves every particle (each particle's operations are the same as in one
+    loop, in the same order).
     """
     n = pos.shape[0]
     nch = diag.shape[0]
@@ -752,58 +758,109 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     bz = periodic[2] == 0
     lo0, lo1, lo2, hi0, hi1, hi2 = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
     one = np.uint64(1)
-    for i in range(np.uint64(i0), np.uint64(i1)):
-        ki = kind[i]
-        if (ki & K_HIT) != 0:
-            f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
-            t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
-        else:
-            if no_weight:
+    a0, a1 = np.uint64(act_start[c]), np.uint64(act_start[c + 1])
+    # the two-loop form pays where most particles fly free (a dilute gas); where most have
+    # work, one loop reads each particle once
+    sparse = no_weight and np.uint64(2) * (a1 - a0) < np.uint64(i1 - i0)
+    if sparse:
+        for qa in range(a0, a1):
+            i = np.uint64(act_idx[qa])
+            ki = kind[i]
+            if (ki & K_HIT) != 0:
+                f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
+                t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
+            else:  # no weight: a particle's own contacts are its only force
                 f0 = 0.0
                 f1 = 0.0
                 f2 = 0.0
+                t0 = 0.0
+                t1 = 0.0
+                t2 = 0.0
+            if (ki & K_REV) != 0 and shs[i] == stamp:
+                got = False
+                for q in range(rv_start[i], rv_start[i + one]):
+                    if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                        got = True
+                        f0 -= pf[q, 0]
+                        f1 -= pf[q, 1]
+                        f2 -= pf[q, 2]
+                        t0 += pt[q, 0]
+                        t1 += pt[q, 1]
+                        t2 += pt[q, 2]
             else:
-                mi = mass[i]
-                f0 = mi * g0
-                f1 = mi * g1
-                f2 = mi * g2
-            t0 = 0.0
-            t1 = 0.0
-            t2 = 0.0
-        if (ki & K_REV) != 0 and shs[i] == stamp:
-            got = False
-            for q in range(rv_start[i], rv_start[i + one]):
-                if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
-                    got = True
-                    f0 -= pf[q, 0]
-                    f1 -= pf[q, 1]
-                    f2 -= pf[q, 2]
-                    t0 += pt[q, 0]
-                    t1 += pt[q, 1]
-                    t2 += pt[q, 2]
+                got = False
+            if got:
+                frc[i, 0] = f0
+                frc[i, 1] = f1
+                frc[i, 2] = f2
+                trq[i, 0] = t0
+                trq[i, 1] = t1
+                trq[i, 2] = t2
+            if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
+                im = invm[i]
+                vel[i, 0] = vel[i, 0] + f0 * im * dt
+                vel[i, 1] = vel[i, 1] + f1 * im * dt
+                vel[i, 2] = vel[i, 2] + f2 * im * dt
+            if t0 != 0.0 or t1 != 0.0 or t2 != 0.0:
+                ii = invi[i]
+                omg[i, 0] += t0 * ii * dt
+                omg[i, 1] += t1 * ii * dt
+                omg[i, 2] += t2 * ii * dt
+    for i in range(np.uint64(i0), np.uint64(i1)):
+        if sparse:  # velocities and spins were updated above
+            v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
         else:
-            got = False
-        if got:
-            frc[i, 0] = f0
-            frc[i, 1] = f1
-            frc[i, 2] = f2
-            trq[i, 0] = t0
-            trq[i, 1] = t1
-            trq[i, 2] = t2
-        v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
-        if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
-            im = invm[i]
-            v0 = v0 + f0 * im * dt
-            v1 = v1 + f1 * im * dt
-            v2 = v2 + f2 * im * dt
-            vel[i, 0] = v0
-            vel[i, 1] = v1
-            vel[i, 2] = v2
-        if t0 != 0.0 or t1 != 0.0 or t2 != 0.0:
-            ii = invi[i]
-            omg[i, 0] += t0 * ii * dt
-            omg[i, 1] += t1 * ii * dt
-            omg[i, 2] += t2 * ii * dt
+            ki = kind[i]
+            if (ki & K_HIT) != 0:
+                f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
+                t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
+            else:
+                if no_weight:
+                    f0 = 0.0
+                    f1 = 0.0
+                    f2 = 0.0
+                else:
+                    mi = mass[i]
+                    f0 = mi * g0
+                    f1 = mi * g1
+                    f2 = mi * g2
+                t0 = 0.0
+                t1 = 0.0
+                t2 = 0.0
+            if (ki & K_REV) != 0 and shs[i] == stamp:
+                got = False
+                for q in range(rv_start[i], rv_start[i + one]):
+                    if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
+                        got = True
+                        f0 -= pf[q, 0]
+                        f1 -= pf[q, 1]
+                        f2 -= pf[q, 2]
+                        t0 += pt[q, 0]
+                        t1 += pt[q, 1]
+                        t2 += pt[q, 2]
+            else:
+                got = False
+            if got:
+                frc[i, 0] = f0
+                frc[i, 1] = f1
+                frc[i, 2] = f2
+                trq[i, 0] = t0
+                trq[i, 1] = t1
+                trq[i, 2] = t2
+            v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
+            if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
+                im = invm[i]
+                v0 = v0 + f0 * im * dt
+                v1 = v1 + f1 * im * dt
+                v2 = v2 + f2 * im * dt
+                vel[i, 0] = v0
+                vel[i, 1] = v1
+                vel[i, 2] = v2
+            if t0 != 0.0 or t1 != 0.0 or t2 != 0.0:
+                ii = invi[i]
+                omg[i, 0] += t0 * ii * dt
+                omg[i, 1] += t1 * ii * dt
+                omg[i, 2] += t2 * ii * dt
         x = pos[i, 0] + v0 * dt
         y = pos[i, 1] + v1 * dt
         z = pos[i, 2] + v2 * dt
@@ -839,6 +896,46 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity,
     diag[c, D_DISP2] = vmax  # this step's max speed^2 (D_SPEED2 keeps the max of the call)
     diag[c, D_SPEED2] = max(diag[c, D_SPEED2], vmax)
     diag[c, D_FLAGGED] += nflag
+
+
+@njit(cache=True, fastmath=False)
+def work_lists(kind, nch):
+    """Per-chunk lists of the particles the step passes visit, for the kinds just computed.
+
+    Returns ``(own_idx, own_start, act_idx, act_start)``: chunk ``c``'s
+    particles (:func:`chunk_bounds`) with ``kind & (K_OWN | K_GEO)`` (the
+    force pass) are ``own_idx[own_start[c]:own_start[c + 1]]``, those of
+    nonzero kind (the velocity updates of a weight-free integration) are
+    ``act_idx[act_start[c]:act_start[c + 1]]``, each in ascending order. The
+    passes then neither test nor touch the others (most particles of a
+    dilute gas).
+    """
+    n = kind.shape[0]
+    no = 0
+    na = 0
+    for i in range(n):
+        if (kind[i] & (K_OWN | K_GEO)) != 0:
+            no += 1
+        if kind[i] != 0:
+            na += 1
+    own_idx = np.empty(no, np.uint32)
+    act_idx = np.empty(na, np.uint32)
+    own_start = np.zeros(nch + 1, np.int64)
+    act_start = np.zeros(nch + 1, np.int64)
+    no = 0
+    na = 0
+    for c in range(nch):
+        i0, i1 = chunk_bounds(n, nch, c)
+        for i in range(i0, i1):
+            if (kind[i] & (K_OWN | K_GEO)) != 0:
+                own_idx[no] = i
+                no += 1
+            if kind[i] != 0:
+                act_idx[na] = i
+                na += 1
+        own_start[c + 1] = no
+        act_start[c + 1] = na
+    return own_idx, own_start, act_idx, act_start
 
 
 @njit(cache=True, fastmath=False)
@@ -895,22 +992,22 @@ def settle_forces(kind, mass, gravity, frc, trq, shs, stamp):
 
 
 @njit(cache=True, fastmath=False, parallel=True)
-def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_par(t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, parallel over chunks."""
     for c in prange(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
-def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
+def integrate_ser(t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag):
     """Integration pass, serial."""
     for c in range(diag.shape[0]):
-        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
+        _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag, flag_t, lo, hi, periodic, sinks, diag)
 
 
 @njit(cache=True, fastmath=False)
 def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-            flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, shs, pf, pt, box_len, gc_start,
+            own_idx, own_start, act_idx, act_start, flag, flag_t, nb_start, nb_j, nb_sh, rv_start, rv_pos, stamp0, pc, shs, pf, pt, box_len, gc_start,
             gc_g, gref, gcur, grot, gkind, gmat, ptab, gravity, lo, hi, periodic, sinks,
             h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
             g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag, parallel):
@@ -930,17 +1027,17 @@ def advance(t0, dt, nsteps, skin, disp, pos, vel, omg, rad, mass, invm, invi, ma
         stamp = stamp0 + step
         if parallel:
             force_pass_par(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                own_idx, own_start, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
+            integrate_par(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         else:
             force_pass_ser(t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, trq, kind,
-                nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
+                own_idx, own_start, nb_start, nb_j, nb_sh, rv_pos, stamp, pc, shs, pf, pt, box_len, gc_start, gc_g, gcur, grot, gkind, gmat,
                 ptab, gravity, h_pid, h_st, h_ev, h_pk, h_ds, h_n, h_tch,
                 g_gid, g_st, g_ev, g_pk, g_ds, g_n, g_tch, evf, evi, evn, diag)
-            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
+            integrate_ser(t0 + (step + 1) * dt, dt, pos, vel, omg, frc, trq, kind, act_idx, act_start, mass, gravity, rv_start, stamp, pc, shs, pf, pt, invm, invi, flag,
                 flag_t, lo, hi, periodic, sinks, diag)
         vmax2 = 0.0
         nflag = 0.0

@@ -156,6 +156,7 @@ class Simulation:
         self._last_par = False  # kind of the last step-kernel call (rebuilds follow it)
         self._perf: dict[bool, float | None] = {True: None, False: None}
         self._calls = 0
+        self._tuned_mode: bool | None = None  # kind of the last timed call (see _tune)
         self._smax = int(max_contacts_per_particle)
         self._sgmax = int(max_geometry_contacts)
         if self._smax < 1 or self._sgmax < 1:
@@ -532,8 +533,10 @@ class Simulation:
         """Threaded or serial step kernels for the next call (results are identical).
 
         ``parallel=None`` (auto): above ``parallel_min_particles`` both are
-        timed and the faster one is used, re-probing the other every 32 calls,
-        because on a shared machine the threaded passes can be slower.
+        timed and the faster one is used, re-probing the threads every 32
+        calls while the serial kernels are faster (on a shared machine the
+        threaded passes can be slower) and the serial kernels every 256 calls
+        while the threads are faster.
         """
         if not self._parallel():
             return False
@@ -545,14 +548,25 @@ class Simulation:
                 return mode
         self._calls += 1
         best = perf[True] <= perf[False]
-        return (not best) if self._calls % 32 == 0 else best
+        # re-probe the slower kind: the threads every 32 calls while the serial kernels are
+        # faster (the other tenants may have left the cores), the serial kernels only every
+        # 256 calls while the threads are faster (a slowed-down threaded call shows in the
+        # threads' own timing, and each serial probe costs a call, and the rebuild after it,
+        # at the serial speed: ~6 % of the gas benchmark at phi = 0.05 with every 32)
+        every = 256 if best else 32
+        return (not best) if self._calls % every == 0 else best
 
     def _tune(self, mode: bool, elapsed: float, steps: int) -> None:
         if steps < 5 or self.n_particles == 0:
             return
         cost = elapsed / (steps * self.n_particles)
         old = self._perf[mode]
-        self._perf[mode] = cost if old is None else 0.5 * old + 0.5 * cost
+        # a probe (the other kind than last time) replaces its kind's stale estimate: averaged
+        # with it, one slow first threaded call (thread start-up, a busy minute) kept the
+        # serial kernels in use for several re-probes
+        probe = mode != self._tuned_mode
+        self._tuned_mode = mode
+        self._perf[mode] = cost if old is None or probe else 0.5 * old + 0.5 * cost
 
     # ------------------------------------------------------------------ rebuild
     def _cells(self, rmax: float) -> None:
@@ -638,6 +652,7 @@ class Simulation:
         self._maxg = int(self._gc[2] * 1.25) + 2
         self._kind = K.particle_kinds(self._nb[0], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
                                       p["vel"], p["omg"])
+        self._work = K.work_lists(self._kind, self._nch)
         self._disp[0] = 0.0
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
@@ -893,7 +908,7 @@ class Simulation:
                 k, reason = K.advance(
                     self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
                     p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
-                    p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+                    *self._work, p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
                     self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
                     self._pair[1], self._pair[2],
                     self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
