@@ -2,7 +2,7 @@
 
 Run::
 
-    python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix] [--runs-dir DIR]
+    python benchmarks/transport_vs_dem.py [--table PATH] [--transport dem_matrix_fill] [--runs-dir DIR]
                                           [--campaign DIR|none] [--scatter N] [--filling table|own]
 
 For every run of the stage-parameter table (default: the packaged
@@ -95,7 +95,7 @@ from msmill.machine import OperatingPoint
 from msmill.model import Mill
 from msmill.model.providers import RunProvider, TableProvider, default_table_path, pooled_filling
 from msmill.model.result import time_to_steady_state
-from msmill.model.submodels import BreakageParameters
+from msmill.model.submodels import DEFAULTS, BreakageParameters
 from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
 from msmill.steadystate import SteadyStateCriterion, first_steady
@@ -465,7 +465,8 @@ def report(rows: list[Row], prefix: str = "") -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--table", type=Path, default=None, help="stage-parameter table (default: the packaged one)")
-    ap.add_argument("--transport", default="dem_matrix", help="transport sub-model (default dem_matrix)")
+    ap.add_argument("--transport", default=DEFAULTS["transport"],
+                    help=f"transport sub-model (default: the model's, {DEFAULTS['transport']})")
     ap.add_argument("--runs-dir", type=Path, default=None,
                     help="folder of the table's saved DEM runs (size_<d>mm); default: the runs' provenance")
     ap.add_argument("--campaign", default=None,
