@@ -28,6 +28,21 @@ With ``--results DIR`` every finished run's statistics, wall time and summary ar
 run already there is not run again, so a long benchmark (a cold 6 mm run costs about an hour) resumes
 after an interruption, and ``--variants old`` / ``new`` can run the two halves as separate jobs (the
 summary lines are printed for the sizes with both).
+**The old run's code** (``--old-tree DIR``): "today's" run of the issue is the
+cold fixed-window run with the engine of the day the issue was filed. With
+``--old-tree`` the old run is made by the msmill of another checkout (``git
+worktree add DIR d8a5b5f``: the commit before the first of issue 12's changes,
+whose engine is that of the filing and whose steady-state criterion is today's)
+in a child process (``PYTHONPATH=DIR/src``), timed around its ``run_mill``
+alone; its raw record is saved and its statistics recomputed by *this*
+checkout's code (:func:`msmill.dem.mill.run.stats_from_dir`), so both runs'
+statistics and sampling errors come from one statistics code. The engine's
+changes since are bitwise identical, so the old tree's run is step for step
+today's cold run (onset and window are checked against a kept current-code
+``old`` run when there is one); the ratio then measures all three of the
+issue's levers (start, window, step). The current-code ``old`` run, when kept,
+gives the protocol-only ratio beside it (``protocol_cpu_ratio_median``).
+
 Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x> cpu_ratio_median=<new/old
 CPU time>`` (the last where every run has its CPU time).
 """
@@ -37,6 +52,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
 from functools import partial
@@ -44,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msmill.dem.mill.run import RunSettings, run_mill
+from msmill.dem.mill.run import RunSettings, run_mill, stats_from_dir
 from msmill.dem.mill.warmstart import WarmStart
 from msmill.machine import Machine, OperatingPoint
 from msmill.stageparams import RunStatistics
@@ -121,25 +140,72 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
-def cached_or_run(results: Path | None, tag: str, fn) -> tuple[RunStatistics, float, float | None, str]:
-    """``(statistics, wall_s, cpu_s, summary line)`` of a run, from ``results`` if it holds it, else run it
-    and keep it there. ``cpu_s`` is the process's CPU time over the run (one numba thread: its work,
-    much less sensitive than the wall time to other jobs on a shared machine)."""
+def measured(fn) -> tuple[RunStatistics, float, float, str]:
+    """``(statistics, wall_s, cpu_s, summary line)`` of ``fn()``, a run of this checkout. ``cpu_s`` is the
+    process's CPU time over the run (one numba thread: its work, much less sensitive than the wall time
+    to other jobs on a shared machine)."""
+    cpu0 = time.process_time()
+    run, wall = timed(fn)
+    cpu = time.process_time() - cpu0
+    return run.stats.run, wall, cpu, f"{describe(run, wall)}, cpu {cpu:.1f} s"
+
+
+def cached_or_run(results: Path | None, tag: str, measure) -> tuple[RunStatistics, float, float | None, str]:
+    """``measure()`` (``(statistics, wall_s, cpu_s, summary line)`` of a run), from ``results`` if it holds
+    it, else measured and kept there."""
     if results is not None and (results / f"{tag}.meta.json").exists():
         meta = json.loads((results / f"{tag}.meta.json").read_text())
         return (RunStatistics.from_json(results / f"{tag}.json"), float(meta["wall_s"]), meta.get("cpu_s"),
                 meta["summary"] + " (kept)")
-    cpu0 = time.process_time()
-    run, wall = timed(fn)
-    cpu = time.process_time() - cpu0
-    line = f"{describe(run, wall)}, cpu {cpu:.1f} s"
+    stats, wall, cpu, line = measure()
     if results is not None:
-        run.stats.run.to_json(results / f"{tag}.json")
+        stats.to_json(results / f"{tag}.json")
         meta = {"wall_s": wall, "cpu_s": cpu, "summary": line,
                 "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "load_average": [round(x, 2) for x in os.getloadavg()]}
         (results / f"{tag}.meta.json").write_text(json.dumps(meta, indent=1))  # written last: marks the run done
-    return run.stats.run, wall, cpu, line
+    return stats, wall, cpu, line
+
+
+#: Run by the old tree's Python: the cold fixed-window run, timed around ``run_mill`` alone, saved raw.
+_OLD_TREE_RUNNER = """
+import json, sys, time, warnings
+warnings.simplefilter("ignore")
+import msmill
+from msmill.dem.mill.run import RunSettings, run_mill, save_run
+from msmill.machine import Machine, OperatingPoint
+size, seed, feed, rpm, gate, out = float(sys.argv[1]), int(sys.argv[2]), *map(float, sys.argv[3:6]), sys.argv[6]
+op = OperatingPoint(feed_tph=feed, speed_rpm=rpm, gate_deg=gate)
+c0, t0 = time.process_time(), time.perf_counter()
+run = run_mill(Machine.default(), op, size_mm=size, settings=RunSettings(measure_s=0.5, seed=seed))
+wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+save_run(run, out)
+print(json.dumps({"wall_s": wall, "cpu_s": cpu, "onset_s": run.steady_state_time_s, "window_s": list(run.window_s),
+                  "outcome": run.outcome, "msmill": msmill.__file__, "git_commit": run.extra.get("git_commit")}))
+"""
+
+
+def old_tree_run(tree: Path, size_mm: float, seed: int, point: OperatingPoint) -> tuple[RunStatistics, float, float, str]:
+    """The old protocol run by the msmill of checkout ``tree``; statistics recomputed by this checkout's code.
+
+    Returns ``(statistics, wall_s, cpu_s, summary line)``; wall and CPU time are the child's, around its
+    ``run_mill`` only (imports, saving and the recomputation are not counted).
+    """
+    raw = Path(tempfile.mkdtemp(prefix="msmill-old-tree-"))
+    try:
+        env = {**os.environ, "PYTHONPATH": str(tree / "src"), "NUMBA_NUM_THREADS": "1"}
+        args = [str(size_mm), str(seed), str(point.feed_tph), str(point.speed_rpm), str(point.gate_deg), str(raw)]
+        out = subprocess.run([sys.executable, "-c", _OLD_TREE_RUNNER, *args], env=env, check=True,
+                             capture_output=True, text=True, cwd=tree)
+        meta = json.loads(out.stdout.strip().splitlines()[-1])
+        if not str(meta["msmill"]).startswith(str(tree.resolve())):
+            raise SystemExit(f"error: --old-tree {tree}: the child imported msmill from {meta['msmill']}")
+        stats = stats_from_dir(raw).run
+    finally:
+        shutil.rmtree(raw, ignore_errors=True)
+    line = (f"{meta['outcome']}, onset {meta['onset_s']}, window {meta['window_s'][0]:.2f}-{meta['window_s'][1]:.2f} s, "
+            f"wall {meta['wall_s']:.1f} s, cpu {meta['cpu_s']:.1f} s, code {meta['git_commit']}")
+    return stats, float(meta["wall_s"]), float(meta["cpu_s"]), line
 
 
 def main() -> None:
@@ -156,6 +222,9 @@ def main() -> None:
                     help="cap of the new run's adaptive window (s); default RunSettings'")
     ap.add_argument("--cold-adaptive", action="store_true",
                     help="also run a cold start with the adaptive window and compare it with the warm one")
+    ap.add_argument("--old-tree", type=Path, default=None,
+                    help="make the old run with the msmill of this checkout (the code of the issue's day, "
+                         "e.g. a worktree at d8a5b5f); statistics recomputed by this checkout")
     args = ap.parse_args()
     if args.results:
         args.results.mkdir(parents=True, exist_ok=True)
@@ -163,7 +232,7 @@ def main() -> None:
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
     near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
-    ratios, cpu_ratios, worst, z_all = [], [], (0.0, ""), []
+    ratios, cpu_ratios, protocol_cpu, worst, z_all = [], [], [], (0.0, ""), []
     n_dev = n_over = 0
     for i, size in enumerate(args.sizes_mm):
         start = None
@@ -180,21 +249,42 @@ def main() -> None:
         protocol = {**CAMPAIGN_RUN_DEFAULTS, **({} if args.start == "table" else {"start": "empty"}), **cap}
         new = partial(run_mill, m, point, size_mm=size, settings=RunSettings(seed=args.seed, **protocol), start=start)
 
-        order = (("old", old), ("new", new)) if i % 2 == 0 else (("new", new), ("old", old))
+        old_name = "old" if args.old_tree is None else "old_tree"
+        runs = {"old": partial(measured, old), "new": partial(measured, new)}
+        if args.old_tree is not None:  # the same cold fixed-window run by the code of the issue's day
+            runs["old_tree"] = partial(old_tree_run, args.old_tree, size, args.seed, point)
+        order = [(old_name, "old"), ("new", "new")][:: 1 if i % 2 == 0 else -1]
+        if args.old_tree is not None:  # today's engine on the old protocol: the protocol-only ratio, if kept
+            order.append(("old", "old"))
         if args.cold_adaptive:  # the error targets of "new" from an empty mill, window from detection
-            order += (("cold_adaptive", partial(run_mill, m, point, size_mm=size,
-                                                settings=RunSettings(adaptive=True, seed=args.seed))),)
+            runs["cold_adaptive"] = partial(measured, partial(run_mill, m, point, size_mm=size,
+                                                              settings=RunSettings(adaptive=True, seed=args.seed)))
+            order.append(("cold_adaptive", "cold_adaptive"))
         res = {}
-        for name, fn in order:
+        for name, variant in order:
             tag = f"{size:g}mm_{name}"
-            if name in ("old", "new") and name not in args.variants:
-                if args.results is None or not (args.results / f"{tag}.meta.json").exists():
-                    continue
-            st, wall, cpu, line = cached_or_run(args.results, tag, fn)
+            kept = args.results is not None and (args.results / f"{tag}.meta.json").exists()
+            if variant in ("old", "new") and variant not in args.variants and not kept:
+                continue
+            if name == "old" and args.old_tree is not None and not kept:
+                continue  # the protocol-only figure only from a kept run: the headline does not need it
+            st, wall, cpu, line = cached_or_run(args.results, tag, runs[name])
             res[name] = (st, wall, cpu)
             print(f"{size:g} mm {name}: {line}")
-        if "old" not in res or "new" not in res:
+        if old_name != "old" and "old" in res and old_name in res:
+            same = res["old"][0].steady_state_time_s == res[old_name][0].steady_state_time_s and all(
+                a.pass_through == b.pass_through for a, b in zip(res["old"][0].stages, res[old_name][0].stages,
+                                                                 strict=True))
+            cpu_p = ""
+            if "new" in res and res["new"][2] and res["old"][2]:
+                protocol_cpu.append(res["new"][2] / res["old"][2])
+                cpu_p = f"CPU time {protocol_cpu[-1]:.3f}"
+            print(f"{size:g} mm: old tree's run {'is' if same else 'is NOT'} step for step today's cold run "
+                  f"(onset, pass-through); old tree / today's engine CPU time {res[old_name][2] / res['old'][2]:.3f}"
+                  f"{'; protocol only, new / today-engine old: ' + cpu_p if cpu_p else ''}")
+        if old_name not in res or "new" not in res:
             continue
+        res["old"] = res[old_name]
         devs = deviations(res["old"][0], res["new"][0])
         d_max = max(devs)
         n_dev += len(devs)
@@ -233,6 +323,8 @@ def main() -> None:
         return
     cpu_txt = (f" cpu_ratio_median={float(np.median(cpu_ratios)):.3f}" if len(cpu_ratios) == len(ratios)
                else "")
+    if protocol_cpu:
+        cpu_txt += f" protocol_cpu_ratio_median={float(np.median(protocol_cpu)):.3f}"
     print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}"
           f"{cpu_txt}")
 
