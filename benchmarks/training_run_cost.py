@@ -214,8 +214,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--results", type=Path, default=None,
                     help="keep each finished run here (statistics, wall, summary); runs already kept are reused")
-    ap.add_argument("--variants", nargs="+", choices=("old", "new"), default=["old", "new"],
-                    help="run only these (with --results: the other half may come from an earlier job)")
+    ap.add_argument("--variants", nargs="+", choices=("old", "new", "old_tree"), default=None,
+                    help="run only these (with --results: the others may come from an earlier job); default old "
+                         "and new, and old_tree with --old-tree")
     ap.add_argument("--start", choices=("table", "run"), default="table",
                     help="the new run's start: the stage table's hold-up (the campaign default) or a seed run's")
     ap.add_argument("--max-measure-s", type=float, default=None,
@@ -226,6 +227,10 @@ def main() -> None:
                     help="make the old run with the msmill of this checkout (the code of the issue's day, "
                          "e.g. a worktree at d8a5b5f); statistics recomputed by this checkout")
     args = ap.parse_args()
+    if args.variants is None:
+        args.variants = ["old", "new"] + (["old_tree"] if args.old_tree is not None else [])
+    if "old_tree" in args.variants and args.old_tree is None:
+        raise SystemExit("error: --variants old_tree needs --old-tree DIR")
     if args.results:
         args.results.mkdir(parents=True, exist_ok=True)
     warnings.simplefilter("ignore")  # transient overlap warnings are not the point here
@@ -253,21 +258,19 @@ def main() -> None:
         runs = {"old": partial(measured, old), "new": partial(measured, new)}
         if args.old_tree is not None:  # the same cold fixed-window run by the code of the day
             runs["old_tree"] = partial(old_tree_run, args.old_tree, size, args.seed, point)
-        order = [(old_name, "old"), ("new", "new")][:: 1 if i % 2 == 0 else -1]
-        if args.old_tree is not None:  # today's engine on the old protocol: the protocol-only ratio, if kept
-            order.append(("old", "old"))
+        order = [old_name, "new"][:: 1 if i % 2 == 0 else -1]
+        if args.old_tree is not None:  # today's engine on the old protocol: the protocol-only ratio
+            order.append("old")
         if args.cold_adaptive:  # the error targets of "new" from an empty mill, window from detection
             runs["cold_adaptive"] = partial(measured, partial(run_mill, m, point, size_mm=size,
                                                               settings=RunSettings(adaptive=True, seed=args.seed)))
-            order.append(("cold_adaptive", "cold_adaptive"))
+            order.append("cold_adaptive")
         res = {}
-        for name, variant in order:
+        for name in order:
             tag = f"{size:g}mm_{name}"
             kept = args.results is not None and (args.results / f"{tag}.meta.json").exists()
-            if variant in ("old", "new") and variant not in args.variants and not kept:
+            if name in ("old", "new", "old_tree") and name not in args.variants and not kept:
                 continue
-            if name == "old" and args.old_tree is not None and not kept:
-                continue  # the protocol-only figure only from a kept run: the headline does not need it
             st, wall, cpu, line = cached_or_run(args.results, tag, runs[name])
             res[name] = (st, wall, cpu)
             print(f"{size:g} mm {name}: {line}")

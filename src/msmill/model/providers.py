@@ -192,12 +192,13 @@ def pool_filling_curves(curves: list[FillingTransport]) -> FillingTransport:
         raise ValueError("no filling curves to pool")
     if len(curves) == 1:
         return curves[0]
-    ref = [c for c in curves if c.window_holdup_kg is not None and c.window_residence_steps is not None]
+    has_ref = [c.window_holdup_kg is not None and c.window_residence_steps is not None for c in curves]
+    ref = [c for c, r in zip(curves, has_ref, strict=True) if r]
     hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
     res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
     common = []
-    for c in curves:
-        if c not in ref:
+    for c, r in zip(curves, has_ref, strict=True):
+        if not r:
             common.append(c)
             continue
         h = np.asarray(c.fill) * c.window_holdup_kg / hold
