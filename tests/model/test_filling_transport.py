@@ -72,6 +72,18 @@ def _mill_run(run: RunStatistics, transport: str, ore: str = "UG2"):
         return Mill(ore, RunProvider(run), transport=transport, grid=grid, damage_classes=2).run(feed, OP)
 
 
+def _assert_march_conserves_mass(lm, f: np.ndarray, n_steps: int) -> None:
+    """March from empty with feed ``f`` per step: the state stays non-negative and fed = held + out."""
+    steady = float(lm.steady_state(f).sum())
+    x, fed, out = np.zeros(lm.n_state), 0.0, 0.0
+    for _ in range(n_steps):
+        x, o = lm.step(x, float(x.sum()) / steady)
+        x = x + f
+        fed, out = fed + 1.0, out + o
+        assert np.all(x >= -1e-14)
+        assert fed == pytest.approx(float(x.sum()) + out, rel=1e-12)
+
+
 # ------------------------------------------------------------------ definition
 def test_speed_is_the_inverse_ratio_linear_up_to_one_at_the_steady_hold_up():
     tr = Transition(np.zeros((1, 1, 2)), filling=(np.array([0.2, 0.6]), np.array([0.4, 0.8])))
@@ -204,14 +216,7 @@ def test_the_march_with_per_class_curves_conserves_mass_and_stays_non_negative(s
         _, _, stats, _, _ = mill.prepare(grid, OP)
     lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 2, 4, "refeed")
     f = lm.feed_vector(np.full(n, 1.0 / n), 1.0)
-    steady = float(lm.steady_state(f).sum())
-    x, fed, out = np.zeros(lm.n_state), 0.0, 0.0
-    for _ in range(30):
-        x, o = lm.step(x, float(x.sum()) / steady)
-        x = x + f
-        fed, out = fed + 1.0, out + o
-        assert np.all(x >= -1e-14)
-        assert fed == pytest.approx(float(x.sum()) + out, rel=1e-12)
+    _assert_march_conserves_mass(lm, f, 30)
 
 
 # ------------------------------------------------------------------ anchor at steady state
@@ -256,14 +261,7 @@ def test_the_march_conserves_mass_and_stays_non_negative(seed, n_st, n_cls, fill
         _, _, stats, _, _ = mill.prepare(grid, op)
     lm = assemble(grid.edges_mm, tr, stats, mill.breakage, NoDamage(), 1, 4)
     f = lm.feed_vector(np.full(n_cls, 1.0 / n_cls), 1.0)
-    steady = float(lm.steady_state(f).sum())
-    x, fed, out = np.zeros(lm.n_state), 0.0, 0.0
-    for _ in range(40):
-        x, o = lm.step(x, float(x.sum()) / steady)
-        x = x + f
-        fed, out = fed + 1.0, out + o
-        assert np.all(x >= -1e-14)
-        assert fed == pytest.approx(float(x.sum()) + out, rel=1e-12)
+    _assert_march_conserves_mass(lm, f, 40)
 
 
 # ------------------------------------------------------------------ the sub-model
