@@ -252,12 +252,12 @@ class Transition:
         h, r = self.filling
         f = min(float(fill), 1.0)
         hh = np.append(h, 1.0)
-        if np.ndim(r) == 1:
-            return 1.0 / float(np.interp(f, hh, np.append(r, 1.0)))
+        rows = np.atleast_2d(r)  # one curve is one row
+        rr = np.concatenate([rows, np.ones((rows.shape[0], 1))], axis=1)
         k = int(np.clip(np.searchsorted(hh, f, side="right") - 1, 0, hh.size - 2))
         t = float(np.clip((f - hh[k]) / (hh[k + 1] - hh[k]), 0.0, 1.0))
-        rr = np.concatenate([r, np.ones((r.shape[0], 1))], axis=1)
-        return 1.0 / ((1.0 - t) * rr[:, k] + t * rr[:, k + 1])
+        speed = 1.0 / (rr[:, k] + t * (rr[:, k + 1] - rr[:, k]))
+        return float(speed[0]) if np.ndim(r) == 1 else speed
 
     def max_speed(self) -> np.ndarray:
         """Largest speed that keeps the rows non-negative: per compartment (C,), or per class (C, N).
