@@ -29,6 +29,9 @@ Run (one core per process; cheapest sizes first)::
         --sizes-mm 30 20 14 --seeds 1 2 3 4 5 6
     python scripts/transport_replicas.py --out /work/demruns/replicas \
         --export benchmarks/data/transport_replicas.json
+
+A later session adds seeds in new folders and keeps the shipped replicas with
+``--previous benchmarks/data/transport_replicas.json`` (their provenance nested).
 """
 
 from __future__ import annotations
@@ -106,13 +109,31 @@ def _operating_point(design):
                           gate_deg=design.gate_deg)
 
 
-def export(outs: list[Path], dest: Path, command: str) -> None:
-    """Gather ``replicas.jsonl`` of the folders ``outs`` (e.g. one per core) with provenance into ``dest`` (JSON)."""
+def export(outs: list[Path], dest: Path, command: str, previous: Path | None = None) -> None:
+    """Gather ``replicas.jsonl`` of the folders ``outs`` (e.g. one per core) with provenance into ``dest`` (JSON).
+
+    ``previous``: an earlier export whose replicas are kept (a later session adds seeds without the
+    earlier session's folders); its provenance is nested under ``previous``. A (size, seed) in both is
+    an error, not a silent duplicate.
+    """
     from msmill._version import __version__
     from msmill.dem.mill.run import git_commit
 
     rows = [json.loads(s) for out in outs
             for s in (out / "replicas.jsonl").read_text(encoding="utf-8").splitlines() if s.strip()]
+    earlier = None
+    if previous is not None:
+        earlier = json.loads(previous.read_text(encoding="utf-8"))
+        if earlier.get("kind") != "msmill_transport_replicas":
+            raise SystemExit(f"error: --previous {previous}: not a transport-replicas file "
+                             f"(kind {earlier.get('kind')!r})")
+        new_keys = {(round(float(r["size_mm"]), 6), int(r["seed"])) for r in rows}
+        clash = sorted(k for k in ((round(float(r["size_mm"]), 6), int(r["seed"])) for r in earlier["replicas"])
+                       if k in new_keys)
+        if clash:
+            raise SystemExit(f"error: --previous {previous}: (size_mm, seed) {clash[0]} is also in --out; "
+                             "each replica must come from one run")
+        rows = [*earlier["replicas"], *rows]
     rows.sort(key=lambda r: (r["size_mm"], r["seed"]))
     doc = {"kind": "msmill_transport_replicas", "schema_version": 1,
            "description": "replica DEM slice runs (other feed seeds) of the default stage table's points; "
@@ -121,7 +142,8 @@ def export(outs: list[Path], dest: Path, command: str) -> None:
                           "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                           "inputs": "msmill/data/stage_parameters/default.json (operating point and sizes)",
                           "source": [str(out / "replicas.jsonl") for out in outs], "python": platform.python_version(),
-                          "run_commits": sorted({str(r.get("git_commit")) for r in rows})},
+                          "run_commits": sorted({str(r.get("git_commit")) for r in rows}),
+                          **({"previous": {"file": str(previous), **earlier["provenance"]}} if earlier else {})},
            "replicas": rows}
     dest.parent.mkdir(parents=True, exist_ok=True)
     dest.write_text(json.dumps(doc, separators=(",", ":")) + "\n", encoding="utf-8")  # compact: series dominate
@@ -138,10 +160,12 @@ def main() -> None:
     ap.add_argument("--every-s", type=float, default=0.01, help="spacing of the saved series (s)")
     ap.add_argument("--end-s", type=float, default=5.5, help="mill time every replica's series reaches (s)")
     ap.add_argument("--export", type=Path, default=None, help="write the gathered replicas here and stop")
+    ap.add_argument("--previous", type=Path, default=None,
+                    help="with --export: an earlier export whose replicas are kept beside the folders'")
     args = ap.parse_args()
     command = shlex.join([sys.executable, *sys.argv])
     if args.export is not None:
-        export(args.out, args.export, command)
+        export(args.out, args.export, command, args.previous)
         return
     if len(args.out) != 1:
         raise SystemExit(f"error: --out: {len(args.out)} folders given; runs go to exactly one")
