@@ -126,6 +126,8 @@ class Row:
     tss_dem_median_s: float = _NAN
     tss_dem_rep_se_s: float = _NAN
     dem_range: tuple[float, float] = (_NAN, _NAN)
+    #: the model's march from empty: time (s), hold-up over its steady hold-up, product rate over the feed rate
+    model_series: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def res_err(self) -> float:
@@ -250,6 +252,53 @@ def attach_replicas(row: Row, reps: list[dict], crit: SteadyStateCriterion) -> R
         row.tss_dem_median_s = float(np.nanmedian(ons))
         row.dem_range = (float(np.nanpercentile(ons, 5)), float(np.nanpercentile(ons, 95)))
     return row
+
+
+def plot_approach(rows: list[Row], reps: list[dict], dest: Path, smooth_s: float = 0.25) -> None:
+    """Model against the DEM replicas while the mill fills, one column per size with replicas.
+
+    Top: hold-up over its steady value (DEM: each replica in grey and the
+    ensemble mean in black, over the ensemble's mean after 4 s; model: over
+    its steady solve). Bottom: product rate over the feed rate (DEM: the
+    ensemble's, a ``smooth_s`` running mean). Onsets are marked.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sel = [r for r in rows if r.n_replicas and r.model_series is not None]
+    if not sel:
+        raise SystemExit("error: --plot: no table run has replicas to plot against")
+    fig, axs = plt.subplots(2, len(sel), figsize=(3.2 * len(sel), 5.6), sharex=True, squeeze=False)
+    for j, row in enumerate(sel):
+        mine = [r for r in reps if abs(float(r["size_mm"]) - row.size_mm) < 1e-6 * row.size_mm]
+        t, held, out, feed = replicas_on_grid(mine)
+        ref = held.mean(axis=0)[t >= 4.0].mean() if t[-1] > 4.5 else held.mean(axis=0)[-50:].mean()
+        tm, hm, pm = row.model_series
+        ax = axs[0, j]
+        ax.plot(t, held.T / ref, color="0.82", lw=0.5)
+        ax.plot(t, held.mean(axis=0) / ref, "k", lw=1.2, label=f"DEM, {len(mine)} runs")
+        ax.plot(tm, hm, "C3", lw=1.2, label="model")
+        for v, c in ((row.tss_dem_rep_s, "k"), (row.tss_model_today_s, "C3")):
+            if np.isfinite(v):
+                ax.axvline(v, color=c, ls=":", lw=1)
+        ax.set_title(f"{row.size_mm:g} mm")
+        ax.set_ylim(0, 1.3)
+        ax = axs[1, j]
+        k = max(1, round(smooth_s / (t[1] - t[0])))
+        rate = np.gradient(out.mean(axis=0), t) / feed.mean()
+        ax.plot(t[k // 2: k // 2 + len(rate) - k + 1], np.convolve(rate, np.ones(k) / k, mode="valid"), "k", lw=1.2)
+        ax.plot(tm, pm, "C3", lw=1.2)
+        ax.set_ylim(0, 1.4)
+        ax.set_xlim(0, max(6.0, float(t[-1])))
+        ax.set_xlabel("time (s)")
+    axs[0, 0].set_ylabel("hold-up / steady")
+    axs[1, 0].set_ylabel(f"product / feed ({smooth_s:g} s mean)")
+    axs[0, 0].legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(dest, dpi=90)
+    print(f"wrote {dest}")
 
 
 def export_raw_dir(doc_path: Path) -> Path | None:
@@ -393,7 +442,8 @@ def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter
         tss_dem, tss_model = rec_dem, rec_model
     row = Row(run.design.size_mm, run.characteristic_time_s, run.residence_time_s or _NAN,
               float(x.sum()) / (run.design.feed_tph / 3600.0), tss_dem, tss_model, rec_dem, rec_model, today,
-              tss_model_today_s=tss_model_today)
+              tss_model_today_s=tss_model_today,
+              model_series=(t, held / float(x.sum()), rate / op.feed_tph))
     if n_scatter and today:
         import tomllib
 
@@ -478,6 +528,8 @@ def main() -> None:
     ap.add_argument("--replicas", default=None,
                     help="replica runs of the table's points (scripts/transport_replicas.py --export); "
                          "default benchmarks/data/transport_replicas.json when present; 'none' to skip")
+    ap.add_argument("--plot", type=Path, default=None,
+                    help="draw the model's filling against the replicas' (hold-up, product rate) to this PNG")
     args = ap.parse_args()
     path = args.table or default_table_path()
     table = StageParameterTable.from_json(path)
@@ -520,6 +572,8 @@ def main() -> None:
             for r in table.runs]
     summary = report(rows)
     summary += f" runs_with_destinations={n_dest}"
+    if args.plot is not None:
+        plot_approach(rows, reps, args.plot)
     if (args.campaign or "").lower() != "none":
         from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
 
