@@ -43,8 +43,21 @@ today's cold run (onset and window are checked against a kept current-code
 issue's levers (start, window, step). The current-code ``old`` run, when kept,
 gives the protocol-only ratio beside it (``protocol_cpu_ratio_median``).
 
+**Replicas** (``--replicas DIR [DIR ...]``): one pair's deviation divides by the
+batch-means errors of one run, which five batches of a 0.5 s window estimate
+poorly (their own relative error is about 35 %). Each ``DIR`` is a ``--results``
+folder of the same pair made with another feed seed (``--seed K``). Per size
+with at least three of them, the between-seed standard deviation of each
+statistic is the single run's sampling error measured directly; printed are
+its ratio to the batch-means errors, the start dependence proper (the Welch t
+of the old and new protocols' means over the seeds, as a normal deviate, with
+the family-wise chance of the largest), and the main pair's deviations in units
+of the replicas' standard deviations (``sqrt(sd_old^2 + sd_new^2)``).
+
 Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x> cpu_ratio_median=<new/old
-CPU time>`` (the last where every run has its CPU time).
+CPU time>`` (the last where every run has its CPU time); with ``--replicas`` also
+``replica_seeds=<k> max_stat_dev_replica_sigma=<the main pairs' largest deviation in units of the
+replicas' sd> start_dependence_z_max=<largest normal-equivalent Welch t> start_dependence_p_family=<p>``.
 """
 
 from __future__ import annotations
@@ -121,6 +134,65 @@ def normal_equivalent(a, b) -> list[tuple[float, str]]:
             t = float(stats.norm.isf(stats.t.sf(t, nu)))
         out.append((t, name))
     return out
+
+
+def replica_pairs(dirs: list[Path], size_mm: float) -> list[tuple[RunStatistics, RunStatistics]]:
+    """``(old, new)`` statistics at ``size_mm`` from ``--results`` folders of other feed seeds (both runs kept)."""
+    out = []
+    for d in dirs:
+        o, n = d / f"{size_mm:g}mm_old.json", d / f"{size_mm:g}mm_new.json"
+        if o.is_file() and n.is_file():
+            out.append((RunStatistics.from_json(o), RunStatistics.from_json(n)))
+    return out
+
+
+def _by_name(runs: list[RunStatistics]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``name -> (values over the runs, their batch-means errors)`` for every stage and statistic."""
+    out: dict[str, tuple[list[float], list[float]]] = {}
+    for r in runs:
+        for st in r.stages:
+            for k, (x, se) in _values(st).items():
+                v = out.setdefault(f"stage {st.stage} {k}", ([], []))
+                v[0].append(x)
+                v[1].append(np.nan if se is None else se)
+    return {k: (np.asarray(a), np.asarray(b)) for k, (a, b) in out.items()}
+
+
+def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistics]],
+                    pair: tuple[RunStatistics, RunStatistics]) -> tuple[list[float], list[float]]:
+    """Print the replicas' figures at one size; return (normal-equivalent Welch t of every statistic's
+    old and new means, the main pair's deviations in units of the replicas' sd)."""
+    from scipy import stats
+
+    old, new = _by_name([o for o, _ in reps]), _by_name([n for _, n in reps])
+    main_old, main_new = _by_name([pair[0]]), _by_name([pair[1]])
+    k = len(reps)
+    zs, devs, ratios, rows = [], [], [], []
+    for name, (xo, eo) in old.items():
+        xn, en = new[name]
+        so, sn = float(np.std(xo, ddof=1)), float(np.std(xn, ddof=1))
+        ratios += [so / np.nanmedian(eo), sn / np.nanmedian(en)] if np.isfinite(eo).any() and np.isfinite(
+            en).any() else []
+        se = float(np.hypot(so, sn) / np.sqrt(k))
+        if se <= 0:
+            continue
+        t = abs(float(xo.mean() - xn.mean())) / se
+        nu = (so**2 + sn**2) ** 2 / ((so**4 + sn**4) / (k - 1)) if so + sn > 0 else k - 1
+        z = float(stats.norm.isf(stats.t.sf(t, nu)))
+        d = abs(float(main_old[name][0][0] - main_new[name][0][0])) / float(np.hypot(so, sn))
+        zs.append(z)
+        devs.append(d)
+        rows.append((z, d, name, xo.mean(), so, xn.mean(), sn))
+    rows.sort(reverse=True)
+    ratios = [r for r in ratios if np.isfinite(r)]
+    print(f"{size_mm:g} mm replicas: {k} seeds; between-seed sd / batch-means error, median "
+          f"{np.median(ratios):.2f} (5-95 % {np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}); "
+          f"the main pair's largest deviation in units of the replicas' sd {max(devs):.2f} "
+          f"({rows[int(np.argmax([r[1] for r in rows]))][2]})")
+    for z, _d, name, mo, so, mn, sn in rows[:3]:
+        print(f"  start dependence {name}: old {mo:.4g} (sd {so:.3g}), new {mn:.4g} (sd {sn:.3g}) over {k} seeds: "
+              f"{z:.2f} sigma (normal equivalent of the Welch t)")
+    return zs, devs
 
 
 def describe(run, wall_s: float) -> str:
@@ -223,6 +295,9 @@ def main() -> None:
                     help="cap of the new run's adaptive window (s); default RunSettings'")
     ap.add_argument("--cold-adaptive", action="store_true",
                     help="also run a cold start with the adaptive window and compare it with the warm one")
+    ap.add_argument("--replicas", type=Path, nargs="+", default=None,
+                    help="--results folders of the same pair with other feed seeds: sampling errors measured "
+                         "between seeds, and the start dependence over the seeds")
     ap.add_argument("--old-tree", type=Path, default=None,
                     help="make the old run with the msmill of this checkout (the code of the issue's day, "
                          "e.g. a worktree at d8a5b5f); statistics recomputed by this checkout")
@@ -239,6 +314,7 @@ def main() -> None:
     near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
     ratios, cpu_ratios, protocol_cpu, worst, z_all = [], [], [], (0.0, ""), []
     n_dev = n_over = 0
+    rep_z, rep_dev, rep_seeds = [], [], []
     for i, size in enumerate(args.sizes_mm):
         start = None
         if args.start == "run":
@@ -302,6 +378,10 @@ def main() -> None:
             print(f"{size:g} mm cold adaptive vs new: cost ratio new / cold adaptive {res['new'][1] / ca[1]:.3f}"
                   f"{cpu_ca}; max {max(dc)[0]:.2f} sigma ({max(dc)[1]}); "
                   f"{sum(d > 2 for d, _ in dc)} of {len(dc)} beyond 2 sigma")
+        reps = replica_pairs(args.replicas or [], size)
+        if len(reps) >= 3:
+            z, d = replica_summary(size, reps, (res["old"][0], res["new"][0]))
+            rep_z, rep_dev, rep_seeds = rep_z + z, rep_dev + d, [*rep_seeds, len(reps)]
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
         if res["new"][2] and res["old"][2]:
@@ -328,6 +408,16 @@ def main() -> None:
                else "")
     if protocol_cpu:
         cpu_txt += f" protocol_cpu_ratio_median={float(np.median(protocol_cpu)):.3f}"
+    if rep_z:
+        from scipy import stats
+
+        p_family = 1.0 - (1.0 - 2.0 * stats.norm.sf(max(rep_z))) ** len(rep_z)
+        print(f"replicas: start dependence, largest of {len(rep_z)} normal-equivalent Welch t {max(rep_z):.2f} "
+              f"({sum(z > 2 for z in rep_z)} beyond 2, {0.046 * len(rep_z):.1f} by chance; family-wise chance of "
+              f"a largest this large {p_family:.2f}); main pairs in units of the replicas' sd: largest "
+              f"{max(rep_dev):.2f}, {sum(d > 2 for d in rep_dev)} of {len(rep_dev)} beyond 2")
+        cpu_txt += (f" replica_seeds={min(rep_seeds)} max_stat_dev_replica_sigma={max(rep_dev):.2f}"
+                    f" start_dependence_z_max={max(rep_z):.2f} start_dependence_p_family={p_family:.2f}")
     print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}"
           f"{cpu_txt}")
 

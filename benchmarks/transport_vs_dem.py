@@ -155,6 +155,8 @@ class Row:
 
 
 DEFAULT_REPLICAS = Path(__file__).resolve().parent / "data" / "transport_replicas.json"
+#: the stage table of cold 0.5 s-window runs shipped until 2026-12-03 (the onsets from empty of its points)
+DEFAULT_COLD_TABLE = Path(__file__).resolve().parent / "data" / "cold_stage_table.json"
 
 
 def load_replicas(path: Path | None) -> list[dict]:
@@ -410,11 +412,33 @@ def table_curve_at(table: StageParameterTable, size_mm: float) -> FillingTranspo
     return FillingTransport(fill=h.tolist(), residence_ratio=r.tolist(), tag_mass_kg=[1.0] * h.size)
 
 
+def warm_started(run: RunStatistics) -> bool:
+    """Whether the run started from a filled mill (its onset says nothing about filling from empty)."""
+    return ((run.provenance or {}).get("run_settings") or {}).get("start", "empty") != "empty"
+
+
+def cold_run_at(cold: StageParameterTable | None, size_mm: float) -> RunStatistics | None:
+    """The run of the cold-start table ``cold`` at ``size_mm`` (None: no table or no such run)."""
+    for r in cold.runs if cold is not None else []:
+        if abs(r.design.size_mm - size_mm) < 1e-6 * size_mm:
+            return r
+    return None
+
+
 def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int,
-            curve: FillingTransport | None = None) -> Row:
-    """Model against DEM for one run (``curve``: the filling transport to use instead of the run's own)."""
+            curve: FillingTransport | None = None, cold: RunStatistics | None = None) -> Row:
+    """Model against DEM for one run (``curve``: the filling transport to use instead of the run's own).
+
+    A warm-started run (``start = "table"``) has no onset from empty: its time to
+    steady state is taken from ``cold``, the cold run of the same point (its
+    recorded onset and criterion), or left n/a; its residence time stays its own.
+    """
     crit = RunSettings().criterion()
-    d = dem_run_dir(run, runs_dir)
+    onset_run = run
+    if warm_started(run):
+        runs_dir = None  # its saved series starts full
+        onset_run = cold if cold is not None else run.model_copy(update={"steady_state_time_s": None})
+    d = dem_run_dir(onset_run, runs_dir)
     if transport == "dem_matrix_fill":
         run = run.model_copy(update={"filling_transport": curve}) if curve else with_filling(run, runs_dir)
     mill, feed, grid, op = _mill(run, transport)
@@ -430,8 +454,8 @@ def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter
     t0 = np.concatenate([[0.0], t])
     cum = np.concatenate([[0.0], np.cumsum(rate * np.diff(t0) / 3600.0)])
     rec_model = recorded_onset(t0, np.concatenate([[0.0], held]), cum, op.feed_tph / 3600.0,
-                               (run.provenance or {}).get("run_settings", {}))
-    rec_dem = run.steady_state_time_s if run.steady_state_time_s is not None else _NAN
+                               (onset_run.provenance or {}).get("run_settings", {}))
+    rec_dem = onset_run.steady_state_time_s if onset_run.steady_state_time_s is not None else _NAN
     tss_model_today = tss_model if tss_model is not None else _NAN
     today = d is not None
     tss_dem = _NAN
@@ -528,6 +552,10 @@ def main() -> None:
     ap.add_argument("--replicas", default=None,
                     help="replica runs of the table's points (scripts/transport_replicas.py --export); "
                          "default benchmarks/data/transport_replicas.json when present; 'none' to skip")
+    ap.add_argument("--cold-table", default=None,
+                    help="for a table of warm-started runs: a table of cold runs at the same points whose recorded "
+                         "onsets stand where there are no replicas (default: benchmarks/data/cold_stage_table.json; "
+                         "none: n/a there)")
     ap.add_argument("--plot", type=Path, default=None,
                     help="draw the model's filling against the replicas' (hold-up, product rate) to this PNG")
     args = ap.parse_args()
@@ -568,7 +596,13 @@ def main() -> None:
     if reps:
         print(f"replicas: {len(reps)} runs at {sorted({round(float(r['size_mm']), 3) for r in reps})} mm")
     crit = RunSettings().criterion()
-    rows = [attach_replicas(compare(r, args.transport, args.runs_dir, args.scatter, curve_for(r)), reps, crit)
+    cold = None
+    if any(warm_started(r) for r in table.runs) and (args.cold_table or "").lower() != "none":
+        cold = StageParameterTable.from_json(Path(args.cold_table) if args.cold_table else DEFAULT_COLD_TABLE)
+        print(f"warm-started table runs: onsets from empty from the replicas, else from the cold table's runs "
+              f"({args.cold_table or DEFAULT_COLD_TABLE})")
+    rows = [attach_replicas(compare(r, args.transport, args.runs_dir, args.scatter, curve_for(r),
+                                    cold_run_at(cold, r.design.size_mm)), reps, crit)
             for r in table.runs]
     summary = report(rows)
     summary += f" runs_with_destinations={n_dest}"

@@ -22,6 +22,16 @@ per fill bin is noise (docs/model.md 7.4), several seeds' are not. The run's
 own curve (from its folder, or kept in its provenance as ``own_curve`` by an
 earlier pooling, or the table's) is kept in the provenance, so pooling again
 does not count it twice. The last line is ``runs=<n> with_filling=<m>``.
+
+``--curves-from OTHER`` takes the run's own curve from the run of the same
+size in table ``OTHER`` instead (its ``own_curve`` or its curve), with that
+run's window references (:meth:`msmill.stageparams.RunStatistics.window_reference`)
+attached where the curve lacks them: for a table of warm-started runs, which
+measure no filling (their mill starts full). ``--reference window`` puts the
+pooled curve on the run's own window reference rather than on the mean of the
+curves' short windows: for runs whose long adaptive window measures the steady
+hold-up and chain residence better than any cold run's 0.5 s window does
+(docs/model.md 7.6).
 """
 
 from __future__ import annotations
@@ -51,6 +61,21 @@ def run_dir(run: RunStatistics, runs_dir: Path | None) -> Path | None:
     return None
 
 
+def curve_of(table: StageParameterTable, size_mm: float) -> FillingTransport | None:
+    """The own filling curve of ``table``'s run at ``size_mm`` with its window references (None: no such run)."""
+    for r in table.runs:
+        if abs(r.design.size_mm - size_mm) < 1e-6 * size_mm:
+            own = ((r.provenance or {}).get("filling_transport_added_by") or {}).get("own_curve")
+            ft = FillingTransport.model_validate(own) if own else r.filling_transport
+            if ft is None:
+                return None
+            ref = r.window_reference()
+            if (ft.window_holdup_kg is None or ft.window_residence_steps is None) and ref is not None:
+                ft = ft.model_copy(update={"window_holdup_kg": ref[0], "window_residence_steps": ref[1]})
+            return ft
+    return None
+
+
 def commit() -> str:
     """The repository's HEAD commit, or 'unknown'."""
     try:
@@ -67,7 +92,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="output table (default: overwrite TABLE)")
     ap.add_argument("--replicas", type=Path, default=None,
                     help="replica runs with filling curves (scripts/transport_replicas.py --export) to pool in")
+    ap.add_argument("--curves-from", type=Path, default=None,
+                    help="take each run's own curve from the run of the same size in this table")
+    ap.add_argument("--reference", choices=("pooled", "window"), default="pooled",
+                    help="the pooled curve's reference: the curves' mean (pooled) or this run's window")
     args = ap.parse_args()
+    other = StageParameterTable.from_json(args.curves_from) if args.curves_from else None
     replicas = json.loads(args.replicas.read_text(encoding="utf-8"))["replicas"] if args.replicas else []
     table = StageParameterTable.from_json(args.table)
     raw = json.loads(args.table.read_text(encoding="utf-8"))  # edited as JSON: every other byte stays
@@ -79,7 +109,10 @@ def main() -> None:
         ft = saved_run_filling_transport(d, r.characteristic_time_s) if d else None
         earlier = (r.provenance or {}).get("filling_transport_added_by") or {}
         source = str(d) if ft is not None else earlier.get("source_dir")
-        if ft is None and args.replicas:  # the run's own curve: kept by an earlier pooling, or the table's
+        if ft is None and other is not None:
+            ft = curve_of(other, r.design.size_mm)
+            source = f"{args.curves_from} ({r.design.size_mm:g} mm run)" if ft else None
+        elif ft is None and args.replicas:  # the run's own curve: kept by an earlier pooling, or the table's
             own = earlier.get("own_curve") or (r.filling_transport and r.filling_transport.model_dump(mode="json"))
             ft = FillingTransport.model_validate(own) if own else None
         if ft is None:
@@ -89,10 +122,15 @@ def main() -> None:
         added = {**stamp, "source_dir": source}
         mine = [x for x in replicas if abs(float(x["size_mm"]) - r.design.size_mm) < 1e-6 * r.design.size_mm
                 and x.get("filling_transport")]
-        if mine:
+        reference = r.window_reference() if args.reference == "window" else None
+        if args.reference == "window" and reference is None:
+            raise SystemExit(f"error: --reference window: the {r.design.size_mm:g} mm run has no window reference "
+                             "(mean hold-up and one-lag destinations)")
+        if mine or reference is not None:
             added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
-                      "replica_seeds": [int(x["seed"]) for x in mine]}
-            ft = pool_filling_curves([ft] + [FillingTransport.model_validate(x["filling_transport"]) for x in mine])
+                      "replica_seeds": [int(x["seed"]) for x in mine], "reference": args.reference}
+            ft = pool_filling_curves([ft] + [FillingTransport.model_validate(x["filling_transport"]) for x in mine],
+                                     reference=reference)
         print(f"{r.design.size_mm:g} mm ({source}; {len(mine)} replicas pooled in): fill "
               f"{[round(h, 2) for h in ft.fill]} residence ratio {[round(x, 3) for x in ft.residence_ratio]}")
         doc["filling_transport"] = ft.model_dump(mode="json")

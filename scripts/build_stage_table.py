@@ -12,6 +12,14 @@ plots go to ``--runs-dir`` (not shipped).
 Run: ``python scripts/build_stage_table.py [--sizes-mm 10 14 20 30] [--measure-s 0.5]``;
 ``--restat`` recomputes the statistics (e.g. the secondary-impact count
 families) from the raw data saved in ``--runs-dir`` without running the DEM.
+``--protocol campaign`` runs each point as a campaign run does
+(:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`: the shipped table's
+hold-up placed at t = 0, the adaptive window until the statistics' sampling
+errors reach their targets) instead of the cold start and the fixed
+``--measure-s`` window: one 0.5 s window measures a coarse-rock point's
+transport to 10-20 % (docs/model.md 7.6). Such runs carry no filling curve
+(the mill starts full); ``scripts/add_filling_transport.py --replicas`` adds
+the replicas' curves on the long windows' reference.
 """
 
 from __future__ import annotations
@@ -42,6 +50,9 @@ def main() -> None:
     ap.add_argument("--speed-rpm", type=float, default=1500.0)
     ap.add_argument("--gate-deg", type=float, default=40.0)
     ap.add_argument("--measure-s", type=float, default=0.5)
+    ap.add_argument("--protocol", choices=("cold", "campaign"), default="cold",
+                    help="cold: empty start, fixed --measure-s window; campaign: warm start, adaptive window")
+    ap.add_argument("--seed", type=int, default=0, help="feed seed of every run")
     ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
@@ -81,7 +92,13 @@ def main() -> None:
 def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
     """The machine, operating point and run settings the table is built at."""
     op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
-    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s)
+    protocol = {}
+    if getattr(args, "protocol", "cold") == "campaign":
+        from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+
+        protocol = dict(CAMPAIGN_RUN_DEFAULTS)
+    return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s,
+                                              seed=getattr(args, "seed", 0), **protocol)
 
 
 def _restat(args) -> None:

@@ -503,6 +503,30 @@ class FillingTransport(_Frozen):
                          [*self.residence_ratio, 1.0])
 
 
+def chain_visits(p: np.ndarray) -> np.ndarray:
+    """Expected steps rock fed to compartment 0 spends in each compartment of the chain ``p`` (C,).
+
+    ``p`` (C, C+1): one-step destinations, last column out; the result is
+    ``e0 (I - Q)^-1``. Raises :class:`numpy.linalg.LinAlgError` when some rock
+    never leaves (a singular ``I - Q``).
+    """
+    q = np.asarray(p, dtype=float)[:, :-1]
+    c = q.shape[0]
+    return np.linalg.solve((np.eye(c) - q).T, np.eye(c)[0])
+
+
+def chain_residence_steps(p: np.ndarray) -> float:
+    """Mean number of steps rock fed to compartment 0 spends in the chain ``p`` (C, C+1; last column out).
+
+    The sum of :func:`chain_visits`; ``inf`` when some rock never leaves (a singular ``I - Q``).
+    """
+    try:
+        v = float(chain_visits(p).sum())
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return v if np.isfinite(v) and v > 0 else float("inf")
+
+
 class RunStatistics(_JsonDocument):
     """All per-stage statistics of one DEM run, with run-level figures and provenance."""
 
@@ -568,6 +592,27 @@ class RunStatistics(_JsonDocument):
     def n_stages(self) -> int:
         """Number of rotor stages."""
         return len(self.stages)
+
+    def destination_matrix(self) -> np.ndarray | None:
+        """One-lag destinations (n + 1, n + 2): rows inlet zone then stages 1..n, last column out; None if absent."""
+        if self.inlet_destinations is None or any(s.destinations is None for s in self.stages):
+            return None
+        return np.array([self.inlet_destinations] + [s.destinations for s in self.stages], dtype=float)
+
+    def window_reference(self) -> tuple[float, float] | None:
+        """``(holdup_kg, residence_steps)`` of the measurement window: what a filling curve is relative to.
+
+        The window's mean hold-up (inlet zone and stages, ``provenance["stats"]["mean_holdup_kg"]``)
+        and the mean residence, in characteristic times, of the chain of the window's one-lag
+        destinations (:func:`chain_residence_steps`): the references of
+        :func:`msmill.dem.mill.stats.filling_transport`. None when the run lacks either.
+        """
+        hold = ((self.provenance or {}).get("stats") or {}).get("mean_holdup_kg")
+        p = self.destination_matrix()
+        if hold is None or p is None:
+            return None
+        steps = chain_residence_steps(p)
+        return (float(hold), steps) if np.isfinite(steps) and float(hold) > 0 else None
 
     @classmethod
     def from_json(cls, path_or_text: str | Path) -> RunStatistics:

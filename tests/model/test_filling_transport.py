@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from synthetic import synthetic_run
 
-from msmill.dem.mill.stats import chain_residence_steps, filling_transport
+from msmill.dem.mill.stats import filling_transport
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
 from msmill.model import Mill, RunProvider
@@ -35,7 +35,12 @@ from msmill.model.submodels import (
     resolve,
 )
 from msmill.psd import PSD, SizeGrid
-from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
+from msmill.stageparams import (
+    FillingTransport,
+    RunStatistics,
+    StageParameterTable,
+    chain_residence_steps,
+)
 
 N_ST = 3
 DEFAULT_TRANSPORT = DEFAULTS["transport"]
@@ -328,6 +333,47 @@ def test_curves_with_their_window_references_pool_against_the_common_reference()
     plain = [m.model_copy(update={"window_holdup_kg": None, "window_residence_steps": None})
              for m in (measured(0.9), measured(1.1))]
     assert not np.allclose(pool_filling_curves(plain).ratio_at(true_fill), true_ratio, atol=0.01)
+
+
+def test_curves_pool_against_an_explicit_reference_such_as_a_long_window():
+    """Short windows that all read the steady hold-up 10 % low and the chain residence 20 % low (a mill
+    still creeping up): on their own mean the curves keep that bias, on the long window's reference the
+    true curve comes back, and points at or above the reference hold-up are dropped."""
+    true_fill, true_ratio = np.array([0.15, 0.45, 0.75, 0.88]), np.array([0.4, 0.7, 0.9, 0.97])
+
+    def short(kh: float, kr: float) -> FillingTransport:
+        return FillingTransport(fill=(true_fill / kh).tolist(), residence_ratio=(true_ratio / kr).tolist(),
+                                tag_mass_kg=[1.0] * 4, window_residence_steps=40.0 * kr,
+                                window_holdup_kg=3.0 * kh)
+
+    runs = [short(0.9, 0.8), short(0.9, 0.8)]
+    own = pool_filling_curves(runs)
+    assert not np.allclose(own.ratio_at(true_fill[:3]), true_ratio[:3], atol=0.02)
+    c = pool_filling_curves(runs, reference=(3.0, 40.0))
+    assert (c.window_holdup_kg, c.window_residence_steps) == (3.0, 40.0)
+    assert np.allclose(c.fill, true_fill) and np.allclose(c.residence_ratio, true_ratio)
+    lower = pool_filling_curves(runs, reference=(2.6, 40.0))  # 0.88 * 3 / 2.6 >= 1: the top point goes
+    assert len(lower.fill) == 3 and max(lower.fill) < 1.0
+    one = pool_filling_curves(runs[:1], reference=(3.0, 40.0))  # a single curve is re-referenced too
+    assert np.allclose(one.residence_ratio, true_ratio)
+    for bad in ((0.0, 40.0), (3.0, float("inf"))):
+        with pytest.raises(ValueError, match="reference"):
+            pool_filling_curves(runs, reference=bad)
+
+
+def test_window_reference_is_the_windows_hold_up_and_chain_residence():
+    run = _run(None)
+    assert run.window_reference() is None  # no mean hold-up recorded
+    run = run.model_copy(update={"provenance": {"stats": {"mean_holdup_kg": 2.5}}})
+    hold, steps = run.window_reference()
+    assert hold == 2.5
+    # inlet zone: half stays (2 visits), then stage 1 (1 / 0.6), stages 2, 3: 40 % stay, 10 % back
+    p = run.destination_matrix()
+    assert p.shape == (N_ST + 1, N_ST + 2) and np.allclose(p.sum(axis=1), 1.0)
+    q = p[:, :-1]
+    assert steps == pytest.approx(np.linalg.inv(np.eye(N_ST + 1) - q)[0].sum())
+    assert steps == pytest.approx(chain_residence_steps(p))
+    assert run.model_copy(update={"inlet_destinations": None}).window_reference() is None
 
 
 def test_the_default_provider_takes_its_filling_curves_from_the_shipped_table():

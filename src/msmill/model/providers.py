@@ -176,26 +176,34 @@ def filling_curves(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray, n
     return fill, np.array([c.ratio_at(fill) for c in curves]), np.array([sum(c.tag_mass_kg) for c in curves])
 
 
-def pool_filling_curves(curves: list[FillingTransport]) -> FillingTransport:
+def pool_filling_curves(curves: list[FillingTransport],
+                        reference: tuple[float, float] | None = None) -> FillingTransport:
     """Several measurements of one point's filling curve (e.g. runs with other feed seeds) as one curve.
 
     Each run's curve is relative to its own window (fill over the window's mean hold-up,
     residence over the window chain's), and one short window measures those references to
     10-20 % for coarse rock. Curves that carry them (``window_holdup_kg``,
-    ``window_residence_steps``) are first put on the common reference, the runs' mean of
-    each: ``fill * holdup / mean holdup``, ``ratio * residence / mean residence`` (points
-    at or above the common steady hold-up are dropped); curves without them are taken as
-    they are. Then the fills of :func:`_common_fills`, there the curves' ratios averaged
-    with their tagged masses as weights, and the bins' summed tagged masses.
+    ``window_residence_steps``) are first put on a common reference: ``reference``
+    (``(holdup_kg, residence_steps)``, e.g. those of a long window at the same point,
+    :meth:`RunStatistics.window_reference`) or else the runs' mean of each: ``fill * holdup / common
+    holdup``, ``ratio * residence / common residence`` (points at or above the common
+    steady hold-up are dropped); curves without them are taken as they are. Then the
+    fills of :func:`_common_fills`, there the curves' ratios averaged with their tagged
+    masses as weights, and the bins' summed tagged masses.
     """
     if not curves:
         raise ValueError("no filling curves to pool")
-    if len(curves) == 1:
+    if len(curves) == 1 and reference is None:
         return curves[0]
     has_ref = [c.window_holdup_kg is not None and c.window_residence_steps is not None for c in curves]
     ref = [c for c, r in zip(curves, has_ref, strict=True) if r]
-    hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
-    res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
+    if reference is not None:
+        hold, res = map(float, reference)
+        if not (hold > 0 and res > 0 and np.isfinite(hold) and np.isfinite(res)):
+            raise ValueError(f"reference: got {reference}; allowed: a positive, finite (holdup_kg, residence_steps)")
+    else:
+        hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
+        res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
     common = []
     for c, r in zip(curves, has_ref, strict=True):
         if not r:

@@ -86,6 +86,7 @@ from msmill.stageparams import (
     GaussianMixture,
     RunStatistics,
     StageStatistics,
+    chain_residence_steps,
 )
 
 
@@ -444,30 +445,6 @@ def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
 FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: Fewest tags of a compartment in a fill bin for its destinations to replace the window's.
 FILLING_MIN_TAGS = 20
-
-
-def chain_visits(p: np.ndarray) -> np.ndarray:
-    """Expected steps rock fed to compartment 0 spends in each compartment of the chain ``p`` (C,).
-
-    ``p`` (C, C+1): one-step destinations, last column out; the result is
-    ``e0 (I - Q)^-1``. Raises :class:`numpy.linalg.LinAlgError` when some rock
-    never leaves (a singular ``I - Q``).
-    """
-    q = np.asarray(p, dtype=float)[:, :-1]
-    c = q.shape[0]
-    return np.linalg.solve((np.eye(c) - q).T, np.eye(c)[0])
-
-
-def chain_residence_steps(p: np.ndarray) -> float:
-    """Mean number of steps rock fed to compartment 0 spends in the chain ``p`` (C, C+1; last column out).
-
-    The sum of :func:`chain_visits`; ``inf`` when some rock never leaves (a singular ``I - Q``).
-    """
-    try:
-        v = float(chain_visits(p).sum())
-    except np.linalg.LinAlgError:
-        return float("inf")
-    return v if np.isfinite(v) and v > 0 else float("inf")
 
 
 def filling_transport(

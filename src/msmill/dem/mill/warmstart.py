@@ -92,10 +92,9 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
-from msmill.dem.mill.stats import chain_visits
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, rpm_to_rad_s
-from msmill.stageparams import RunStatistics, StageParameterTable
+from msmill.stageparams import RunStatistics, StageParameterTable, chain_visits
 
 __all__ = ["START_KINDS", "WarmStart", "place_table_start", "place_warm_start", "table_residence_s"]
 
@@ -221,9 +220,7 @@ def place_warm_start(scene: Any, start: WarmStart, seed: int = 0) -> dict[str, A
 # --------------------------------------------------------------------------- start from the stage table
 def _chain_residence_s(run: RunStatistics) -> np.ndarray:
     """``tau e0 (I - Q)^-1``: steady hold-up per unit feed (s) of compartments 0 (inlet zone) .. n of one run."""
-    n = run.n_stages
-    p = np.array([run.inlet_destinations[: n + 2]] + [st.destinations[: n + 2] for st in run.stages], dtype=float)
-    return run.characteristic_time_s * chain_visits(p)
+    return run.characteristic_time_s * chain_visits(run.destination_matrix())
 
 
 def table_residence_s(size_mm: float, n_stages: int,
