@@ -18,8 +18,9 @@ hold-up placed at t = 0, the adaptive window until the statistics' sampling
 errors reach their targets) instead of the cold start and the fixed
 ``--measure-s`` window: one 0.5 s window measures a coarse-rock point's
 transport to 10-20 % (docs/model.md 7.6). Such runs carry no filling curve
-(the mill starts full); ``scripts/add_filling_transport.py --replicas`` adds
-the replicas' curves on the long windows' reference.
+(the mill starts full); ``scripts/add_filling_transport.py --curves-from
+COLD_TABLE --replicas FILE --reference window`` adds the cold runs' and the
+replicas' curves, put on the long windows' reference.
 """
 
 from __future__ import annotations
@@ -93,12 +94,12 @@ def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
     """The machine, operating point and run settings the table is built at."""
     op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
     protocol = {}
-    if getattr(args, "protocol", "cold") == "campaign":
+    if args.protocol == "campaign":
         from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
 
         protocol = dict(CAMPAIGN_RUN_DEFAULTS)
     return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s,
-                                              seed=getattr(args, "seed", 0), **protocol)
+                                              seed=args.seed, **protocol)
 
 
 def _restat(args) -> None:
