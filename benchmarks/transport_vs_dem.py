@@ -68,6 +68,13 @@ provider's rule before 2026-12-02), ``own`` the run's own; a run without the
 field is measured from its saved DEM folder
 (:func:`msmill.dem.mill.run.saved_run_filling_transport`).
 
+**Warm-started tables** (the shipped one since 2026-12-03: long adaptive
+windows from a filled mill): a warm run's own onset says nothing about filling
+from empty, so its time to steady state comes from the replicas where there
+are some, else from the cold run of the same point in ``--cold-table``
+(default ``benchmarks/data/cold_stage_table.json``, the table shipped until
+then; ``none``: n/a); its residence time stays its own.
+
 Nothing is fitted here: the model reads the run's measured transport
 (destinations one characteristic time later) and nothing else. The table's
 summary is the line ``runs=<n> residence_rel_err_max=<x> tss_abs_err_max_s=<y> ...``,
