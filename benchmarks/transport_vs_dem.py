@@ -54,8 +54,11 @@ A run whose DEM never met the criterion has no time to compare (``n/a``, left
 out of the maximum and counted in ``runs_without_dem_steady_state``).
 ``--scatter N`` adds the 5-95 % range of the onset over ``N`` simulations of
 the model's transport with the DEM run's number of rocks moving independently
-(multinomial per compartment and step): the scatter a single DEM realisation
-has from rock-count noise alone (collective pulsations add to it).
+(multinomial per compartment and step, at the speed each simulation's own fill
+sets when the transport has a filling curve): the scatter a single DEM
+realisation has from rock-count noise alone (collective pulsations add to it);
+a line per run then gives the marches' median onset and the onset of their
+ensemble-mean series beside the mean-field march's (docs/model.md 7.6).
 
 With ``--transport dem_matrix_fill`` (the transport's speed depends on the
 mill's fill, docs/model.md section 7.3) every run gets the filling curve
@@ -102,9 +105,9 @@ from msmill.machine import OperatingPoint
 from msmill.model import Mill
 from msmill.model.providers import RunProvider, TableProvider, default_table_path, pooled_filling
 from msmill.model.result import time_to_steady_state
-from msmill.model.submodels import DEFAULTS, BreakageParameters
+from msmill.model.submodels import DEFAULTS, BreakageParameters, Transition
 from msmill.psd import PSD, SizeGrid
-from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
+from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable, chain_visits
 from msmill.steadystate import SteadyStateCriterion, first_steady
 
 #: Ore parameters are irrelevant with breakage="none"; any valid set.
@@ -126,6 +129,9 @@ class Row:
     tss_model_rec_s: float
     today: bool
     scatter: tuple[float, float] = (_NAN, _NAN)
+    #: ``--scatter``: median of the independent-rock marches' onsets and their ensemble-mean series' onset
+    scatter_median_s: float = _NAN
+    scatter_ensemble_s: float = _NAN
     tss_model_today_s: float = _NAN
     n_replicas: int = 0
     res_dem_rep_s: float = _NAN
@@ -359,24 +365,38 @@ def _mill(run: RunStatistics, transport: str) -> tuple[Mill, PSD, SizeGrid, Oper
     return mill, PSD(grid, np.array([1.0])), grid, op
 
 
-def scatter_onsets(matrix: np.ndarray, rocks_per_step: float, tau_s: float, crit: SteadyStateCriterion,
-                   n_sims: int, seed: int = 0) -> np.ndarray:
-    """Onsets (s, NaN if never) of ``n_sims`` marches of whole rocks moving independently by ``matrix``.
+def scatter_onsets(tr: Transition, rocks_per_step: float, tau_s: float, crit: SteadyStateCriterion,
+                   n_sims: int, seed: int = 0) -> tuple[np.ndarray, float]:
+    """Onsets of ``n_sims`` marches of whole rocks moving independently by the transport ``tr``.
 
-    ``matrix`` (C, C+1): one-step destinations of each compartment (last column
-    = out); the feed (``rocks_per_step``, fractional part carried over) enters
-    compartment 0. The marches last 8 s.
+    Per step every compartment's rocks go to their destinations by a multinomial
+    draw from the first size class's one-step matrix, at the speed the run's own
+    fill sets (:meth:`Transition.speed_at`, rocks in the mill over the chain's
+    steady count; the steady matrix when ``tr`` carries no filling curve); the
+    feed (``rocks_per_step``, fractional part carried over) enters compartment 0.
+    The marches last 8 s. Returns the single marches' onsets (s, NaN if never)
+    and the onset of their ensemble-mean series (NaN if never).
     """
     rng = np.random.default_rng(seed)
-    p = matrix / matrix.sum(axis=1, keepdims=True)
-    c = p.shape[0]
+    base = tr.matrix[:, 0, :]
+    c = base.shape[0]
+    steady_rocks = rocks_per_step * float(chain_visits(base).sum())
+    by_count: dict[int, np.ndarray] = {}
+
+    def matrix_at(n_rocks: int) -> np.ndarray:  # one matrix per rock count: few distinct ones
+        if n_rocks not in by_count:
+            p = np.clip(tr.at_speed(tr.speed_at(n_rocks / steady_rocks))[:, 0, :], 0.0, None)
+            by_count[n_rocks] = p / p.sum(axis=1, keepdims=True)
+        return by_count[n_rocks]
+
     steps = math.ceil(8.0 / tau_s)
     x = np.zeros((n_sims, c), dtype=np.int64)
     held = np.zeros((n_sims, steps + 1))
     out = np.zeros((n_sims, steps + 1))
     carry = 0.0
     for k in range(1, steps + 1):
-        new = sum(rng.multinomial(x[:, j], p[j]) for j in range(c))
+        p = np.stack([matrix_at(int(n)) for n in x.sum(axis=1)])  # (n_sims, C, C+1)
+        new = sum(rng.multinomial(x[:, j], p[:, j, :]) for j in range(c))
         carry += rocks_per_step
         fed = math.floor(carry)
         carry -= fed
@@ -386,7 +406,8 @@ def scatter_onsets(matrix: np.ndarray, rocks_per_step: float, tau_s: float, crit
         out[:, k] = out[:, k - 1] + new[:, c]
     t = np.arange(steps + 1) * tau_s
     found = [first_steady(t, held[i], out[i], rocks_per_step / tau_s, crit) for i in range(n_sims)]
-    return np.array([f[0] if f else _NAN for f in found])
+    ens = first_steady(t, held.mean(axis=0), out.mean(axis=0), rocks_per_step / tau_s, crit)
+    return np.array([f[0] if f else _NAN for f in found]), (ens[0] if ens else _NAN)
 
 
 def with_filling(run: RunStatistics, runs_dir: Path | None) -> RunStatistics:
@@ -475,15 +496,21 @@ def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter
               float(x.sum()) / (run.design.feed_tph / 3600.0), tss_dem, tss_model, rec_dem, rec_model, today,
               tss_model_today_s=tss_model_today,
               model_series=(t, held / float(x.sum()), rate / op.feed_tph))
-    if n_scatter and today:
-        import tomllib
+    scene = (run.provenance or {}).get("scene") or {}
+    if n_scatter and (today or {"rock_density_kg_m3", "feed_kg_s"} <= scene.keys()):
+        if {"rock_density_kg_m3", "feed_kg_s"} <= scene.keys():  # the run's scene, as recorded
+            rho, feed_kg_s = float(scene["rock_density_kg_m3"]), float(scene["feed_kg_s"])
+        else:
+            import tomllib
 
-        rho = tomllib.loads((d / "run.toml").read_text(encoding="utf-8"))["rock"]["density_kg_m3"]
+            rho = tomllib.loads((d / "run.toml").read_text(encoding="utf-8"))["rock"]["density_kg_m3"]
+            feed_kg_s = saved_run_feed_kg_s(d)
         rock_kg = rho * math.pi / 6.0 * (run.design.size_mm / 1000.0) ** 3
-        rocks = saved_run_feed_kg_s(d) * run.characteristic_time_s / rock_kg
-        ons = scatter_onsets(streams.matrix[:, 0, :], rocks, run.characteristic_time_s, crit, n_scatter)
+        rocks = feed_kg_s * run.characteristic_time_s / rock_kg
+        ons, row.scatter_ensemble_s = scatter_onsets(streams, rocks, run.characteristic_time_s, crit, n_scatter)
         if np.isfinite(ons).any():
             row.scatter = (float(np.nanpercentile(ons, 5)), float(np.nanpercentile(ons, 95)))
+            row.scatter_median_s = float(np.nanmedian(ons))
     return row
 
 
@@ -504,6 +531,11 @@ def report(rows: list[Row], prefix: str = "") -> str:
               f"{_fmt(r.tss_dem_s, 9)} {_fmt(r.tss_model_s, 11)} {_fmt(r.tss_err, 9, '+')} "
               f"{_fmt(r.tss_dem_rec_s, 9)} {_fmt(r.tss_model_rec_s, 11)} {_fmt(r.tss_err_rec, 9, '+')} "
               f"{sc:>13}{mark}")
+    for r in rows:
+        if np.isfinite(r.scatter_ensemble_s) or np.isfinite(r.scatter_median_s):
+            print(f"{r.size_mm:g} mm, independent rocks (--scatter): median single onset "
+                  f"{_fmt(r.scatter_median_s, 4)} s, ensemble-mean onset {_fmt(r.scatter_ensemble_s, 4)} s, "
+                  f"mean-field march {_fmt(r.tss_model_today_s, 4)} s")
     if reps:
         print(f"\nagainst the replicas (today's criterion on every series; DEM residence = the runs' mean, "
               f"t_ss = onset of the ensemble-mean series, se its bootstrap standard error; median and 5-95 % of the "
