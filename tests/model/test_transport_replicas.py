@@ -71,3 +71,41 @@ def test_attach_replicas_fills_the_row_and_its_error():
     other = B.Row(14.0, 0.03, 1.0, 1.05, 2.0, 2.0, 2.0, 2.0, False)
     assert B.attach_replicas(other, reps, crit).n_replicas == 0  # replicas of another size are not used
     assert other.tss_err_rep == other.tss_err
+
+
+def _two_compartments(filling=None) -> "B.Transition":
+    """SYNTHETIC transport: the inlet zone keeps 30 % a step, the stage keeps 80 % and sends 20 % out."""
+    m = np.array([[0.3, 0.7, 0.0], [0.0, 0.8, 0.2]])[:, None, :]
+    return B.Transition(m, feed_compartment=0, filling=filling)
+
+
+def _mean_field_onset(tr, rocks_per_step: float, tau_s: float, crit) -> float:
+    """The deterministic march of the same rule (expected rocks, speed at the expected fill)."""
+    base = tr.matrix[:, 0, :]
+    steady = rocks_per_step * float(B.chain_visits(base).sum())
+    steps = int(np.ceil(8.0 / tau_s))
+    x, held, out = np.zeros(2), [0.0], [0.0]
+    for _ in range(steps):
+        p = tr.at_speed(tr.speed_at(x.sum() / steady))[:, 0, :]
+        new = x @ p
+        x = new[:2].copy()
+        x[0] += rocks_per_step
+        held.append(x.sum())
+        out.append(out[-1] + new[2])
+    t = np.arange(steps + 1) * tau_s
+    return first_steady(t, np.array(held), np.array(out), rocks_per_step / tau_s, crit)[0]
+
+
+@pytest.mark.parametrize("filling", [None, (np.array([0.2, 0.6]), np.array([0.3, 0.7]))])
+def test_independent_rocks_average_to_the_mean_field_march_when_there_are_many(filling):
+    """With 100 rocks fed per step the rock-count noise is small: the ensemble-mean series' onset is the
+    deterministic march's, with and without a fill-dependent speed, and the fill dependence is used (rock
+    moving faster while the mill is emptier leaves the hold-up creeping up to its plateau: a later onset)."""
+    crit = RunSettings().criterion()
+    tr = _two_compartments(filling)
+    singles, ens = B.scatter_onsets(tr, 100.0, 0.05, crit, n_sims=40, seed=2)
+    mf = _mean_field_onset(tr, 100.0, 0.05, crit)
+    assert ens == pytest.approx(mf, abs=0.051)
+    assert np.nanmedian(singles) == pytest.approx(mf, abs=0.15)
+    if filling is not None:
+        assert mf > _mean_field_onset(_two_compartments(None), 100.0, 0.05, crit) + 0.3
