@@ -445,14 +445,6 @@ def warm_started(run: RunStatistics) -> bool:
     return ((run.provenance or {}).get("run_settings") or {}).get("start", "empty") != "empty"
 
 
-def cold_run_at(cold: StageParameterTable | None, size_mm: float) -> RunStatistics | None:
-    """The run of the cold-start table ``cold`` at ``size_mm`` (None: no table or no such run)."""
-    for r in cold.runs if cold is not None else []:
-        if abs(r.design.size_mm - size_mm) < 1e-6 * size_mm:
-            return r
-    return None
-
-
 def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter: int,
             curve: FillingTransport | None = None, cold: RunStatistics | None = None) -> Row:
     """Model against DEM for one run (``curve``: the filling transport to use instead of the run's own).
@@ -497,8 +489,9 @@ def compare(run: RunStatistics, transport: str, runs_dir: Path | None, n_scatter
               tss_model_today_s=tss_model_today,
               model_series=(t, held / float(x.sum()), rate / op.feed_tph))
     scene = (run.provenance or {}).get("scene") or {}
-    if n_scatter and (today or {"rock_density_kg_m3", "feed_kg_s"} <= scene.keys()):
-        if {"rock_density_kg_m3", "feed_kg_s"} <= scene.keys():  # the run's scene, as recorded
+    recorded = {"rock_density_kg_m3", "feed_kg_s"} <= scene.keys()
+    if n_scatter and (today or recorded):
+        if recorded:  # the run's scene, as recorded
             rho, feed_kg_s = float(scene["rock_density_kg_m3"]), float(scene["feed_kg_s"])
         else:
             import tomllib
@@ -641,7 +634,7 @@ def main() -> None:
         print(f"warm-started table runs: onsets from empty from the replicas, else from the cold table's runs "
               f"({args.cold_table or DEFAULT_COLD_TABLE})")
     rows = [attach_replicas(compare(r, args.transport, args.runs_dir, args.scatter, curve_for(r),
-                                    cold_run_at(cold, r.design.size_mm)), reps, crit)
+                                    cold.run_at(r.design.size_mm) if cold else None), reps, crit)
             for r in table.runs]
     summary = report(rows)
     summary += f" runs_with_destinations={n_dest}"

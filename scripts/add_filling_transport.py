@@ -61,19 +61,22 @@ def run_dir(run: RunStatistics, runs_dir: Path | None) -> Path | None:
     return None
 
 
+def own_curve(run: RunStatistics) -> FillingTransport | None:
+    """The run's own filling curve: kept in its provenance by an earlier pooling, else its curve (None: none)."""
+    own = ((run.provenance or {}).get("filling_transport_added_by") or {}).get("own_curve")
+    return FillingTransport.model_validate(own) if own else run.filling_transport
+
+
 def curve_of(table: StageParameterTable, size_mm: float) -> FillingTransport | None:
     """The own filling curve of ``table``'s run at ``size_mm`` with its window references (None: no such run)."""
-    for r in table.runs:
-        if abs(r.design.size_mm - size_mm) < 1e-6 * size_mm:
-            own = ((r.provenance or {}).get("filling_transport_added_by") or {}).get("own_curve")
-            ft = FillingTransport.model_validate(own) if own else r.filling_transport
-            if ft is None:
-                return None
-            ref = r.window_reference()
-            if (ft.window_holdup_kg is None or ft.window_residence_steps is None) and ref is not None:
-                ft = ft.model_copy(update={"window_holdup_kg": ref[0], "window_residence_steps": ref[1]})
-            return ft
-    return None
+    r = table.run_at(size_mm)
+    ft = own_curve(r) if r is not None else None
+    if ft is None:
+        return None
+    ref = r.window_reference()
+    if (ft.window_holdup_kg is None or ft.window_residence_steps is None) and ref is not None:
+        ft = ft.model_copy(update={"window_holdup_kg": ref[0], "window_residence_steps": ref[1]})
+    return ft
 
 
 def commit() -> str:
@@ -113,8 +116,7 @@ def main() -> None:
             ft = curve_of(other, r.design.size_mm)
             source = f"{args.curves_from} ({r.design.size_mm:g} mm run)" if ft else None
         elif ft is None and args.replicas:  # the run's own curve: kept by an earlier pooling, or the table's
-            own = earlier.get("own_curve") or (r.filling_transport and r.filling_transport.model_dump(mode="json"))
-            ft = FillingTransport.model_validate(own) if own else None
+            ft = own_curve(r)
         if ft is None:
             print(f"{r.design.size_mm:g} mm: no saved folder with a record before the window; left as it is")
             continue

@@ -678,6 +678,13 @@ class StageParameterTable(_JsonDocument):
         """Rock sizes of the runs (mm), ascending."""
         return np.array([r.design.size_mm for r in self.runs])
 
+    def run_at(self, size_mm: float) -> RunStatistics | None:
+        """The run at rock size ``size_mm`` (to a relative 1e-6), or None."""
+        for r in self.runs:
+            if abs(r.design.size_mm - size_mm) < 1e-6 * size_mm:
+                return r
+        return None
+
     @classmethod
     def from_json(cls, path: str | Path) -> StageParameterTable:
         """Read and validate a table file; errors are one line naming the field."""

@@ -196,12 +196,12 @@ def pool_filling_curves(curves: list[FillingTransport],
     if len(curves) == 1 and reference is None:
         return curves[0]
     has_ref = [c.window_holdup_kg is not None and c.window_residence_steps is not None for c in curves]
-    ref = [c for c, r in zip(curves, has_ref, strict=True) if r]
     if reference is not None:
         hold, res = map(float, reference)
         if not (hold > 0 and res > 0 and np.isfinite(hold) and np.isfinite(res)):
             raise ValueError(f"reference: got {reference}; allowed: a positive, finite (holdup_kg, residence_steps)")
     else:
+        ref = [c for c, r in zip(curves, has_ref, strict=True) if r]
         hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
         res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
     common = []
