@@ -18,7 +18,10 @@ note. Reads the run folders only; ``--out`` defaults to overwriting ``TABLE``.
 table's points with other feed seeds that carry their ``filling_transport``)
 pools each run's curve with the replicas' at its size
 (:func:`msmill.model.providers.pool_filling_curves`): one run's 0.4 s of tags
-per fill bin is noise (docs/model.md 7.4), several seeds' are not. The run's
+per fill bin is noise (docs/model.md 7.4), several seeds' are not. Window
+residences are compared in seconds: a curve without a lag (exported before
+2026-12-03) is on its replica's ``characteristic_time_s``, an own curve on its
+run's. The run's
 own curve (from its folder, or kept in its provenance as ``own_curve`` by an
 earlier pooling, or the table's) is kept in the provenance, so pooling again
 does not count it twice. The last line is ``runs=<n> with_filling=<m>``.
@@ -76,7 +79,12 @@ def curve_of(table: StageParameterTable, size_mm: float) -> FillingTransport | N
     ref = r.window_reference()
     if (ft.window_holdup_kg is None or ft.window_residence_steps is None) and ref is not None:
         ft = ft.model_copy(update={"window_holdup_kg": ref[0], "window_residence_steps": ref[1]})
-    return ft
+    return with_lag(ft, r.characteristic_time_s)
+
+
+def with_lag(ft: FillingTransport, lag_s: float) -> FillingTransport:
+    """``ft`` with its lag set to ``lag_s`` (the characteristic time of the run it was measured in) if it has none."""
+    return ft if ft.lag_s is not None else ft.model_copy(update={"lag_s": float(lag_s)})
 
 
 def commit() -> str:
@@ -131,8 +139,10 @@ def main() -> None:
         if mine or reference is not None:
             added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
                       "replica_seeds": [int(x["seed"]) for x in mine], "reference": args.reference}
-            ft = pool_filling_curves([ft] + [FillingTransport.model_validate(x["filling_transport"]) for x in mine],
-                                     reference=reference)
+            reps = [with_lag(FillingTransport.model_validate(x["filling_transport"]), x["characteristic_time_s"])
+                    for x in mine]
+            ft = pool_filling_curves([with_lag(ft, r.characteristic_time_s), *reps], reference=reference,
+                                     reference_lag_s=r.characteristic_time_s)
         print(f"{r.design.size_mm:g} mm ({source}; {len(mine)} replicas pooled in): fill "
               f"{[round(h, 2) for h in ft.fill]} residence ratio {[round(x, 3) for x in ft.residence_ratio]}")
         doc["filling_transport"] = ft.model_dump(mode="json")

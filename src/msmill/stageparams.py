@@ -477,6 +477,11 @@ class FillingTransport(_Frozen):
         both to 10-20 % for coarse rock; with them, runs of one point (other feed seeds)
         pool against a common reference (:func:`msmill.model.providers.pool_filling_curves`).
         None in curves measured before 2026-12-02.
+    lag_s : float or None
+        The lag (s) whose steps ``window_residence_steps`` counts: the run's characteristic
+        time, which is a whole number of snapshot intervals and so differs between runs of
+        one point (30 mm: 0.025 or 0.030 s). None in curves measured before 2026-12-03
+        (taken to be on the lag of the curves they are pooled with).
     """
 
     fill: list[float] = Field(min_length=1)
@@ -484,6 +489,7 @@ class FillingTransport(_Frozen):
     tag_mass_kg: list[float] = Field(min_length=1)
     window_residence_steps: float | None = Field(default=None, gt=0)
     window_holdup_kg: float | None = Field(default=None, gt=0)
+    lag_s: float | None = Field(default=None, gt=0)
 
     @model_validator(mode="after")
     def _check(self) -> FillingTransport:

@@ -361,6 +361,36 @@ def test_curves_pool_against_an_explicit_reference_such_as_a_long_window():
             pool_filling_curves(runs, reference=bad)
 
 
+def test_curves_measured_at_other_lags_pool_in_seconds():
+    """Runs of one point whose characteristic times differ (30 mm: 0.025 or 0.030 s) count their window
+    residence in steps of different lags: the same 1.2 s is 48 or 40 steps. Compared in seconds, every
+    curve put on a long window's reference (steps of 0.025 s) is the true curve; counted in steps the
+    0.030 s run's ratios would come out 1/6 low."""
+    true_fill, true_ratio = np.array([0.15, 0.45, 0.75]), np.array([0.4, 0.7, 0.9])
+
+    def run_at(lag_s: float, kr: float) -> FillingTransport:  # window chain residence kr * 1.2 s
+        return FillingTransport(fill=true_fill.tolist(), residence_ratio=(true_ratio / kr).tolist(),
+                                tag_mass_kg=[1.0] * 3, window_residence_steps=1.2 * kr / lag_s,
+                                window_holdup_kg=3.0, lag_s=lag_s)
+
+    curves = [run_at(0.025, 0.9), run_at(0.030, 1.1), run_at(0.030, 1.0)]
+    c = pool_filling_curves(curves, reference=(3.0, 48.0), reference_lag_s=0.025)
+    assert np.allclose(c.residence_ratio, true_ratio) and c.lag_s == 0.025
+    for one in curves:  # each alone, too
+        assert np.allclose(pool_filling_curves([one], reference=(3.0, 48.0), reference_lag_s=0.025).residence_ratio,
+                           true_ratio)
+    # on their own mean (in seconds, expressed in steps of the curves' mean lag) the three agree as well
+    own = pool_filling_curves([run_at(0.025, 1.0), run_at(0.030, 1.0)])
+    assert np.allclose(own.residence_ratio, true_ratio)
+    assert own.window_residence_steps * own.lag_s == pytest.approx(1.2)
+    # a curve without a lag is taken to be on the common one
+    bare = run_at(0.025, 1.0).model_copy(update={"lag_s": None})
+    assert np.allclose(pool_filling_curves([bare], reference=(3.0, 48.0), reference_lag_s=0.025).residence_ratio,
+                       true_ratio)
+    with pytest.raises(ValueError, match="reference_lag_s"):
+        pool_filling_curves(curves, reference=(3.0, 48.0), reference_lag_s=-1.0)
+
+
 def test_window_reference_is_the_windows_hold_up_and_chain_residence():
     run = _run(None)
     assert run.window_reference() is None  # no mean hold-up recorded
@@ -461,6 +491,8 @@ def test_filling_measurement_finds_faster_rock_in_the_emptier_mill_and_none_when
     assert np.allclose(np.delete(ft.residence_ratio, k), 1.0)  # few tags there: the window's destinations
     rock_kg = 2700.0 * 4.0 / 3.0 * np.pi * 0.004**3
     assert ft.window_residence_steps == pytest.approx(sum(slow), rel=0.05)  # the references of the curve
+    assert ft.lag_s == pytest.approx(0.005)  # its steps are of one snapshot interval (_record) here
+    assert filling_transport(m, snaps, rem, win, lag=2).lag_s == pytest.approx(0.010)
     assert ft.window_holdup_kg == pytest.approx(sum(slow) * rock_kg, rel=0.05)  # one rock fed per snapshot
     t0 = 0.45  # a window that opens while the mill still fills: its tags at fills below 1 stay out
     early = filling_transport(m, snaps, rem, (t0, win[1]), lag=1)

@@ -176,8 +176,8 @@ def filling_curves(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray, n
     return fill, np.array([c.ratio_at(fill) for c in curves]), np.array([sum(c.tag_mass_kg) for c in curves])
 
 
-def pool_filling_curves(curves: list[FillingTransport],
-                        reference: tuple[float, float] | None = None) -> FillingTransport:
+def pool_filling_curves(curves: list[FillingTransport], reference: tuple[float, float] | None = None,
+                        reference_lag_s: float | None = None) -> FillingTransport:
     """Several measurements of one point's filling curve (e.g. runs with other feed seeds) as one curve.
 
     Each run's curve is relative to its own window (fill over the window's mean hold-up,
@@ -185,17 +185,28 @@ def pool_filling_curves(curves: list[FillingTransport],
     10-20 % for coarse rock. Curves that carry them (``window_holdup_kg``,
     ``window_residence_steps``) are first put on a common reference: ``reference``
     (``(holdup_kg, residence_steps)``, e.g. those of a long window at the same point,
-    :meth:`RunStatistics.window_reference`) or else the runs' mean of each: ``fill * holdup / common
-    holdup``, ``ratio * residence / common residence`` (points at or above the common
-    steady hold-up are dropped); curves without them are taken as they are. Then the
-    fills of :func:`_common_fills`, there the curves' ratios averaged with their tagged
-    masses as weights, and the bins' summed tagged masses.
+    :meth:`RunStatistics.window_reference`, its steps of ``reference_lag_s``) or else the runs'
+    mean of each: ``fill * holdup / common holdup``, ``ratio * residence / common residence``
+    (points at or above the common steady hold-up are dropped); curves without them are taken
+    as they are. Residences are compared in seconds: a curve's steps are of its own lag
+    (``lag_s``; runs of one point can have different characteristic times), a curve or
+    reference without a lag is taken to be on the common lag (``reference_lag_s``, else the
+    curves' mean lag). Then the fills of :func:`_common_fills`, there the curves' ratios
+    averaged with their tagged masses as weights, and the bins' summed tagged masses.
     """
     if not curves:
         raise ValueError("no filling curves to pool")
     if len(curves) == 1 and reference is None:
         return curves[0]
     has_ref = [c.window_holdup_kg is not None and c.window_residence_steps is not None for c in curves]
+    lags = [c.lag_s for c, r in zip(curves, has_ref, strict=True) if r and c.lag_s is not None]
+    lag = float(reference_lag_s) if reference_lag_s is not None else (float(np.mean(lags)) if lags else None)
+    if lag is not None and not (lag > 0 and np.isfinite(lag)):
+        raise ValueError(f"reference_lag_s: got {reference_lag_s}; allowed: a positive, finite lag (s)")
+
+    def steps_on_lag(c: FillingTransport) -> float:  # the curve's window residence in steps of the common lag
+        return c.window_residence_steps * (c.lag_s / lag if c.lag_s is not None and lag is not None else 1.0)
+
     if reference is not None:
         hold, res = map(float, reference)
         if not (hold > 0 and res > 0 and np.isfinite(hold) and np.isfinite(res)):
@@ -203,7 +214,7 @@ def pool_filling_curves(curves: list[FillingTransport],
     else:
         ref = [c for c, r in zip(curves, has_ref, strict=True) if r]
         hold = float(np.mean([c.window_holdup_kg for c in ref])) if ref else None
-        res = float(np.mean([c.window_residence_steps for c in ref])) if ref else None
+        res = float(np.mean([steps_on_lag(c) for c in ref])) if ref else None
     common = []
     for c, r in zip(curves, has_ref, strict=True):
         if not r:
@@ -214,7 +225,7 @@ def pool_filling_curves(curves: list[FillingTransport],
         if not keep.any():
             continue
         common.append(FillingTransport(
-            fill=h[keep].tolist(), residence_ratio=(np.asarray(c.residence_ratio)[keep] * c.window_residence_steps
+            fill=h[keep].tolist(), residence_ratio=(np.asarray(c.residence_ratio)[keep] * steps_on_lag(c)
                                                     / res).tolist(),
             tag_mass_kg=np.asarray(c.tag_mass_kg)[keep].tolist()))
     if not common:
@@ -223,7 +234,7 @@ def pool_filling_curves(curves: list[FillingTransport],
     w = np.array([sum(c.tag_mass_kg) for c in common])
     ratio = np.average([c.ratio_at(fill) for c in common], axis=0, weights=w)
     return FillingTransport(fill=fill.tolist(), residence_ratio=ratio.tolist(), tag_mass_kg=mass.tolist(),
-                            window_residence_steps=res, window_holdup_kg=hold)
+                            window_residence_steps=res, window_holdup_kg=hold, lag_s=lag)
 
 
 def pooled_filling(runs: list[RunStatistics]) -> tuple[np.ndarray, np.ndarray] | None:

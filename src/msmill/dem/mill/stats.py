@@ -500,7 +500,9 @@ def filling_transport(
         out["tag_mass_kg"].append(float(w[sel].sum()))
     if not out["fill"]:
         return None
-    return FillingTransport(**out, window_residence_steps=float(base), window_holdup_kg=float(held[in_win].mean()))
+    times = held.index.to_numpy()
+    return FillingTransport(**out, window_residence_steps=float(base), window_holdup_kg=float(held[in_win].mean()),
+                            lag_s=float(lag * np.median(np.diff(times))) if times.size > 1 else None)
 
 
 def _batch_se(values: np.ndarray) -> float:
