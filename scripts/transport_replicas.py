@@ -82,6 +82,7 @@ def run_replica(size_mm: float, seed: int, measure_s: float, every_s: float, end
         sim.run(end_s - sim.time_s, dt_s=sim.dt_s, max_relative_speed_m_s=run.scene.max_impact_speed_m_s,
                 safety=rs.safety, progress=False, timeseries_every_s=every_s / 2)
     ts = sim.timeseries()
+    tags = filling_tags_at(run, run0.characteristic_time_s)
     grid = np.arange(0.0, float(ts["time_s"].iloc[-1]) + 1e-9, every_s)
     idx = np.unique(np.clip(np.searchsorted(ts["time_s"].to_numpy(), grid - 1e-9), 0, len(ts) - 1))
     st = run.stats.run
@@ -97,9 +98,22 @@ def run_replica(size_mm: float, seed: int, measure_s: float, every_s: float, end
         # the tags of the filling phase binned by fill (RunStatistics.filling_transport): several seeds
         # of one point pool into a filling curve far less noisy than one run's
         "filling_transport": st.filling_transport.model_dump() if st.filling_transport is not None else None,
+        # the same tags in fine fill bins at the table run's lag: replicas pool them before the chain
+        # (scripts/add_filling_transport.py --pool tags), which clears the per-bin tag threshold at 30 mm
+        "filling_tags": tags.model_dump() if tags is not None else None,
         "run_settings": {"measure_s": measure_s, "seed": seed, **{k: getattr(rs, k) for k in (
             "steady_window_s", "rel_tol", "trend_tol", "balance_tol", "chunk_s")}},
     }
+
+
+def filling_tags_at(run, lag_s: float):
+    """The run's filling tags (:func:`msmill.dem.mill.stats.filling_tags`) at the lag nearest ``lag_s``."""
+    from msmill.dem.mill.stats import filling_tags
+
+    times = np.sort(run.snapshots["time_s"].unique())
+    lag = max(1, round(float(lag_s) / float(np.median(np.diff(times)))))
+    return filling_tags(run.scene.machine, run.snapshots, run.removed, run.window_s, lag,
+                        run.scene.rock.density_kg_m3)
 
 
 def _operating_point(design):

@@ -509,6 +509,115 @@ class FillingTransport(_Frozen):
                          [*self.residence_ratio, 1.0])
 
 
+class FillingTags(_Frozen):
+    """The tags a run took while its mill filled, binned finely by fill: what runs of one point pool.
+
+    A filling curve (:class:`FillingTransport`) computed per run keeps a compartment's own
+    destinations in a fill bin only where the run tagged it at least ``min_tags`` times,
+    else the window's: at 30 mm (about 80 rocks in the mill at steady state) most
+    compartments of the emptiest bins fall back, which pulls the run's ratio towards 1
+    however many runs' curves are averaged. Tags summed over runs first
+    (:func:`filling_curve_from_tags`) clear the threshold.
+
+    Attributes
+    ----------
+    lag_s : float
+        The lag (s) of the one-lag destinations (the tag's compartment ``lag_s`` later).
+    window_holdup_kg : float
+        The run's measurement-window mean hold-up (kg), which ``fill`` is relative to.
+    fill : list of float
+        Tag-mass-weighted mean fill of each bin (hold-up at the tag over ``window_holdup_kg``),
+        bins of tags taken before the window, ascending.
+    destination_kg : list of list of list of float
+        Per bin (K, C, C + 1): tagged mass in compartment ``c`` (0 inlet zone, 1..n stages)
+        found one lag later in ``0..n`` or gone through the outlet (last column).
+    tag_count : list of list of int
+        Per bin (K, C): number of tags in each compartment.
+    """
+
+    lag_s: float = Field(gt=0)
+    window_holdup_kg: float = Field(gt=0)
+    fill: list[float]
+    destination_kg: list[list[list[float]]]
+    tag_count: list[list[int]]
+
+    @model_validator(mode="after")
+    def _check(self) -> FillingTags:
+        d = np.asarray(self.destination_kg, dtype=float).reshape(len(self.fill), -1)
+        n = np.asarray(self.tag_count, dtype=float).reshape(len(self.fill), -1)
+        if not len(self.fill) == d.shape[0] == n.shape[0] or d.shape[1] != n.shape[1] * (n.shape[1] + 1):
+            raise ValueError("fill, destination_kg (K, C, C + 1) and tag_count (K, C) must agree in shape")
+        if (d < 0).any() or (n < 0).any() or any(h < 0 or not math.isfinite(h) for h in self.fill):
+            raise ValueError("fill, destination_kg and tag_count must be finite and >= 0")
+        return self
+
+
+def filling_curve_from_tags(tags: list[FillingTags], reference: tuple[float, np.ndarray],
+                            bins: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0),
+                            min_tags: int = 20) -> FillingTransport | None:
+    """One filling curve from the tags of one or more runs of one point, against a steady reference.
+
+    Parameters
+    ----------
+    tags : list of FillingTags
+        The runs' tags, all at the lag of ``reference``'s matrix.
+    reference : (holdup_kg, matrix)
+        The steady state the curve is relative to: hold-up (kg, inlet zone and stages) and the
+        one-lag destinations ``(C, C + 1)`` (last column out), e.g. a long window's
+        (:meth:`RunStatistics.window_reference`, :meth:`RunStatistics.destination_matrix`) or
+        the run's own window.
+    bins : tuple of float
+        Edges of the fill bins (shares of the reference hold-up).
+    min_tags : int
+        Fewest tags (summed over the runs) of a compartment in a bin for its destinations to
+        replace the reference's.
+
+    Each run's fills go on the reference (``fill * window_holdup_kg / holdup_kg``), its fine
+    bins into ``bins``; in each bin the runs' tagged masses and counts are summed, every
+    compartment with at least ``min_tags`` tags gets the bin's destinations and the others
+    keep the reference's, and ``residence_ratio`` is that chain's mean residence
+    (:func:`chain_residence_steps`) over the reference chain's. Bins whose chain never
+    empties are left out. None when no bin has tags.
+    """
+    hold, p_ref = float(reference[0]), np.asarray(reference[1], dtype=float)
+    c = p_ref.shape[0]
+    lags = np.array([t.lag_s for t in tags])
+    if lags.size and np.ptp(lags) > 1e-3 * lags.min():
+        raise ValueError(f"tags: lags {sorted(set(np.round(lags, 6)))} s; allowed: one lag (pool destinations of one lag)")
+    base = chain_residence_steps(p_ref)
+    if not (hold > 0 and np.isfinite(base) and p_ref.shape == (c, c + 1)):
+        raise ValueError(f"reference: hold-up {hold} kg, chain residence {base} steps; allowed: positive and finite")
+    k = len(bins) - 1
+    mass, count, fill_mass = np.zeros((k, c, c + 1)), np.zeros((k, c)), np.zeros(k)
+    for t in tags:
+        d = np.asarray(t.destination_kg, dtype=float).reshape(len(t.fill), c, c + 1)
+        n = np.asarray(t.tag_count, dtype=float).reshape(len(t.fill), c)
+        h = np.asarray(t.fill) * t.window_holdup_kg / hold
+        b = np.searchsorted(np.asarray(bins), h, side="right") - 1
+        ok = (b >= 0) & (b < k)
+        np.add.at(mass, b[ok], d[ok])
+        np.add.at(count, b[ok], n[ok])
+        np.add.at(fill_mass, b[ok], h[ok] * d[ok].sum(axis=(1, 2)))
+    out: dict[str, list[float]] = {"fill": [], "residence_ratio": [], "tag_mass_kg": []}
+    for j in range(k):
+        total = mass[j].sum()
+        if total <= 0:
+            continue
+        p = p_ref.copy()
+        row = mass[j].sum(axis=1)
+        use = (count[j] >= min_tags) & (row > 0)
+        p[use] = mass[j][use] / row[use, None]
+        r = chain_residence_steps(p) / base
+        if not np.isfinite(r):
+            continue
+        out["fill"].append(float(fill_mass[j] / total))
+        out["residence_ratio"].append(float(r))
+        out["tag_mass_kg"].append(float(total))
+    if not out["fill"]:
+        return None
+    return FillingTransport(**out, window_residence_steps=float(base), window_holdup_kg=hold, lag_s=float(lags[0]))
+
+
 def chain_visits(p: np.ndarray) -> np.ndarray:
     """Expected steps rock fed to compartment 0 spends in each compartment of the chain ``p`` (C,).
 

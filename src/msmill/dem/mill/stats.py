@@ -64,7 +64,6 @@ Definitions (see also ``docs/mill-dem.md`` and :mod:`msmill.stageparams`)
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -82,11 +81,12 @@ from msmill.machine import Machine
 from msmill.stageparams import (
     N_REGIONS,
     DesignPoint,
+    FillingTags,
     FillingTransport,
     GaussianMixture,
     RunStatistics,
     StageStatistics,
-    chain_residence_steps,
+    filling_curve_from_tags,
 )
 
 
@@ -101,6 +101,7 @@ __all__ = [
     "compute_statistics",
     "destination_matrix",
     "detect_steady_state",
+    "filling_tags",
     "filling_transport",
     "identify_impacts",
     "snapshots_frame",
@@ -445,22 +446,26 @@ def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
 FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: Fewest tags of a compartment in a fill bin for its destinations to replace the window's.
 FILLING_MIN_TAGS = 20
+#: Width and upper end of the fine fill bins of :func:`filling_tags` (shares of the run's window hold-up).
+FILLING_TAG_BIN = 0.05
+FILLING_TAG_MAX = 1.5
 
 
-def filling_transport(
+def filling_tags(
     machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
     window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
-    bins: tuple[float, ...] = FILLING_BINS,
-) -> FillingTransport | None:
-    """How fast the one-lag transport runs while the mill fills, by the mill's fill (None: no tags before the window).
+    bin_width: float = FILLING_TAG_BIN, max_fill: float = FILLING_TAG_MAX, moves: pd.DataFrame | None = None,
+) -> FillingTags | None:
+    """The tags taken before the measurement window, binned finely by the mill's fill (None: none).
 
     The mill's fill at a snapshot is its hold-up (inlet zone and stages) over the
-    window's mean. Tags (:func:`tagged_moves`) taken before the window are binned
-    by the fill at their tag time; in each bin, every compartment with at least
-    :data:`FILLING_MIN_TAGS` tags gets its bin destinations, the others keep the
-    window's. ``residence_ratio`` is that chain's mean residence
-    (:func:`chain_residence_steps`) over the window chain's; bins whose chain
-    never empties are left out.
+    window's mean. Tags (:func:`tagged_moves`, ``lag`` snapshot intervals) taken
+    before the window are binned by the fill at their tag time (bins of
+    ``bin_width`` up to ``max_fill``: runs of one point pool on a reference other
+    than their own window's); per bin, the tagged mass by compartment and
+    destination and the number of tags by compartment
+    (:class:`msmill.stageparams.FillingTags`). ``moves``: the record's
+    :func:`tagged_moves` at ``lag`` if already computed.
     """
     snaps = snapshots_frame(snapshots)
     n = machine.n_stages
@@ -472,37 +477,55 @@ def filling_transport(
     in_win = (held.index >= t0 - 1e-9) & (held.index <= t1 + 1e-9)
     if not in_win.any() or held[in_win].mean() <= 0 or held.index.min() >= t0 - 1e-9:
         return None
+    times = held.index.to_numpy()
     fill = held / held[in_win].mean()
+    if moves is None:
+        moves = tagged_moves(machine, snaps, removed, lag, rock_density_kg_m3)
+    moves = moves[moves["time_s"].to_numpy() < t0 - 1e-9]
+    h = moves["time_s"].map(fill).to_numpy()
+    k = np.floor(h / bin_width).astype(int)
+    keep = h < max_fill
+    if not keep.any():
+        return None
+    k, h = k[keep], h[keep]
+    frm, to = moves["stage_from"].to_numpy()[keep], moves["stage_to"].to_numpy()[keep]
+    w = moves["mass_kg"].to_numpy()[keep]
+    used, b = np.unique(k, return_inverse=True)
+    dest = np.zeros((used.size, n + 1, n + 2))
+    np.add.at(dest, (b, frm, to), w)
+    count = np.zeros((used.size, n + 1), dtype=int)
+    np.add.at(count, (b, frm), 1)
+    fill_b = np.bincount(b, weights=w * h) / np.bincount(b, weights=w)
+    return FillingTags(lag_s=float(lag * np.median(np.diff(times))), window_holdup_kg=float(held[in_win].mean()),
+                       fill=fill_b.tolist(), destination_kg=dest.tolist(), tag_count=count.tolist())
+
+
+def filling_transport(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    window_s: tuple[float, float], lag: int, rock_density_kg_m3: float = 2700.0,
+    bins: tuple[float, ...] = FILLING_BINS,
+) -> FillingTransport | None:
+    """How fast the one-lag transport runs while the mill fills, by the mill's fill (None: no tags before the window).
+
+    The run's own tags (:func:`filling_tags`) against its own window
+    (:func:`msmill.stageparams.filling_curve_from_tags`): tags taken before the
+    window binned by the fill at their tag time; in each bin, every compartment
+    with at least :data:`FILLING_MIN_TAGS` tags gets its bin destinations, the
+    others keep the window's. ``residence_ratio`` is that chain's mean residence
+    (:func:`chain_residence_steps`) over the window chain's; bins whose chain
+    never empties are left out. ``lag_s`` is ``lag`` snapshot intervals.
+    """
+    snaps = snapshots_frame(snapshots)
     moves = tagged_moves(machine, snaps, removed, lag, rock_density_kg_m3)
+    tags = filling_tags(machine, snaps, removed, window_s, lag, rock_density_kg_m3, moves=moves)
+    if tags is None:
+        return None
     t = moves["time_s"].to_numpy()
-    steady = destination_matrix(moves[(t >= t0 - 1e-9) & (t <= t1 + 1e-9)], n)
+    steady = destination_matrix(moves[(t >= window_s[0] - 1e-9) & (t <= window_s[1] + 1e-9)], machine.n_stages)
     if not np.isfinite(steady).all():
         return None
-    base = chain_residence_steps(steady)
-    h = moves["time_s"].map(fill).to_numpy()
-    frm = moves["stage_from"].to_numpy()
-    w = moves["mass_kg"].to_numpy()
-    out: dict[str, list[float]] = {"fill": [], "residence_ratio": [], "tag_mass_kg": []}
-    for a, b in itertools.pairwise(bins):
-        sel = (t < t0 - 1e-9) & (h >= a) & (h < b)
-        if not sel.any():
-            continue
-        p = steady.copy()
-        got = destination_matrix(moves[sel], n)
-        counts = np.bincount(frm[sel], minlength=n + 1)[: n + 1]
-        ok = np.isfinite(got).all(axis=1) & (counts >= FILLING_MIN_TAGS)
-        p[ok] = got[ok]
-        r = chain_residence_steps(p) / base
-        if not np.isfinite(r):
-            continue
-        out["fill"].append(float(np.average(h[sel], weights=w[sel])))
-        out["residence_ratio"].append(float(r))
-        out["tag_mass_kg"].append(float(w[sel].sum()))
-    if not out["fill"]:
-        return None
-    times = held.index.to_numpy()
-    return FillingTransport(**out, window_residence_steps=float(base), window_holdup_kg=float(held[in_win].mean()),
-                            lag_s=float(lag * np.median(np.diff(times))) if times.size > 1 else None)
+    return filling_curve_from_tags([tags], (tags.window_holdup_kg, steady), bins=bins, min_tags=FILLING_MIN_TAGS)
+
 
 
 def _batch_se(values: np.ndarray) -> float:
