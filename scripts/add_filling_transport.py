@@ -26,6 +26,15 @@ own curve (from its folder, or kept in its provenance as ``own_curve`` by an
 earlier pooling, or the table's) is kept in the provenance, so pooling again
 does not count it twice. The last line is ``runs=<n> with_filling=<m>``.
 
+``--pool tags`` (replicas that recorded ``filling_tags``, 2026-12-03 on): at a
+size where replicas carry their tags, the curve is made from their tags summed
+over the runs (:func:`msmill.stageparams.filling_curve_from_tags`) against the
+run's window, instead of averaging per-run curves: a compartment keeps its own
+destinations in a fill bin only with enough tags, which one coarse run rarely
+has in the emptiest bins (its ratio then falls back towards 1), while the
+replicas together do. The run's own curve and untagged replicas are left out
+there (the own curve is kept in the provenance).
+
 ``--curves-from OTHER`` takes the run's own curve from the run of the same
 size in table ``OTHER`` instead (its ``own_curve`` or its curve), with that
 run's window references (:meth:`msmill.stageparams.RunStatistics.window_reference`)
@@ -49,7 +58,13 @@ from pathlib import Path
 from msmill._version import __version__
 from msmill.dem.mill.run import saved_run_filling_transport
 from msmill.model.providers import pool_filling_curves
-from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable
+from msmill.stageparams import (
+    FillingTags,
+    FillingTransport,
+    RunStatistics,
+    StageParameterTable,
+    filling_curve_from_tags,
+)
 
 
 def run_dir(run: RunStatistics, runs_dir: Path | None) -> Path | None:
@@ -87,6 +102,28 @@ def with_lag(ft: FillingTransport, lag_s: float) -> FillingTransport:
     return ft if ft.lag_s is not None else ft.model_copy(update={"lag_s": float(lag_s)})
 
 
+def pooled_tags_curve(run: RunStatistics, replicas: list[dict]) -> FillingTransport:
+    """The filling curve of the replicas' tags summed (:func:`msmill.stageparams.filling_curve_from_tags`).
+
+    Against ``run``'s window (mean hold-up and one-lag destinations); every replica's
+    tags must be at the run's lag.
+    """
+    ref, p = run.window_reference(), run.destination_matrix()
+    if ref is None or p is None:
+        raise SystemExit(f"error: --pool tags: the {run.design.size_mm:g} mm run has no window reference "
+                         "(mean hold-up and one-lag destinations)")
+    tags = [FillingTags.model_validate(x["filling_tags"]) for x in replicas]
+    off = [int(x["seed"]) for x, t in zip(replicas, tags, strict=True)
+           if abs(t.lag_s / run.characteristic_time_s - 1.0) > 1e-3]
+    if off:
+        raise SystemExit(f"error: --pool tags: replicas {off} at {run.design.size_mm:g} mm took their tags at "
+                         f"another lag than the run's {run.characteristic_time_s:.4f} s")
+    ft = filling_curve_from_tags(tags, (ref[0], p))
+    if ft is None:
+        raise SystemExit(f"error: --pool tags: no tags below the {run.design.size_mm:g} mm run's steady hold-up")
+    return ft
+
+
 def commit() -> str:
     """The repository's HEAD commit, or 'unknown'."""
     try:
@@ -107,6 +144,9 @@ def main() -> None:
                     help="take each run's own curve from the run of the same size in this table")
     ap.add_argument("--reference", choices=("pooled", "window"), default="pooled",
                     help="the pooled curve's reference: the curves' mean (pooled) or this run's window")
+    ap.add_argument("--pool", choices=("curves", "tags"), default="curves",
+                    help="tags: at a size where replicas carry their tags, one curve from their tags summed "
+                         "against the run's window (the run's own curve and untagged replicas left out)")
     args = ap.parse_args()
     other = StageParameterTable.from_json(args.curves_from) if args.curves_from else None
     replicas = json.loads(args.replicas.read_text(encoding="utf-8"))["replicas"] if args.replicas else []
@@ -136,14 +176,20 @@ def main() -> None:
         if args.reference == "window" and reference is None:
             raise SystemExit(f"error: --reference window: the {r.design.size_mm:g} mm run has no window reference "
                              "(mean hold-up and one-lag destinations)")
-        if mine or reference is not None:
+        tagged = [x for x in mine if x.get("filling_tags")] if args.pool == "tags" else []
+        if tagged:
+            ft = pooled_tags_curve(r, tagged)
+            added |= {"own_curve": (own_curve(r) or ft).model_dump(mode="json"), "replicas": str(args.replicas),
+                      "replica_seeds": [int(x["seed"]) for x in tagged], "reference": "window", "pool": "tags"}
+        elif mine or reference is not None:
             added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
                       "replica_seeds": [int(x["seed"]) for x in mine], "reference": args.reference}
             reps = [with_lag(FillingTransport.model_validate(x["filling_transport"]), x["characteristic_time_s"])
                     for x in mine]
             ft = pool_filling_curves([with_lag(ft, r.characteristic_time_s), *reps], reference=reference,
                                      reference_lag_s=r.characteristic_time_s)
-        print(f"{r.design.size_mm:g} mm ({source}; {len(mine)} replicas pooled in): fill "
+        how = f"the tags of {len(tagged)} replicas summed" if tagged else f"{len(mine)} replicas pooled in"
+        print(f"{r.design.size_mm:g} mm ({source}; {how}): fill "
               f"{[round(h, 2) for h in ft.fill]} residence ratio {[round(x, 3) for x in ft.residence_ratio]}")
         doc["filling_transport"] = ft.model_dump(mode="json")
         doc.setdefault("provenance", {})["filling_transport_added_by"] = added

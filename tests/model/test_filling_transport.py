@@ -36,10 +36,12 @@ from msmill.model.submodels import (
 )
 from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import (
+    FillingTags,
     FillingTransport,
     RunStatistics,
     StageParameterTable,
     chain_residence_steps,
+    filling_curve_from_tags,
 )
 
 N_ST = 3
@@ -389,6 +391,94 @@ def test_curves_measured_at_other_lags_pool_in_seconds():
                        true_ratio)
     with pytest.raises(ValueError, match="reference_lag_s"):
         pool_filling_curves(curves, reference=(3.0, 48.0), reference_lag_s=-1.0)
+
+
+#: a two-compartment chain (inlet zone, one stage; last column out): its steady state and a faster filling one
+P_STEADY = np.array([[0.6, 0.4, 0.0], [0.0, 0.8, 0.2]])
+P_FILLING = np.array([[0.2, 0.8, 0.0], [0.0, 0.5, 0.5]])
+
+
+def _tags(fill: list[float], per_bin: int, hold_kg: float = 2.0, lag_s: float = 0.025) -> FillingTags:
+    """SYNTHETIC tags of one run: ``per_bin`` tags of 1 kg per compartment and bin, moved as ``P_FILLING``."""
+    k = len(fill)
+    return FillingTags(lag_s=lag_s, window_holdup_kg=hold_kg, fill=fill,
+                       destination_kg=np.broadcast_to(P_FILLING * per_bin, (k, 2, 3)).tolist(),
+                       tag_count=[[per_bin, per_bin]] * k)
+
+
+def test_tags_of_runs_pool_before_the_chain_and_clear_the_tag_threshold():
+    """Each run tagged every compartment 8 times per bin: alone, below the 20-tag threshold, its bins keep
+    the steady destinations (ratio 1); three runs' tags summed (24) give the filling chain's ratio."""
+    ratio = chain_residence_steps(P_FILLING) / chain_residence_steps(P_STEADY)
+    runs = [_tags([0.1, 0.3], 8) for _ in range(3)]
+    alone = filling_curve_from_tags(runs[:1], (2.0, P_STEADY))
+    assert np.allclose(alone.residence_ratio, 1.0)
+    c = filling_curve_from_tags(runs, (2.0, P_STEADY))
+    assert np.allclose(c.residence_ratio, ratio) and np.allclose(c.fill, [0.1, 0.3])
+    assert np.allclose(c.tag_mass_kg, 3 * 16.0) and c.lag_s == 0.025
+    assert c.window_residence_steps == pytest.approx(chain_residence_steps(P_STEADY)) and c.window_holdup_kg == 2.0
+    # the averaged per-run curves (today's pooling of curves) stay at 1: the threshold bias survives averaging
+    assert np.allclose(pool_filling_curves([filling_curve_from_tags([t], (2.0, P_STEADY)) for t in runs]
+                                           ).residence_ratio, 1.0)
+
+
+def test_tags_go_on_the_reference_hold_up_before_binning():
+    """A run whose window read 2.4 kg puts its fine bins at fill * 2.4 / reference: on a 3.0 kg reference
+    0.3 -> 0.24 (bin [0.2, 0.4)), 0.9 -> 0.72, and 1.3 (above its own window) -> 1.04, dropped."""
+    c = filling_curve_from_tags([_tags([0.3, 0.9, 1.3], 25, hold_kg=2.4)], (3.0, P_STEADY))
+    assert np.allclose(c.fill, [0.24, 0.72])
+    lower = filling_curve_from_tags([_tags([0.3, 0.9, 1.3], 25, hold_kg=2.4)], (2.4, P_STEADY))
+    assert np.allclose(lower.fill, [0.3, 0.9])
+    with pytest.raises(ValueError, match="one lag"):
+        filling_curve_from_tags([_tags([0.3], 25), _tags([0.3], 25, lag_s=0.030)], (2.0, P_STEADY))
+    assert filling_curve_from_tags([_tags([1.2], 25)], (2.0, P_STEADY)) is None  # nothing below the reference
+    with pytest.raises(ValueError, match="shape"):
+        FillingTags(lag_s=0.025, window_holdup_kg=2.0, fill=[0.1], destination_kg=[[[1.0, 0.0, 0.0]]], tag_count=[[1]])
+
+
+def test_add_filling_transport_pools_replica_tags_against_the_run_window(tmp_path):
+    """``scripts/add_filling_transport.py --pool tags``: the table run's curve is the replicas' tags summed
+    against its window (hold-up and destinations); replicas at another lag are refused in one line."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    n = N_ST + 1
+    run = _run(_curve([0.3, 0.7], [0.5, 0.9])).model_copy(update={"provenance": {"stats": {"mean_holdup_kg": 2.0}}})
+    table = StageParameterTable(runs=[run])
+    tpath = tmp_path / "table.json"
+    tpath.write_text(table.model_dump_json(), encoding="utf-8")
+    p_ref = run.destination_matrix()
+    fast = np.zeros((n, n + 1))
+    fast[np.arange(n), np.arange(1, n + 1)] = 1.0  # every compartment passes its rock on at once
+
+    def replica(seed: int, lag_s: float) -> dict:
+        tags = FillingTags(lag_s=lag_s, window_holdup_kg=2.2, fill=[0.25, 0.5],
+                           destination_kg=np.broadcast_to(fast * 9.0, (2, n, n + 1)).tolist(), tag_count=[[9] * n] * 2)
+        return {"size_mm": run.design.size_mm, "seed": seed, "characteristic_time_s": lag_s,
+                "filling_transport": _curve([0.5], [0.8]).model_dump(), "filling_tags": tags.model_dump()}
+
+    tau = run.characteristic_time_s
+    rpath = tmp_path / "replicas.json"
+    rpath.write_text(json.dumps({"replicas": [replica(s, tau) for s in (1, 2, 3)]}), encoding="utf-8")
+    script = Path(__file__).resolve().parents[2] / "scripts" / "add_filling_transport.py"
+    out = tmp_path / "out.json"
+    res = subprocess.run([sys.executable, str(script), str(tpath), "--replicas", str(rpath), "--pool", "tags",
+                          "--out", str(out)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    got = StageParameterTable.from_json(out).runs[0]
+    want = filling_curve_from_tags([FillingTags.model_validate(replica(s, tau)["filling_tags"]) for s in (1, 2, 3)],
+                                   (2.0, p_ref))
+    assert got.filling_transport == want
+    assert np.allclose(want.fill, [0.275, 0.55]) and all(r < 0.5 for r in want.residence_ratio)  # 27 tags each
+    added = got.provenance["filling_transport_added_by"]
+    assert added["pool"] == "tags" and added["replica_seeds"] == [1, 2, 3]
+    rpath.write_text(json.dumps({"replicas": [replica(1, tau), replica(2, 1.2 * tau)]}), encoding="utf-8")
+    res = subprocess.run([sys.executable, str(script), str(tpath), "--replicas", str(rpath), "--pool", "tags",
+                          "--out", str(tmp_path / "bad.json")], capture_output=True, text=True)
+    assert res.returncode != 0 and "another lag" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "bad.json").exists()
 
 
 def test_window_reference_is_the_windows_hold_up_and_chain_residence():
