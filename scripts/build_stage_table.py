@@ -20,7 +20,11 @@ errors reach their targets) instead of the cold start and the fixed
 transport to 10-20 % (docs/model.md 7.6). Such runs carry no filling curve
 (the mill starts full); ``scripts/add_filling_transport.py --curves-from
 COLD_TABLE --replicas FILE --reference window`` adds the cold runs' and the
-replicas' curves, put on the long windows' reference.
+replicas' curves, put on the long windows' reference. ``--min-measure-s``
+lengthens the campaign protocol's shortest window (the 30 mm point's hold-up
+wanders on a scale of seconds, which five batches of a 15 s window do not
+see); ``--into TABLE`` puts the runs into an existing table in place of its
+runs at the same sizes (the others and that table's provenance kept).
 """
 
 from __future__ import annotations
@@ -54,6 +58,11 @@ def main() -> None:
     ap.add_argument("--protocol", choices=("cold", "campaign"), default="cold",
                     help="cold: empty start, fixed --measure-s window; campaign: warm start, adaptive window")
     ap.add_argument("--seed", type=int, default=0, help="feed seed of every run")
+    ap.add_argument("--min-measure-s", type=float, default=None,
+                    help="campaign protocol: the shortest window (s), e.g. a long one where the hold-up wanders "
+                         "more slowly than the error targets see (30 mm)")
+    ap.add_argument("--into", type=Path, default=None,
+                    help="put the runs into this table, replacing its runs at the same sizes (others kept)")
     ap.add_argument("--max-time-s", type=float, default=None, help="time limit (s); default scales with the residence time")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "stage_table")
@@ -98,6 +107,12 @@ def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
         from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
 
         protocol = dict(CAMPAIGN_RUN_DEFAULTS)
+        if args.min_measure_s is not None:
+            protocol |= {"min_measure_s": args.min_measure_s,
+                         "max_measure_s": max(args.min_measure_s, protocol.get("max_measure_s", 0.0))}
+    elif args.min_measure_s is not None:
+        raise SystemExit("error: --min-measure-s: only with --protocol campaign (the cold protocol's window is "
+                         "--measure-s)")
     return Machine.default(), op, RunSettings(max_time_s=args.max_time_s or 0.0, measure_s=args.measure_s,
                                               seed=args.seed, **protocol)
 
@@ -158,6 +173,13 @@ def _write(args, machine, op, settings, runs, per_run, t_all, dem_wall_s: float 
         "statistics_recomputed_from_saved_runs": bool(args.restat),
         "note": "Produced by our own DEM (msmill.dem) periodic-slice runs; not hand-edited.",
     }
+    if args.into is not None:  # the other sizes' runs kept as they are, with the table's provenance
+        base = StageParameterTable.from_json(args.into)
+        made = {round(r.design.size_mm, 6) for r in runs}
+        kept = [r for r in base.runs if round(r.design.size_mm, 6) not in made]
+        provenance["kept_runs"] = {"table": str(args.into), "sizes_mm": [r.design.size_mm for r in kept],
+                                   "provenance": base.provenance}
+        runs = kept + list(runs)
     table = StageParameterTable(runs=sorted(runs, key=lambda r: r.design.size_mm), provenance=provenance)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     table.to_json(args.out)
