@@ -177,10 +177,10 @@ def main() -> None:
             raise SystemExit(f"error: --reference window: the {r.design.size_mm:g} mm run has no window reference "
                              "(mean hold-up and one-lag destinations)")
         tagged = [x for x in mine if x.get("filling_tags")] if args.pool == "tags" else []
-        if tagged:
-            ft = pooled_tags_curve(r, tagged)
-            added |= {"own_curve": (own_curve(r) or ft).model_dump(mode="json"), "replicas": str(args.replicas),
+        if tagged:  # the run's own curve is kept in the provenance only (not pooled: it carries no tags)
+            added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
                       "replica_seeds": [int(x["seed"]) for x in tagged], "reference": "window", "pool": "tags"}
+            ft = pooled_tags_curve(r, tagged)
         elif mine or reference is not None:
             added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
                       "replica_seeds": [int(x["seed"]) for x in mine], "reference": args.reference}

@@ -474,6 +474,18 @@ def test_add_filling_transport_pools_replica_tags_against_the_run_window(tmp_pat
     assert np.allclose(want.fill, [0.275, 0.55]) and all(r < 0.5 for r in want.residence_ratio)  # 27 tags each
     added = got.provenance["filling_transport_added_by"]
     assert added["pool"] == "tags" and added["replica_seeds"] == [1, 2, 3]
+    assert FillingTransport.model_validate(added["own_curve"]) == run.filling_transport  # kept, not pooled
+    # a warm run (no curve of its own) with its curve from a cold table: that curve is the one kept
+    warm = tmp_path / "warm.json"
+    warm.write_text(StageParameterTable(runs=[run.model_copy(update={"filling_transport": None})]).model_dump_json(),
+                    encoding="utf-8")
+    res = subprocess.run([sys.executable, str(script), str(warm), "--curves-from", str(tpath), "--replicas", str(rpath),
+                          "--pool", "tags", "--out", str(out)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    got = StageParameterTable.from_json(out).runs[0]
+    assert got.filling_transport == want
+    own = FillingTransport.model_validate(got.provenance["filling_transport_added_by"]["own_curve"])
+    assert own.fill == run.filling_transport.fill and own.residence_ratio == run.filling_transport.residence_ratio
     rpath.write_text(json.dumps({"replicas": [replica(1, tau), replica(2, 1.2 * tau)]}), encoding="utf-8")
     res = subprocess.run([sys.executable, str(script), str(tpath), "--replicas", str(rpath), "--pool", "tags",
                           "--out", str(tmp_path / "bad.json")], capture_output=True, text=True)
