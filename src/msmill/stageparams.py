@@ -509,6 +509,12 @@ class FillingTransport(_Frozen):
                          [*self.residence_ratio, 1.0])
 
 
+#: Mill-fill bin edges (share of the reference hold-up) of a filling curve.
+FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+#: Fewest tags of a compartment in a fill bin for its destinations to replace the reference's.
+FILLING_MIN_TAGS = 20
+
+
 class FillingTags(_Frozen):
     """The tags a run took while its mill filled, binned finely by fill: what runs of one point pool.
 
@@ -537,24 +543,27 @@ class FillingTags(_Frozen):
 
     lag_s: float = Field(gt=0)
     window_holdup_kg: float = Field(gt=0)
-    fill: list[float]
+    fill: list[float] = Field(min_length=1)
     destination_kg: list[list[list[float]]]
     tag_count: list[list[int]]
 
     @model_validator(mode="after")
     def _check(self) -> FillingTags:
-        d = np.asarray(self.destination_kg, dtype=float).reshape(len(self.fill), -1)
-        n = np.asarray(self.tag_count, dtype=float).reshape(len(self.fill), -1)
-        if not len(self.fill) == d.shape[0] == n.shape[0] or d.shape[1] != n.shape[1] * (n.shape[1] + 1):
+        k = len(self.fill)
+        c = len(self.tag_count[0]) if self.tag_count else 0
+        shapes = ({len(row) for row in self.tag_count}, {len(b) for b in self.destination_kg},
+                  {len(row) for b in self.destination_kg for row in b})
+        if len(self.tag_count) != k or len(self.destination_kg) != k or shapes != ({c}, {c}, {c + 1}) or c < 1:
             raise ValueError("fill, destination_kg (K, C, C + 1) and tag_count (K, C) must agree in shape")
+        d, n = np.asarray(self.destination_kg, dtype=float), np.asarray(self.tag_count, dtype=float)
         if (d < 0).any() or (n < 0).any() or any(h < 0 or not math.isfinite(h) for h in self.fill):
             raise ValueError("fill, destination_kg and tag_count must be finite and >= 0")
         return self
 
 
 def filling_curve_from_tags(tags: list[FillingTags], reference: tuple[float, np.ndarray],
-                            bins: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0),
-                            min_tags: int = 20) -> FillingTransport | None:
+                            bins: tuple[float, ...] = FILLING_BINS,
+                            min_tags: int = FILLING_MIN_TAGS) -> FillingTransport | None:
     """One filling curve from the tags of one or more runs of one point, against a steady reference.
 
     Parameters

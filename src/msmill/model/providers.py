@@ -150,9 +150,9 @@ def _run_arrays(runs: list[RunStatistics]) -> dict[str, Any]:
 
 
 def _common_fills(curves: list[FillingTransport]) -> tuple[np.ndarray, np.ndarray]:
-    """Fills (K,) and tagged masses (K,) of the fill bins (:data:`msmill.dem.mill.stats.FILLING_BINS`)
+    """Fills (K,) and tagged masses (K,) of the fill bins (:data:`msmill.stageparams.FILLING_BINS`)
     that some curve has a point in: the curves' tag-mass-weighted mean fill there, and their summed mass."""
-    from msmill.dem.mill.stats import FILLING_BINS
+    from msmill.stageparams import FILLING_BINS
 
     h = np.concatenate([c.fill for c in curves])
     m = np.concatenate([c.tag_mass_kg for c in curves])

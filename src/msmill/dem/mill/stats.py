@@ -79,6 +79,8 @@ from msmill.distributions import (
 from msmill.errors import MsmillError, MsmillInputError
 from msmill.machine import Machine
 from msmill.stageparams import (
+    FILLING_BINS,
+    FILLING_MIN_TAGS,
     N_REGIONS,
     DesignPoint,
     FillingTags,
@@ -442,10 +444,6 @@ def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
     return out
 
 
-#: Mill-fill bin edges (share of the window's mean hold-up) of :func:`filling_transport`.
-FILLING_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
-#: Fewest tags of a compartment in a fill bin for its destinations to replace the window's.
-FILLING_MIN_TAGS = 20
 #: Width and upper end of the fine fill bins of :func:`filling_tags` (shares of the run's window hold-up).
 FILLING_TAG_BIN = 0.05
 FILLING_TAG_MAX = 1.5
