@@ -72,6 +72,13 @@ def main() -> None:
                     help="with --restat: write each run's recomputed statistics.json to STATS_DIR/size_<d>mm "
                          "instead of back into its run folder")
     args = ap.parse_args()
+    if args.into is not None:  # before any DEM: a bad table fails now, not after the runs
+        from msmill.errors import MsmillError
+
+        try:
+            StageParameterTable.from_json(args.into)
+        except MsmillError as exc:
+            raise SystemExit(f"error: --into: {exc}") from None
     if args.restat:
         _restat(args)
         return

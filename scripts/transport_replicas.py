@@ -13,6 +13,9 @@ today's run settings, and records per replica what
   and the outcome;
 * the mean residence time over the measurement window (Little's law,
   ``RunStatistics.residence_time_s``) and the characteristic time;
+* the filling curve (``filling_transport``) and, since 2026-12-03, the tags it
+  is made from (``filling_tags``: fine fill bins at the table run's lag), which
+  ``scripts/add_filling_transport.py --pool tags`` sums over the replicas;
 * the hold-up and cumulative product mass every ``--every-s`` up to ``--end-s``
   (the run goes on past its window without snapshots), a small series, so the
   criterion can be re-applied, to each run and to the replicas' ensemble mean,
