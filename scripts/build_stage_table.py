@@ -77,7 +77,7 @@ def main() -> None:
 
         try:
             StageParameterTable.from_json(args.into)
-        except MsmillError as exc:
+        except (MsmillError, OSError) as exc:
             raise SystemExit(f"error: --into: {exc}") from None
     if args.restat:
         _restat(args)
