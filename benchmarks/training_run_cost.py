@@ -168,11 +168,14 @@ def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistic
     main_old, main_new = _by_name([pair[0]]), _by_name([pair[1]])
     k = len(reps)
     zs, devs, ratios, rows = [], [], [], []
+    by_variant: dict[str, list[float]] = {"old": [], "new": []}
     for name, (xo, eo) in old.items():
         xn, en = new[name]
         so, sn = float(np.std(xo, ddof=1)), float(np.std(xn, ddof=1))
-        ratios += [so / np.nanmedian(eo), sn / np.nanmedian(en)] if np.isfinite(eo).any() and np.isfinite(
-            en).any() else []
+        if np.isfinite(eo).any() and np.isfinite(en).any():
+            ratios += [so / np.nanmedian(eo), sn / np.nanmedian(en)]
+            by_variant["old"].append(so / np.nanmedian(eo))
+            by_variant["new"].append(sn / np.nanmedian(en))
         se = float(np.hypot(so, sn) / np.sqrt(k))
         if se <= 0:
             continue
@@ -185,8 +188,10 @@ def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistic
         rows.append((z, d, name, xo.mean(), so, xn.mean(), sn))
     rows.sort(reverse=True)
     ratios = [r for r in ratios if np.isfinite(r)]
+    med = {v: float(np.nanmedian(r)) if r else float("nan") for v, r in by_variant.items()}
     print(f"{size_mm:g} mm replicas: {k} seeds; between-seed sd / batch-means error, median "
-          f"{np.median(ratios):.2f} (5-95 % {np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}); "
+          f"{np.median(ratios):.2f} (5-95 % {np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}; "
+          f"old runs {med['old']:.2f}, new runs {med['new']:.2f}); "
           f"the main pair's largest deviation in units of the replicas' sd {max(devs):.2f} "
           f"({rows[int(np.argmax([r[1] for r in rows]))][2]})")
     for z, _d, name, mo, so, mn, sn in rows[:3]:
