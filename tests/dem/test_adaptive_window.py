@@ -25,7 +25,7 @@ def _run(**targets):
 @pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
 def test_window_length_follows_the_targets(target, length_s):
     run = _run(target_streams_se=target, target_hit_probability_se=target, target_velocity_rel_se=target,
-               target_count_mean_rel_se=target, target_velocity_sampling_kl=target)
+               target_count_mean_rel_se=target, target_velocity_sampling_kl=target, target_holdup_rel_se=target)
     assert run.outcome == "steady"
     t0, t1 = run.window_s
     assert t1 - t0 == pytest.approx(length_s, abs=0.011)  # whole chunks and steps
@@ -41,7 +41,7 @@ def test_sampling_kl_follows_the_fewest_impacts():
     from msmill.dem.mill.run import VELOCITY_FIT_PARAMETERS
 
     run = _run(target_streams_se=math.inf, target_hit_probability_se=math.inf, target_velocity_rel_se=math.inf,
-               target_count_mean_rel_se=math.inf, target_velocity_sampling_kl=math.inf)
+               target_count_mean_rel_se=math.inf, target_velocity_sampling_kl=math.inf, target_holdup_rel_se=math.inf)
     n = min(len(run.stats.samples[st.stage][key]) for st in run.stats.run.stages
             for key in ("primary_velocity_m_s", "secondary_velocity_m_s"))
     assert n >= 3
@@ -68,7 +68,7 @@ def test_window_from_onset_reuses_the_steady_windows(target):
     at the chunk that detected steady state; unmet ones run to max_measure_s of window counted from the onset."""
     run = _run(window_from="onset", settle_s=0.0, max_measure_s=0.6, target_streams_se=target,
                target_hit_probability_se=target, target_velocity_rel_se=target, target_count_mean_rel_se=target,
-               target_velocity_sampling_kl=target)
+               target_velocity_sampling_kl=target, target_holdup_rel_se=target)
     assert run.outcome == "steady"
     t0, t1 = run.window_s
     assert t0 == run.steady_state_time_s < run.steady_state_detected_s
@@ -76,3 +76,20 @@ def test_window_from_onset_reuses_the_steady_windows(target):
         assert run.steady_state_detected_s - 1e-9 <= t1 <= run.steady_state_detected_s + BASE["chunk_s"] + 1e-9
     else:
         assert t1 - t0 == pytest.approx(0.6, abs=0.011)
+
+
+@pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
+def test_hold_up_target_alone_sets_the_window(target, length_s):
+    """Every other target met at once: the hold-up's error target alone decides when the window stops, and
+    the error reached is the batch-means error of the window's mass series over its mean."""
+    import numpy as np
+
+    run = _run(target_streams_se=math.inf, target_hit_probability_se=math.inf, target_velocity_rel_se=math.inf,
+               target_count_mean_rel_se=math.inf, target_velocity_sampling_kl=math.inf, target_holdup_rel_se=target)
+    t0, t1 = run.window_s
+    assert t1 - t0 == pytest.approx(length_s, abs=0.011)
+    ts = run.timeseries[(run.timeseries["time_s"] >= t0) & (run.timeseries["time_s"] <= t1)]
+    means = [b.mean() for b in np.array_split(ts["mass_kg"].to_numpy(), 5)]
+    want = np.std(means, ddof=1) / np.sqrt(5) / ts["mass_kg"].mean()
+    assert run.stats.run.sampling_error_reached["holdup_rel"] == pytest.approx(want, rel=1e-9)
+    assert run.stats.run.provenance["stats"]["holdup_rel_se"] == pytest.approx(want, rel=1e-9)

@@ -170,6 +170,8 @@ class MillStatistics:
     samples: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
     fits: dict[int, dict[str, Any]] = field(default_factory=dict)
     streams_by_size: pd.DataFrame | None = None
+    #: standard error of the window's mean hold-up over that mean (batch means of the time series; NaN: none)
+    holdup_rel_se: float = float("nan")
 
 
 # --------------------------------------------------------------------------- basics
@@ -603,14 +605,16 @@ def compute_statistics(
         stages.append(st)
 
     # ---- run level
-    out_rate, hold_total = _outflow(clean.removed, timeseries, (t0, t1), rock_density_kg_m3, holdup_kg)
+    out_rate, hold_total, hold_rel_se = _outflow(clean.removed, timeseries, (t0, t1), rock_density_kg_m3, holdup_kg,
+                                                 s_.n_batches)
     prov = dict(provenance or {})
     prov.setdefault("stats", {}).update({
         "min_secondary_speed_m_s": s_.min_secondary_speed_m_s, "k_max": s_.k_max, "n_batches": s_.n_batches,
         "count_criterion": s_.count_criterion, "velocity_fit": s_.velocity_fit,
         "velocity_em_tol": EM_TOL,
         "n_tag_times": int(clock.tag_times.size), "snapshot_interval_s": clock.interval_s,
-        "mean_holdup_kg": hold_total, "blow_up_speed_limit_m_s": clean.speed_limit_m_s,
+        "mean_holdup_kg": hold_total, "holdup_rel_se": hold_rel_se if np.isfinite(hold_rel_se) else None,
+        "blow_up_speed_limit_m_s": clean.speed_limit_m_s,
         "n_rocks_dropped_as_blow_ups": clean.n_rocks_dropped, "n_events_blow_up": clean.n_events_blow_up,
         "n_touch_events_vn_le_0": clean.n_touch,
     })
@@ -629,7 +633,7 @@ def compute_statistics(
         filling_transport=(filling_transport(machine, clean.snapshots, clean.removed, (t0, t1), clock.lag,
                                              rock_density_kg_m3) if s_.with_filling_transport else None),
     )
-    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size)
+    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size, holdup_rel_se=hold_rel_se)
 
 
 @dataclass(frozen=True)
@@ -878,8 +882,13 @@ def _mean_se(v: np.ndarray, t_s: np.ndarray, window_s: tuple[float, float], n_ba
 
 
 def _outflow(removed: pd.DataFrame, timeseries: pd.DataFrame, window_s: tuple[float, float],
-             rock_density_kg_m3: float, holdup_kg: pd.Series) -> tuple[float, float]:
-    """Product mass rate out of the outlet over the window (kg/s) and the mean hold-up (kg)."""
+             rock_density_kg_m3: float, holdup_kg: pd.Series, n_batches: int) -> tuple[float, float, float]:
+    """Product mass rate out of the outlet over the window (kg/s), the mean hold-up (kg) and its relative error.
+
+    The error is the batch-means standard error of the time series' mean mass over that mean
+    (``n_batches`` consecutive blocks of the window's samples; NaN with fewer samples than batches
+    or without a time series).
+    """
     t0, t1 = window_s
     rem = removed
     if "tag" in rem:
@@ -888,7 +897,13 @@ def _outflow(removed: pd.DataFrame, timeseries: pd.DataFrame, window_s: tuple[fl
     mass_col = rem_w["mass_kg"] if "mass_kg" in rem_w else rock_density_kg_m3 * 4 / 3 * np.pi * rem_w["radius_m"] ** 3
     out_rate = float(mass_col.sum()) / (t1 - t0) if t1 > t0 else 0.0
     ts = timeseries[(timeseries["time_s"] >= t0) & (timeseries["time_s"] <= t1)]
-    return out_rate, float(ts["mass_kg"].mean()) if len(ts) else float(holdup_kg.sum())
+    if not len(ts):
+        return out_rate, float(holdup_kg.sum()), float("nan")
+    mass = ts["mass_kg"].to_numpy(dtype=float)
+    mean = float(mass.mean())
+    rel = _batch_se(np.array([b.mean() for b in np.array_split(mass, n_batches)])) / mean \
+        if mass.size >= n_batches and mean > 0 else float("nan")
+    return out_rate, mean, rel
 
 
 def _fit_counts(cnt: np.ndarray, batch: np.ndarray, s_: StatsSettings, se: dict[str, float]) -> dict[str, Any]:
