@@ -137,7 +137,10 @@ class RunSettings:
     # start of the measurement window (issue 12): "detection" (the time steady state is detected) or
     # "onset" (the start of the two windows that passed the criterion, at the earliest settle_s)
     window_from: str = "detection"
-    settle_s: float = 0.3
+    # 0.6 s (was 0.3 s until 2026-12-03): after a table start the streams settle for about 0.6 s at 6 mm
+    # (stage 2 kickback 0.43 in 0.2-0.4 s, 0.30 from 0.6 s on), 0.4-0.6 s at 10 mm, 0.2-0.3 s at 14-20 mm
+    # (docs/mill-dem.md 3.1)
+    settle_s: float = 0.6
 
     def targets(self) -> dict[str, float]:
         """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
