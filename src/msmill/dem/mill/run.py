@@ -139,7 +139,7 @@ class RunSettings:
     window_from: str = "detection"
     # 0.6 s (was 0.3 s until 2026-12-03): after a table start the streams settle for about 0.6 s at 6 mm
     # (stage 2 kickback 0.43 in 0.2-0.4 s, 0.30 from 0.6 s on), 0.4-0.6 s at 10 mm, 0.2-0.3 s at 14-20 mm
-    # (docs/mill-dem.md 3.1)
+    # (docs/mill-dem.md section 3)
     settle_s: float = 0.6
 
     def targets(self) -> dict[str, float]:
