@@ -167,13 +167,12 @@ def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistic
     old, new = _by_name([o for o, _ in reps]), _by_name([n for _, n in reps])
     main_old, main_new = _by_name([pair[0]]), _by_name([pair[1]])
     k = len(reps)
-    zs, devs, ratios, rows = [], [], [], []
+    zs, devs, rows = [], [], []
     by_variant: dict[str, list[float]] = {"old": [], "new": []}
     for name, (xo, eo) in old.items():
         xn, en = new[name]
         so, sn = float(np.std(xo, ddof=1)), float(np.std(xn, ddof=1))
         if np.isfinite(eo).any() and np.isfinite(en).any():
-            ratios += [so / np.nanmedian(eo), sn / np.nanmedian(en)]
             by_variant["old"].append(so / np.nanmedian(eo))
             by_variant["new"].append(sn / np.nanmedian(en))
         se = float(np.hypot(so, sn) / np.sqrt(k))
@@ -187,7 +186,7 @@ def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistic
         devs.append(d)
         rows.append((z, d, name, xo.mean(), so, xn.mean(), sn))
     rows.sort(reverse=True)
-    ratios = [r for r in ratios if np.isfinite(r)]
+    ratios = [r for r in by_variant["old"] + by_variant["new"] if np.isfinite(r)]
     med = {v: float(np.nanmedian(r)) if r else float("nan") for v, r in by_variant.items()}
     print(f"{size_mm:g} mm replicas: {k} seeds; between-seed sd / batch-means error, median "
           f"{np.median(ratios):.2f} (5-95 % {np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}; "

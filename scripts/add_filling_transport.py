@@ -177,13 +177,13 @@ def main() -> None:
             raise SystemExit(f"error: --reference window: the {r.design.size_mm:g} mm run has no window reference "
                              "(mean hold-up and one-lag destinations)")
         tagged = [x for x in mine if x.get("filling_tags")] if args.pool == "tags" else []
-        if tagged:  # the run's own curve is kept in the provenance only (not pooled: it carries no tags)
+        if tagged or mine or reference is not None:  # the own curve is kept (with tags: in the provenance only)
             added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
-                      "replica_seeds": [int(x["seed"]) for x in tagged], "reference": "window", "pool": "tags"}
+                      "replica_seeds": [int(x["seed"]) for x in tagged or mine],
+                      "reference": "window" if tagged else args.reference} | ({"pool": "tags"} if tagged else {})
+        if tagged:
             ft = pooled_tags_curve(r, tagged)
         elif mine or reference is not None:
-            added |= {"own_curve": ft.model_dump(mode="json"), "replicas": str(args.replicas),
-                      "replica_seeds": [int(x["seed"]) for x in mine], "reference": args.reference}
             reps = [with_lag(FillingTransport.model_validate(x["filling_transport"]), x["characteristic_time_s"])
                     for x in mine]
             ft = pool_filling_curves([with_lag(ft, r.characteristic_time_s), *reps], reference=reference,

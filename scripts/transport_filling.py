@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem.mill.run import RunSettings, saved_run_feed_kg_s, saved_run_verdict
-from msmill.dem.mill.stats import destination_matrix, stage_of_z, tagged_moves
+from msmill.dem.mill.stats import destination_matrix, snapshot_lag, stage_of_z, tagged_moves
 from msmill.machine import Machine
 from msmill.steadystate import first_steady
 
@@ -57,7 +57,7 @@ def load(d: Path) -> dict:
     snaps = pd.read_parquet(d / "snapshots.parquet", columns=["particle_id", "time_s", "y_m", "z_m", "radius_m"])
     removed = pd.read_parquet(d / "removed.parquet")
     times = np.sort(snaps["time_s"].unique())
-    lag = max(1, round(tau / float(np.median(np.diff(times)))))
+    lag = snapshot_lag(times, tau)
     rho = settings["rock"]["density_kg_m3"]
     snaps["c"] = stage_of_z(m, snaps["z_m"].to_numpy())
     snaps["mass_kg"] = rho * 4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3

@@ -111,12 +111,10 @@ def run_replica(size_mm: float, seed: int, measure_s: float, every_s: float, end
 
 def filling_tags_at(run, lag_s: float):
     """The run's filling tags (:func:`msmill.dem.mill.stats.filling_tags`) at the lag nearest ``lag_s``."""
-    from msmill.dem.mill.stats import filling_tags
+    from msmill.dem.mill.stats import filling_tags, snapshot_lag
 
-    times = np.sort(run.snapshots["time_s"].unique())
-    lag = max(1, round(float(lag_s) / float(np.median(np.diff(times)))))
-    return filling_tags(run.scene.machine, run.snapshots, run.removed, run.window_s, lag,
-                        run.scene.rock.density_kg_m3)
+    return filling_tags(run.scene.machine, run.snapshots, run.removed, run.window_s,
+                        snapshot_lag(run.snapshots["time_s"].to_numpy(), lag_s), run.scene.rock.density_kg_m3)
 
 
 def _operating_point(design):

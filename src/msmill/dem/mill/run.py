@@ -58,6 +58,7 @@ from msmill.dem.mill.stats import (
     StatsSettings,
     compute_statistics,
     filling_transport,
+    snapshot_lag,
     snapshots_frame,
 )
 from msmill.dem.mill.warmstart import WarmStart, place_table_start, place_warm_start
@@ -630,8 +631,7 @@ def saved_run_filling_transport(run_dir: str | Path, characteristic_time_s: floa
     if characteristic_time_s is None:
         characteristic_time_s = json.loads((d / "statistics.json").read_text(encoding="utf-8"))["characteristic_time_s"]
     snaps = pd.read_parquet(d / "snapshots.parquet", columns=["particle_id", "time_s", "y_m", "z_m", "radius_m"])
-    times = np.sort(snaps["time_s"].unique())
-    lag = max(1, round(float(characteristic_time_s) / float(np.median(np.diff(times)))))
+    lag = snapshot_lag(snaps["time_s"].to_numpy(), characteristic_time_s)
     res = s["result"]
     return filling_transport(Machine.from_toml(d / "machine.toml"), snaps, pd.read_parquet(d / "removed.parquet"),
                              (res["window_start_s"], res["window_end_s"]), lag, s["rock"]["density_kg_m3"])

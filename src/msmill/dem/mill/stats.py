@@ -106,6 +106,7 @@ __all__ = [
     "filling_tags",
     "filling_transport",
     "identify_impacts",
+    "snapshot_lag",
     "snapshots_frame",
     "stage_of_z",
     "tagged_moves",
@@ -687,6 +688,11 @@ class _Clock:
     tag_times: np.ndarray
 
 
+def snapshot_lag(times_s: np.ndarray, lag_s: float) -> int:
+    """A lag of ``lag_s`` seconds in whole snapshot intervals (the median spacing of ``times_s``), at least one."""
+    return max(1, round(float(lag_s) / float(np.median(np.diff(np.sort(np.unique(times_s)))))))
+
+
 def _tag_clock(machine: Machine, snaps: pd.DataFrame, characteristic_time_s: float | None) -> _Clock:
     """The window's clock: tags at snapshot ``i`` are located at snapshot ``i + lag``."""
     times = np.sort(snaps["time_s"].unique())
@@ -696,7 +702,7 @@ def _tag_clock(machine: Machine, snaps: pd.DataFrame, characteristic_time_s: flo
     else:
         tau = float(characteristic_time_s)
         speed = machine.stage_spacing_m / tau
-    lag = max(1, round(tau / interval)) if interval else 1
+    lag = snapshot_lag(times, tau) if interval else 1
     if interval:
         tau = lag * interval
     return _Clock(times, interval, tau, speed, lag, times[: max(times.size - lag, 0)])
