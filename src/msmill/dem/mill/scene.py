@@ -35,8 +35,9 @@ continuous plate per flinger, 1.25 times the machine's flinger area, because
 plate side edges at the periodic boundary blew up: the engine did not image
 geometry then.) Liners, hubs, gates and deflectors span the slice and
 overhang it, and are taken as continuous along the shafts. The engine needs a periodic
-length of at least three neighbour cells (``3 (2 r_max + skin)``, skin
-``SKIN_RADII`` = 1.5 radii of the smallest rock), so for rocks above about
+length of at least three neighbour cells (``3 (2 r_max + skin)``; the slice is sized
+with a skin of ``SLICE_SKIN_RADII`` = 1.5 radii of the smallest rock, and the
+engine's skin is at most what fits, :func:`mill_skin_m`), so for rocks above about
 19 mm (default machine) the slice holds the smallest whole number of rows that
 satisfies this (2 rows for 20 and 30 mm rock).
 
@@ -67,13 +68,17 @@ import numpy as np
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint, check_size_mm, rpm_to_rad_s
 
-__all__ = ["STEEL", "MillScene", "RockMaterial", "build_scene", "peak_overlap_fraction", "softened_youngs_modulus"]
+__all__ = ["STEEL", "MillScene", "RockMaterial", "build_scene", "mill_skin_m", "peak_overlap_fraction", "softened_youngs_modulus"]
 
 #: Restitution and friction of the paper (Section 2): rock-rock, rock-steel.
 ROCK_ROCK = {"restitution": 0.5, "friction": 0.4}
 ROCK_STEEL = {"restitution": 0.2, "friction": 0.3}
-#: Verlet skin of mill scenes, in radii of the smallest rock
-SKIN_RADII = 1.5
+#: Verlet skin of mill scenes, in radii of the smallest rock (at most what the slice's periodic
+#: length allows, see :func:`mill_skin_m`)
+SKIN_RADII = 2.0
+#: skin, in radii of the smallest rock, that sizes a periodic slice (:func:`scene_extent`): the
+#: slice's rows do not follow the engine's skin
+SLICE_SKIN_RADII = 1.5
 
 
 @dataclass(frozen=True)
@@ -172,12 +177,30 @@ def scene_extent(machine: Machine, sizes_mm: np.ndarray, mode: str) -> tuple[flo
     sizes = np.asarray(sizes_mm, dtype=float)
     if mode != "slice":
         return 0.0, machine.casing_length_m, list(range(machine.flinger_rows)), 1.0
-    skin = SKIN_RADII * float(sizes.min()) / 2000
+    skin = SLICE_SKIN_RADII * float(sizes.min()) / 2000
     need = 3 * (2 * float(sizes.max()) / 2000 + skin) * 1.001
     n_rows = min(machine.flinger_rows, max(1, math.ceil(need / machine.row_pitch_m)))
     y0 = machine.row_y_m(0) - machine.row_pitch_m / 2
     y1 = y0 + n_rows * machine.row_pitch_m
     return y0, y1, list(range(n_rows)), (y1 - y0) / machine.casing_length_m
+
+
+def mill_skin_m(sizes_mm: np.ndarray, periodic_length_m: float = math.inf) -> float:
+    """Verlet skin of a mill scene (m): ``SKIN_RADII`` radii of the smallest rock, at most what fits.
+
+    The lists are rebuilt whenever the fastest rock (~2 tip speeds) may have
+    moved half the skin: every ~7 steps at the engine default of half a
+    radius. A wider skin means fewer rebuilds but more list entries per step:
+    1.5 radii made 10 mm slice runs ~1.5x faster than 0.5; 2.0 radii, with
+    the finer neighbour cells of ``CELLS_PER_PARTICLE = 64``, another 1.1-1.3x
+    at 6-20 mm (2.5 and 3.0 were slower at 10 and 20 mm; docs/dem.md,
+    Performance). A periodic slice (sized by :func:`scene_extent` with
+    ``SLICE_SKIN_RADII``) keeps at least three cells of ``2 r_max + skin``.
+    """
+    sizes = np.asarray(sizes_mm, dtype=float)
+    skin = SKIN_RADII * float(sizes.min()) / 2000
+    fit = periodic_length_m / (3 * 1.001) - 2 * float(sizes.max()) / 2000
+    return min(skin, fit)
 
 
 def build_scene(
@@ -250,11 +273,8 @@ def build_scene(
                              if e_used < rock.youngs_modulus_pa else rock.name)
 
     hw = machine.half_width_m
-    # Verlet skin: the lists are rebuilt whenever the fastest rock (~2 tip speeds) may have moved
-    # skin / 2, every ~7 steps at the engine default r_min / 2; 1.5 r_min made 10 mm slice runs ~1.5x
-    # faster (fewer rebuilds; the extra list entries cost little at mill solid fractions)
-    skin = SKIN_RADII * float(sizes.min()) / 2000
     y0, y1, rows, scale = scene_extent(machine, sizes, mode)
+    skin = mill_skin_m(sizes, y1 - y0 if mode == "slice" else math.inf)
     ext = 0.05 if mode == "slice" else 0.0  # liners, hubs, gates overhang a periodic slice
     roof = machine.roof_z_m
     chute_h = 0.4
