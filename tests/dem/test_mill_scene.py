@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from msmill.dem.mill.run import RunSettings, run_mill
-from msmill.dem.mill.scene import build_scene, peak_overlap_fraction, softened_youngs_modulus
+from msmill.dem.mill.scene import (
+    SKIN_RADII,
+    build_scene,
+    mill_skin_m,
+    peak_overlap_fraction,
+    scene_extent,
+    softened_youngs_modulus,
+)
 from msmill.dem.mill.stats import RunStatistics, identify_impacts
 from msmill.errors import OutOfDomainWarning
 from msmill.machine import Machine, OperatingPoint
@@ -21,6 +28,25 @@ with warnings.catch_warnings():
 #: short runs: the steady-state test is relaxed, these tests check book-keeping, not convergence
 SHORT = RunSettings(max_time_s=0.6, chunk_s=0.1, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,
                     measure_s=0.3, snapshot_every_s=0.005)
+
+
+def test_slice_rows_do_not_follow_the_engine_skin_and_the_skin_fits_the_slice():
+    """A slice is sized with 1.5 radii of skin (17-19 mm rock keeps one row, 20 mm has two), and the
+    engine's skin is 2.0 radii where the slice holds three cells of ``2 r_max + skin``, else what fits."""
+    m = Machine.default()
+    rows = {d: len(scene_extent(m, np.array([d]), "slice")[2]) for d in (6.0, 17.0, 19.0, 20.0, 30.0, 34.0)}
+    assert rows == {6.0: 1, 17.0: 1, 19.0: 1, 20.0: 2, 30.0: 2, 34.0: 2}
+    for d in np.arange(2.0, 60.0, 0.5):
+        y0, y1, _rows, _scale = scene_extent(m, np.array([d]), "slice")
+        skin_m = mill_skin_m(np.array([d]), y1 - y0)
+        assert 0 < skin_m <= SKIN_RADII * d / 2000 + 1e-15
+        assert y1 - y0 >= 3 * (d / 1000 + skin_m) * (1 - 1e-12)
+    assert mill_skin_m(np.array([10.0])) == pytest.approx(0.010)  # 2.0 radii, nothing periodic
+    assert mill_skin_m(np.array([17.0]), 0.1) == pytest.approx(0.1 / 3.003 - 0.017)  # the slice limits it
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        sc = build_scene(MACHINE, OP, size_mm=18.0, mode="slice")
+    assert sc.info["slice_rows"] == 1 and sc.sim._skin == pytest.approx(mill_skin_m(np.array([18.0]), 0.1))
 
 
 @pytest.fixture(scope="module")
