@@ -207,7 +207,18 @@ def describe(run, wall_s: float) -> str:
             f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall_s:.1f} s, "
             f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, residence {st.residence_time_s:.2f} s, "
             f"warm placed {ws.get('placed_fraction', 0.0):.2f}, errors reached "
-            + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None))
+            + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None)
+            + _last_miss(run.extra.get("window_checks") or []))
+
+
+def _last_miss(checks: list[dict]) -> str:
+    """What the adaptive window's last failed check missed (the statistics that set the window)."""
+    missed = [c for c in checks if c["above_target"]]
+    if not missed:
+        return ""
+    c = missed[-1]
+    what = ", ".join(f"{k} {'-' if v is None else f'{v:.3f}'}" for k, v in c["above_target"].items())
+    return f"; {len(checks)} checks, the last miss at {c['window_end_s']:.2f} s: {what}"
 
 
 def timed(fn):

@@ -34,6 +34,14 @@ def test_window_length_follows_the_targets(target, length_s):
     assert all(v is None or v > 1e-9 for v in reached.values())  # a real, positive figure or no sample
     assert RunStatistics.from_json(run.stats.run.to_json()).sampling_error_reached == reached
     assert run.stats.run.provenance["adaptive_targets"]["streams"] == target
+    # every check records the targets it found missed: none at the first check with infinite targets,
+    # all of them at every check with unreachable ones (the run then ends at the maximum window)
+    checks = run.stats.run.provenance["window_checks"]
+    if math.isinf(target):
+        assert [c["above_target"] for c in checks] == [{}]
+    else:
+        assert len(checks) >= 2 and all(set(c["above_target"]) == set(RunSettings().targets()) for c in checks)
+        assert checks[-1]["window_end_s"] <= t1 + 1e-9
 
 
 def test_sampling_kl_follows_the_fewest_impacts():

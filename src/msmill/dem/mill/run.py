@@ -289,11 +289,15 @@ def run_mill(
     if found is not None:
         t_stop = t_start + (rs.max_measure_s if rs.adaptive else rs.measure_s)
         t_check = t_start + rs.min_measure_s
+        checks: list[dict[str, Any]] = []
+        extra["window_checks"] = checks  # what each check found above its target (provenance)
         while remaining(t_stop) > 0:
             if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check:
                 # every check recomputes the window's statistics: a geometric interval keeps long windows linear
                 t_check = sim.time_s + max(rs.check_every_s, 0.25 * (sim.time_s - t_start))
-                if _converged(finish(quick), rs):
+                above = targets_missed(finish(quick), rs)
+                checks.append({"window_end_s": round(sim.time_s, 6), "above_target": above})
+                if not above:
                     break
             sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
             if progress:
@@ -384,10 +388,18 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
     return out
 
 
-def _converged(run: MillRun, rs: RunSettings) -> bool:
+def targets_missed(run: MillRun, rs: RunSettings) -> dict[str, float | None]:
+    """The adaptive window's targets the run's statistics miss: ``{key: error reached}`` (None: no samples).
+
+    Empty when every target is met. A family without samples has not converged (unless its target is
+    infinite); statistics with no sampling errors at all miss everything.
+    """
     reached = run.stats.run.sampling_error_reached if run.stats else {}
-    inf = float("inf")  # a family without samples has not converged (unless its target is inf)
-    return bool(reached) and all((inf if reached.get(k) is None else reached[k]) <= t for k, t in rs.targets().items())
+    if not reached:
+        return dict.fromkeys(rs.targets())
+    inf = float("inf")
+    return {k: reached.get(k) for k, t in rs.targets().items()
+            if (inf if reached.get(k) is None else reached[k]) > t}
 
 
 def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
@@ -437,6 +449,7 @@ def _provenance(run: MillRun) -> dict[str, Any]:
         "verdict": asdict(run.verdict) if run.verdict is not None else None,
         "warm_start": run.extra.get("warm_start"),
         "adaptive_targets": run.settings.targets() if run.settings.adaptive else None,
+        "window_checks": run.extra.get("window_checks"),
     }
 
 
