@@ -57,7 +57,10 @@ of the replicas' standard deviations (``sqrt(sd_old^2 + sd_new^2)``).
 Last line: ``points=<n> cost_ratio_median=<new/old wall> max_stat_dev_sigma=<x> cpu_ratio_median=<new/old
 CPU time>`` (the last where every run has its CPU time); with ``--replicas`` also
 ``replica_seeds=<k> max_stat_dev_replica_sigma=<the main pairs' largest deviation in units of the
-replicas' sd> start_dependence_z_max=<largest normal-equivalent Welch t> start_dependence_p_family=<p>``.
+replicas' sd> start_dependence_z_max=<largest normal-equivalent Welch t> start_dependence_p_family=<p>
+cost_ratio_median_over_seeds=<median over the sizes of (the median of the new run's wall over the main
+seed and the replicas' seeds) / the old run's wall>``: the adaptive window's length, so the new run's
+cost, varies from seed to seed.
 """
 
 from __future__ import annotations
@@ -144,6 +147,12 @@ def replica_pairs(dirs: list[Path], size_mm: float) -> list[tuple[RunStatistics,
         if o.is_file() and n.is_file():
             out.append((RunStatistics.from_json(o), RunStatistics.from_json(n)))
     return out
+
+
+def replica_new_walls(dirs: list[Path], size_mm: float) -> list[float]:
+    """Wall times (s) of the new runs at ``size_mm`` kept in ``--results`` folders of other feed seeds."""
+    metas = [d / f"{size_mm:g}mm_new.meta.json" for d in dirs]
+    return [float(json.loads(m.read_text())["wall_s"]) for m in metas if m.is_file()]
 
 
 def _by_name(runs: list[RunStatistics]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -327,7 +336,7 @@ def main() -> None:
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
     near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
-    ratios, cpu_ratios, protocol_cpu, worst, z_all = [], [], [], (0.0, ""), []
+    ratios, cpu_ratios, protocol_cpu, worst, z_all, seed_ratios = [], [], [], (0.0, ""), [], []
     n_dev = n_over = 0
     rep_z, rep_dev, rep_seeds = [], [], []
     for i, size in enumerate(args.sizes_mm):
@@ -397,6 +406,13 @@ def main() -> None:
         if len(reps) >= 3:
             z, d = replica_summary(size, reps, (res["old"][0], res["new"][0]))
             rep_z, rep_dev, rep_seeds = rep_z + z, rep_dev + d, [*rep_seeds, len(reps)]
+        seed_walls = [res["new"][1], *replica_new_walls(args.replicas or [], size)]
+        if len(seed_walls) > 1:
+            # the new run's window, so its cost, varies from seed to seed (the stop on batch-means errors)
+            seed_ratios.append(float(np.median(seed_walls)) / res["old"][1])
+            print(f"{size:g} mm new run over {len(seed_walls)} feed seeds: wall "
+                  + ", ".join(f"{w:.1f}" for w in seed_walls)
+                  + f" s, median / old {seed_ratios[-1]:.3f}")
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
         if res["new"][2] and res["old"][2]:
@@ -433,6 +449,8 @@ def main() -> None:
               f"{max(rep_dev):.2f}, {sum(d > 2 for d in rep_dev)} of {len(rep_dev)} beyond 2")
         cpu_txt += (f" replica_seeds={min(rep_seeds)} max_stat_dev_replica_sigma={max(rep_dev):.2f}"
                     f" start_dependence_z_max={max(rep_z):.2f} start_dependence_p_family={p_family:.2f}")
+    if len(seed_ratios) == len(ratios):
+        cpu_txt += f" cost_ratio_median_over_seeds={float(np.median(seed_ratios)):.3f}"
     print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}"
           f"{cpu_txt}")
 
