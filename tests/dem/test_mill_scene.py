@@ -205,6 +205,16 @@ def test_saved_run_recomputes_same_statistics(small_run, tmp_path):
     assert cli(["dem", "stats", str(tmp_path)]) == 0
     assert (tmp_path / "statistics.json").exists()
     assert cli(["dem", "stats", str(tmp_path / "missing")]) == 2
+    # another window inside the record (the stop replay): its own impacts, the saved window's when it is the same
+    t0, t1 = small_run.window_s
+    same = stats_from_dir(tmp_path, window_s=(t0, t1)).run
+    assert [s.n_primary_impacts for s in same.stages] == [s.n_primary_impacts for s in first.stages]
+    half = stats_from_dir(tmp_path, window_s=(t0, 0.5 * (t0 + t1))).run
+    assert sum(s.n_primary_impacts for s in half.stages) < sum(s.n_primary_impacts for s in first.stages)
+    from msmill.errors import MsmillInputError
+
+    with pytest.raises(MsmillInputError, match="window_s"):
+        stats_from_dir(tmp_path, window_s=(t0, t1 + 1.0))
 
 
 def test_feed_speed_sets_the_source_velocity_and_reaches_the_scene(monkeypatch):

@@ -394,12 +394,15 @@ def targets_missed(run: MillRun, rs: RunSettings) -> dict[str, float | None]:
     Empty when every target is met. A family without samples has not converged (unless its target is
     infinite); statistics with no sampling errors at all miss everything.
     """
-    reached = run.stats.run.sampling_error_reached if run.stats else {}
+    return missed_targets(run.stats.run.sampling_error_reached if run.stats else {}, rs.targets())
+
+
+def missed_targets(reached: dict[str, float | None], targets: dict[str, float]) -> dict[str, float | None]:
+    """``{key: error reached}`` of the targets not met (None or a missing key: no samples, never met)."""
     if not reached:
-        return dict.fromkeys(rs.targets())
+        return dict.fromkeys(targets)
     inf = float("inf")
-    return {k: reached.get(k) for k, t in rs.targets().items()
-            if (inf if reached.get(k) is None else reached[k]) > t}
+    return {k: reached.get(k) for k, t in targets.items() if (inf if reached.get(k) is None else reached[k]) > t}
 
 
 def _first_steady(ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion) -> tuple[float, float] | None:
@@ -550,8 +553,13 @@ def load_raw(run_dir: str | Path) -> dict[str, Any]:
     return raw
 
 
-def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = None) -> MillStatistics:
-    """Recompute the statistics of a saved run from its raw events and snapshots."""
+def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = None,
+                   window_s: tuple[float, float] | None = None) -> MillStatistics:
+    """Recompute the statistics of a saved run from its raw events and snapshots.
+
+    ``window_s`` (s): another measurement window than the saved one, inside the record (a replay of
+    the adaptive window's checks, ``benchmarks/stop_replay.py``).
+    """
     raw = load_raw(run_dir)
     s = raw["settings"]
     m: Machine = raw["machine"]
@@ -570,9 +578,15 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
                          stage_speeds_rpm=op.stage_speeds(m.n_stages))
     # runs saved before the field: a table start is in the run settings, a run's warm start is not recorded
     warm = res.get("warm_start", "none") != "none" or s.get("run", {}).get("start", "empty") != "empty"
+    window = (res["window_start_s"], res["window_end_s"])
+    if window_s is not None:
+        t_end = float(raw["timeseries"]["time_s"].max())
+        if not 0.0 <= window_s[0] < window_s[1] <= t_end + 1e-3:  # a saved end rounds to the record's
+            raise MsmillInputError("window_s", tuple(window_s), f"a window inside the record (0-{t_end:.3f} s)")
+        window = (float(window_s[0]), min(float(window_s[1]), t_end))
     ms = compute_statistics(
         m, design, raw["events"], raw["removed"], raw["timeseries"], raw["snapshots"],
-        (res["window_start_s"], res["window_end_s"]), mode=d["mode"],
+        window, mode=d["mode"],
         rock_density_kg_m3=s["rock"]["density_kg_m3"], steady_state_time_s=steady,
         settings=_filling_only_from_empty(stats_settings, warm), size_edges_m=edges, provenance=prov,
     )
