@@ -59,8 +59,8 @@ CPU time>`` (the last where every run has its CPU time); with ``--replicas`` als
 ``replica_seeds=<k> max_stat_dev_replica_sigma=<the main pairs' largest deviation in units of the
 replicas' sd> start_dependence_z_max=<largest normal-equivalent Welch t> start_dependence_p_family=<p>
 cost_ratio_median_over_seeds=<median over the sizes of (the median of the new run's wall over the main
-seed and the replicas' seeds) / the old run's wall>``: the adaptive window's length, so the new run's
-cost, varies from seed to seed.
+seed and the replicas' seeds) / the old run's wall> cpu_ratio_median_over_seeds=<the same in CPU time>``:
+the adaptive window's length, so the new run's cost, varies from seed to seed.
 """
 
 from __future__ import annotations
@@ -149,10 +149,10 @@ def replica_pairs(dirs: list[Path], size_mm: float) -> list[tuple[RunStatistics,
     return out
 
 
-def replica_new_walls(dirs: list[Path], size_mm: float) -> list[float]:
-    """Wall times (s) of the new runs at ``size_mm`` kept in ``--results`` folders of other feed seeds."""
-    metas = [d / f"{size_mm:g}mm_new.meta.json" for d in dirs]
-    return [float(json.loads(m.read_text())["wall_s"]) for m in metas if m.is_file()]
+def replica_new_costs(dirs: list[Path], size_mm: float) -> list[tuple[float, float | None]]:
+    """``(wall, CPU)`` times (s) of the new runs at ``size_mm`` kept in ``--results`` folders of other seeds."""
+    metas = [json.loads(m.read_text()) for m in (d / f"{size_mm:g}mm_new.meta.json" for d in dirs) if m.is_file()]
+    return [(float(m["wall_s"]), m.get("cpu_s")) for m in metas]
 
 
 def _by_name(runs: list[RunStatistics]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -336,7 +336,8 @@ def main() -> None:
     m = Machine.default()
     point = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
     near = OperatingPoint(feed_tph=35.0, speed_rpm=1600.0, gate_deg=40.0)
-    ratios, cpu_ratios, protocol_cpu, worst, z_all, seed_ratios = [], [], [], (0.0, ""), [], []
+    ratios, cpu_ratios, protocol_cpu, worst, z_all = [], [], [], (0.0, ""), []
+    seed_ratios, seed_cpu_ratios = [], []
     n_dev = n_over = 0
     rep_z, rep_dev, rep_seeds = [], [], []
     for i, size in enumerate(args.sizes_mm):
@@ -406,13 +407,17 @@ def main() -> None:
         if len(reps) >= 3:
             z, d = replica_summary(size, reps, (res["old"][0], res["new"][0]))
             rep_z, rep_dev, rep_seeds = rep_z + z, rep_dev + d, [*rep_seeds, len(reps)]
-        seed_walls = [res["new"][1], *replica_new_walls(args.replicas or [], size)]
-        if len(seed_walls) > 1:
+        seed_costs = [(res["new"][1], res["new"][2]), *replica_new_costs(args.replicas or [], size)]
+        if len(seed_costs) > 1:
             # the new run's window, so its cost, varies from seed to seed (the stop on batch-means errors)
-            seed_ratios.append(float(np.median(seed_walls)) / res["old"][1])
-            print(f"{size:g} mm new run over {len(seed_walls)} feed seeds: wall "
-                  + ", ".join(f"{w:.1f}" for w in seed_walls)
-                  + f" s, median / old {seed_ratios[-1]:.3f}")
+            seed_ratios.append(float(np.median([w for w, _c in seed_costs])) / res["old"][1])
+            cpus = [c for _w, c in seed_costs if c]
+            if len(cpus) == len(seed_costs) and res["old"][2]:
+                seed_cpu_ratios.append(float(np.median(cpus)) / res["old"][2])
+            print(f"{size:g} mm new run over {len(seed_costs)} feed seeds: wall "
+                  + ", ".join(f"{w:.1f}" for w, _c in seed_costs)
+                  + f" s, median / old {seed_ratios[-1]:.3f}"
+                  + (f" (CPU time {seed_cpu_ratios[-1]:.3f})" if len(cpus) == len(seed_costs) else ""))
         ratio = res["new"][1] / res["old"][1]
         ratios.append(ratio)
         if res["new"][2] and res["old"][2]:
@@ -451,6 +456,8 @@ def main() -> None:
                     f" start_dependence_z_max={max(rep_z):.2f} start_dependence_p_family={p_family:.2f}")
     if len(seed_ratios) == len(ratios):
         cpu_txt += f" cost_ratio_median_over_seeds={float(np.median(seed_ratios)):.3f}"
+    if len(seed_cpu_ratios) == len(ratios):
+        cpu_txt += f" cpu_ratio_median_over_seeds={float(np.median(seed_cpu_ratios)):.3f}"
     print(f"points={len(ratios)} cost_ratio_median={float(np.median(ratios)):.3f} max_stat_dev_sigma={worst[0]:.2f}"
           f"{cpu_txt}")
 
