@@ -28,7 +28,7 @@ from msmill.dem.mill.run import (
     load_raw,
     missed_targets,
     sampling_errors_reached,
-    stats_from_dir,
+    stats_from_raw,
 )
 from msmill.dem.mill.stats import StatsSettings
 
@@ -37,11 +37,12 @@ STREAMS = ("kickback", "refeed", "pass_through")
 
 def replay(run_dir: Path, ends_s: list[float], n_batches: int, settings: RunSettings) -> float:
     """Print one line per window end; return the first end whose errors meet every target (nan: none)."""
-    start_s = float(load_raw(run_dir)["settings"]["result"]["window_start_s"])
+    raw = load_raw(run_dir)  # read once for every window
+    start_s = float(raw["settings"]["result"]["window_start_s"])
     quick = replace(StatsSettings(), min_fit_samples=2**62, with_filling_transport=False, n_batches=n_batches)
     first = math.nan
     for end in ends_s:
-        ms = stats_from_dir(run_dir, quick, window_s=(start_s, end))
+        ms = stats_from_raw(raw, quick, window_s=(start_s, end), source=str(run_dir))
         se = np.array([[st.sampling_error.get(k, np.nan) for k in STREAMS] for st in ms.run.stages])
         i, j = np.unravel_index(np.nanargmax(se), se.shape)
         missed = missed_targets(sampling_errors_reached(ms), settings.targets())

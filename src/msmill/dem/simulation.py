@@ -650,7 +650,7 @@ class Simulation:
         if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
             L = self._hi - self._lo
             size = float(L.max()) / GEOM_CELLS_LONG_AXIS
-            self._gnc = np.clip(np.ceil(L / size), 1, max(64, GEOM_CELLS_LONG_AXIS)).astype(np.int64)
+            self._gnc = np.clip(np.ceil(L / size), 1, GEOM_CELLS_LONG_AXIS).astype(np.int64)
             self._gcl = L / self._gnc
             self._ggrid = K.build_geom_grid(self._gcur, self._grot, self._gkind, self._gbound,
                                             self._lo, self._gcl, self._gnc, margin)

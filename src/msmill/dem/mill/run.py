@@ -295,7 +295,7 @@ def run_mill(
             if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check:
                 # every check recomputes the window's statistics: a geometric interval keeps long windows linear
                 t_check = sim.time_s + max(rs.check_every_s, 0.25 * (sim.time_s - t_start))
-                above = targets_missed(finish(quick), rs)
+                above = missed_targets(finish(quick).stats.run.sampling_error_reached, rs.targets())
                 checks.append({"window_end_s": round(sim.time_s, 6), "above_target": above})
                 if not above:
                     break
@@ -388,17 +388,12 @@ def sampling_errors_reached(ms: MillStatistics) -> dict[str, float]:
     return out
 
 
-def targets_missed(run: MillRun, rs: RunSettings) -> dict[str, float | None]:
-    """The adaptive window's targets the run's statistics miss: ``{key: error reached}`` (None: no samples).
-
-    Empty when every target is met. A family without samples has not converged (unless its target is
-    infinite); statistics with no sampling errors at all miss everything.
-    """
-    return missed_targets(run.stats.run.sampling_error_reached if run.stats else {}, rs.targets())
-
-
 def missed_targets(reached: dict[str, float | None], targets: dict[str, float]) -> dict[str, float | None]:
-    """``{key: error reached}`` of the targets not met (None or a missing key: no samples, never met)."""
+    """The adaptive window's targets not met: ``{key: error reached}``; empty when every target is met.
+
+    A family without samples (None or a missing key) has not converged unless its target is infinite;
+    statistics with no sampling errors at all miss everything.
+    """
     if not reached:
         return dict.fromkeys(targets)
     inf = float("inf")
@@ -560,7 +555,12 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
     ``window_s`` (s): another measurement window than the saved one, inside the record (a replay of
     the adaptive window's checks, ``benchmarks/stop_replay.py``).
     """
-    raw = load_raw(run_dir)
+    return stats_from_raw(load_raw(run_dir), stats_settings, window_s, source=str(run_dir))
+
+
+def stats_from_raw(raw: dict[str, Any], stats_settings: StatsSettings | None = None,
+                   window_s: tuple[float, float] | None = None, source: str | None = None) -> MillStatistics:
+    """:func:`stats_from_dir` on the tables :func:`load_raw` read (several windows of one run read it once)."""
     s = raw["settings"]
     m: Machine = raw["machine"]
     d = s["design"]
@@ -573,7 +573,7 @@ def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = N
         mids = np.sqrt(sizes[1:] * sizes[:-1]) / 2000
         edges = np.concatenate([[0.0], mids, [np.inf]])
     prov = {"generator": "msmill.dem.mill.run.stats_from_dir", "msmill_version": __version__,
-            "source_dir": str(run_dir), "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}
+            "source_dir": source, "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}
     design = DesignPoint(size_mm=d["size_mm"], feed_tph=op.feed_tph, speed_rpm=d["speed_rpm"], gate_deg=op.gate_deg,
                          stage_speeds_rpm=op.stage_speeds(m.n_stages))
     # runs saved before the field: a table start is in the run settings, a run's warm start is not recorded
