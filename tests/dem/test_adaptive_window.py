@@ -70,6 +70,15 @@ def test_window_start_rule():
     assert window_start_s(onset, None, 0.2) == 0.0
 
 
+def test_check_schedule_grows_with_the_window():
+    """The next check: at least check_every_s later, a quarter of the window so far once that is longer
+    (the stop replay of benchmarks/stop_study.py checks where run_mill does, through this rule)."""
+    rs = RunSettings(check_every_s=0.2)
+    assert rs.next_check_s(0.6, 1.4) == pytest.approx(1.6)  # window 0.8 s: a quarter is 0.2 s
+    assert rs.next_check_s(0.6, 1.0) == pytest.approx(1.2)  # window 0.4 s: the floor
+    assert rs.next_check_s(0.6, 3.0) == pytest.approx(3.6)  # window 2.4 s: 0.6 s later
+
+
 @pytest.mark.parametrize("target", [math.inf, 1e-9])
 def test_window_from_onset_reuses_the_steady_windows(target):
     """From the onset the two steady windows are measured, not simulated again: met targets stop the run

@@ -150,6 +150,14 @@ class RunSettings:
                 "count_mean_rel": self.target_count_mean_rel_se,
                 "velocity_sampling_kl": self.target_velocity_sampling_kl, "holdup_rel": self.target_holdup_rel_se}
 
+    def next_check_s(self, window_start_s: float, now_s: float) -> float:
+        """Time (s) of the adaptive window's next check after one at ``now_s``.
+
+        Every check recomputes the window's statistics: an interval that grows with the window
+        (a quarter of it, at least ``check_every_s``) keeps the checks' cost linear in long windows.
+        """
+        return now_s + max(self.check_every_s, 0.25 * (now_s - window_start_s))
+
     def criterion(self) -> SteadyStateCriterion:
         """The steady-state criterion these settings describe."""
         return SteadyStateCriterion(window_s=self.steady_window_s, balance_tol=self.balance_tol,
@@ -293,8 +301,7 @@ def run_mill(
         extra["window_checks"] = checks  # what each check found above its target (provenance)
         while remaining(t_stop) > 0:
             if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check:
-                # every check recomputes the window's statistics: a geometric interval keeps long windows linear
-                t_check = sim.time_s + max(rs.check_every_s, 0.25 * (sim.time_s - t_start))
+                t_check = rs.next_check_s(t_start, sim.time_s)
                 above = missed_targets(finish(quick).stats.run.sampling_error_reached, rs.targets())
                 checks.append({"window_end_s": round(sim.time_s, 6), "above_target": above})
                 if not above:
