@@ -18,13 +18,13 @@ from __future__ import annotations
 import argparse
 import math
 import warnings
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from msmill.dem.mill.run import (
     RunSettings,
+    check_stats_settings,
     load_raw,
     missed_targets,
     sampling_errors_reached,
@@ -39,7 +39,7 @@ def replay(run_dir: Path, ends_s: list[float], n_batches: int, settings: RunSett
     """Print one line per window end; return the first end whose errors meet every target (nan: none)."""
     raw = load_raw(run_dir)  # read once for every window
     start_s = float(raw["settings"]["result"]["window_start_s"])
-    quick = replace(StatsSettings(), min_fit_samples=2**62, with_filling_transport=False, n_batches=n_batches)
+    quick = check_stats_settings(StatsSettings(n_batches=n_batches))
     first = math.nan
     for end in ends_s:
         ms = stats_from_raw(raw, quick, window_s=(start_s, end), source=str(run_dir))

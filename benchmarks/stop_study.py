@@ -1,6 +1,6 @@
 """Judge stop rules of the adaptive window over several feed seeds: their cost and their calibration (issue 12).
 
-Two steps.
+Three subcommands.
 
 ``run``: a new-protocol run (campaign defaults: table start, window from the onset) but with a
 *fixed* long window (``--measure-s``), saved raw, plus a trace of wall and CPU time against mill
@@ -10,7 +10,7 @@ trajectory, so one long run stands for every stop rule::
     python benchmarks/stop_study.py run --size-mm 6 --seed 3 --measure-s 2.4 --out RUNS/6mm_seed3
 
 ``replay``: for each saved run and each stop rule (``--batches``: the batch count of the check's
-errors; ``--rules``), the checks of :func:`msmill.dem.mill.run.run_mill` are replayed at the times
+errors; ``--settle-s``: where the window starts), the checks of :func:`msmill.dem.mill.run.run_mill` are replayed at the times
 the adaptive loop would make them (from ``min_measure_s``, then every ``max(check_every_s, a
 quarter of the window so far)``); the first check whose errors meet the targets of
 :class:`msmill.dem.mill.run.RunSettings` is the stop. Its cost is the trace's CPU time at the stop
@@ -39,7 +39,7 @@ import math
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -48,6 +48,7 @@ import numpy as np
 from msmill._version import __version__
 from msmill.dem.mill.run import (
     RunSettings,
+    check_stats_settings,
     git_commit,
     load_raw,
     missed_targets,
@@ -126,7 +127,7 @@ def replay_stop(raw: dict, trace: np.ndarray, n_batches: int, rs: RunSettings, s
                                                             "window_end_s"))
     if settle_s is not None:
         start_s = max(float(res["steady_state_time_s"]), settle_s)
-    quick = replace(StatsSettings(), min_fit_samples=2**62, with_filling_transport=False, n_batches=n_batches)
+    quick = check_stats_settings(StatsSettings(n_batches=n_batches))
     times = trace[trace[:, 0] >= detected_s - 1e-9]
     t_check = start_s + rs.min_measure_s
     spent_cpu = spent_wall = 0.0

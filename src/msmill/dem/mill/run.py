@@ -73,7 +73,7 @@ from msmill.steadystate import (
     first_steady,
 )
 
-__all__ = ["MillRun", "RunSettings", "WarmStart", "design_point", "load_raw", "mark_statistics",
+__all__ = ["MillRun", "RunSettings", "WarmStart", "check_stats_settings", "design_point", "load_raw", "mark_statistics",
            "retrospective_outcome", "run_mill", "sampling_errors_reached", "save_run", "saved_run_feed_kg_s",
            "saved_run_verdict", "stats_from_dir"]
 
@@ -291,9 +291,7 @@ def run_mill(
     def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
         return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra, ss)
 
-    # convergence checks skip the mixture fits (single Gaussians) and the filling transport: the sampling
-    # errors do not depend on them
-    quick = replace(stats_settings or StatsSettings(), min_fit_samples=2**62, with_filling_transport=False)
+    quick = check_stats_settings(stats_settings)
     if found is not None:
         t_stop = t_start + (rs.max_measure_s if rs.adaptive else rs.measure_s)
         t_check = t_start + rs.min_measure_s
@@ -312,6 +310,15 @@ def run_mill(
     run = finish()
     run.wall_s = time.perf_counter() - wall0
     return run
+
+
+def check_stats_settings(stats_settings: StatsSettings | None = None) -> StatsSettings:
+    """The statistics settings of the adaptive window's checks.
+
+    The checks skip the mixture fits (single Gaussians) and the filling transport: the sampling
+    errors do not depend on them.
+    """
+    return replace(stats_settings or StatsSettings(), min_fit_samples=2**62, with_filling_transport=False)
 
 
 def window_start_s(rs: RunSettings, found: tuple[float, float] | None, now_s: float) -> float:
