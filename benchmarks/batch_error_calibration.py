@@ -46,6 +46,18 @@ def calibration(runs: list[RunStatistics]) -> dict[str, list[tuple[float, float]
     return out
 
 
+def calibration_ratios(runs: list[RunStatistics]) -> tuple[dict[str, list[float]], float, float]:
+    """Between-seed sd over the median reported error: ``(per family, one per stage; median over every
+    statistic; the streams' from the variance ratio pooled over stages and streams)`` (nan: none)."""
+    cal = calibration(runs)
+    per_family = {fam: [float(np.sqrt(v / e2)) for v, e2 in pairs if e2 > 0] for fam, pairs in cal.items()}
+    per_family = {fam: r for fam, r in per_family.items() if r}
+    every = [x for r in per_family.values() for x in r]
+    streams = [p for fam in STREAMS for p in cal[fam] if p[1] > 0]
+    pooled = float(np.sqrt(np.mean([v / e2 for v, e2 in streams]))) if streams else float("nan")
+    return per_family, float(np.median(every)) if every else float("nan"), pooled
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[10.0, 6.0])
@@ -58,17 +70,12 @@ def main() -> None:
         if len(runs) < 3:
             print(f"{size:g} mm: {len(runs)} seeds of variant {args.variant!r}, at least 3 needed")
             continue
-        cal = calibration(runs)
-        every = [np.sqrt(v / e2) for pairs in cal.values() for v, e2 in pairs if e2 > 0]
-        for fam, pairs in cal.items():
-            r = [np.sqrt(v / e2) for v, e2 in pairs if e2 > 0]
-            if r:
-                print(f"{size:g} mm {fam}: between-seed sd / batch-means error, median {np.median(r):.2f} "
-                      f"over {len(r)} stages ({min(r):.2f}-{max(r):.2f})")
-        streams = [p for fam in STREAMS for p in cal[fam] if p[1] > 0]
-        pooled = float(np.sqrt(np.mean([v / e2 for v, e2 in streams]))) if streams else float("nan")
+        per_family, ratio_median, pooled = calibration_ratios(runs)
+        for fam, r in per_family.items():
+            print(f"{size:g} mm {fam}: between-seed sd / batch-means error, median {np.median(r):.2f} "
+                  f"over {len(r)} stages ({min(r):.2f}-{max(r):.2f})")
         windows = [r.measurement_window_s for r in runs]
-        print(f"size_mm={size:g} variant={args.variant} seeds={len(runs)} ratio_median={np.median(every):.2f} "
+        print(f"size_mm={size:g} variant={args.variant} seeds={len(runs)} ratio_median={ratio_median:.2f} "
               f"streams_ratio={pooled:.2f} window_s_median={np.median(windows):.2f}")
 
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import sys
 import time
 import warnings
@@ -149,8 +148,7 @@ def replay_stop(raw: dict, trace: np.ndarray, n_batches: int, rs: RunSettings, s
 
 def replay(dirs: list[Path], batches: list[int], settles: list[float | None]) -> None:
     """Print every run's stop per rule (batch count, window start) and the summary line per rule."""
-    from batch_error_calibration import STREAMS, calibration
-    from training_run_cost import _by_name
+    from batch_error_calibration import calibration_ratios
 
     rs = RunSettings()
     rules = [(b, st) for st in settles for b in batches]
@@ -163,22 +161,14 @@ def replay(dirs: list[Path], batches: list[int], settles: list[float | None]) ->
             print(f"{d.name} {_name(b, st)}: stop at {s.window_end_s:.2f} s{' (censored)' if s.censored else ''} "
                   f"after {s.checks} checks, CPU {s.cpu_s:.0f} s, wall {s.wall_s:.0f} s", flush=True)
     for (b, st), ss in stops.items():
-        for fam, pairs in calibration([s.stats for s in ss]).items():
-            r = [np.sqrt(v / e2) for v, e2 in pairs if e2 > 0]
-            if r:
-                print(f"{_name(b, st)} {fam}: between-seed sd / reported error, median {np.median(r):.2f} over "
-                      f"{len(r)} stages ({min(r):.2f}-{max(r):.2f})")
-        streams = [p for fam, pairs in calibration([s.stats for s in ss]).items() if fam in STREAMS
-                   for p in pairs if p[1] > 0]
-        pooled = float(np.sqrt(np.mean([v / e2 for v, e2 in streams]))) if streams else math.nan
-        ratios = []
-        for _stat, (x, e) in _by_name([s.stats for s in ss]).items():
-            if np.isfinite(e).sum() >= 3 and np.nanmedian(e) > 0:
-                ratios.append(float(np.std(x, ddof=1) / np.nanmedian(e)))
+        per_family, ratio_median, pooled = calibration_ratios([s.stats for s in ss])
+        for fam, r in per_family.items():
+            print(f"{_name(b, st)} {fam}: between-seed sd / reported error, median {np.median(r):.2f} over "
+                  f"{len(r)} stages ({min(r):.2f}-{max(r):.2f})")
         print(f"rule={_name(b, st)} runs={len(ss)} censored={sum(s.censored for s in ss)} "
               f"cpu_s_median={np.median([s.cpu_s for s in ss]):.1f} "
               f"window_end_s_median={np.median([s.window_end_s for s in ss]):.2f} "
-              f"ratio_median={np.median(ratios) if ratios else math.nan:.2f} streams_ratio={pooled:.2f}", flush=True)
+              f"ratio_median={ratio_median:.2f} streams_ratio={pooled:.2f}", flush=True)
 
 
 def coherence(dirs: list[Path], from_s: float, bin_s: float = 0.02) -> None:
