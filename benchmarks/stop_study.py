@@ -132,7 +132,7 @@ def replay_stop(raw: dict, trace: np.ndarray, n_batches: int, rs: RunSettings, s
     spent_cpu = spent_wall = 0.0
     n = 0
     for t, wall, cpu in times:
-        if t + 0.5 * rs.chunk_s < t_check and t < end_s - 1e-9:
+        if not rs.check_due(t_check, t) and t < end_s - 1e-9:
             continue
         t_check = rs.next_check_s(start_s, t)
         c0, w0 = time.process_time(), time.perf_counter()

@@ -77,6 +77,8 @@ def test_check_schedule_grows_with_the_window():
     assert rs.next_check_s(0.6, 1.4) == pytest.approx(1.6)  # window 0.8 s: a quarter is 0.2 s
     assert rs.next_check_s(0.6, 1.0) == pytest.approx(1.2)  # window 0.4 s: the floor
     assert rs.next_check_s(0.6, 3.0) == pytest.approx(3.6)  # window 2.4 s: 0.6 s later
+    assert rs.check_due(1.6, 1.6) and rs.check_due(1.6, 1.56)  # due within half a chunk (0.05 s)
+    assert not rs.check_due(1.6, 1.5)
 
 
 @pytest.mark.parametrize("target", [math.inf, 1e-9])

@@ -158,6 +158,10 @@ class RunSettings:
         """
         return now_s + max(self.check_every_s, 0.25 * (now_s - window_start_s))
 
+    def check_due(self, check_s: float, now_s: float) -> bool:
+        """Whether a check planned for ``check_s`` is due at ``now_s`` (within half an engine chunk)."""
+        return now_s + 0.5 * self.chunk_s >= check_s
+
     def criterion(self) -> SteadyStateCriterion:
         """The steady-state criterion these settings describe."""
         return SteadyStateCriterion(window_s=self.steady_window_s, balance_tol=self.balance_tol,
@@ -298,7 +302,7 @@ def run_mill(
         checks: list[dict[str, Any]] = []
         extra["window_checks"] = checks  # what each check found above its target (provenance)
         while remaining(t_stop) > 0:
-            if rs.adaptive and sim.time_s + 0.5 * rs.chunk_s >= t_check:
+            if rs.adaptive and rs.check_due(t_check, sim.time_s):
                 t_check = rs.next_check_s(t_start, sim.time_s)
                 above = missed_targets(finish(quick).stats.run.sampling_error_reached, rs.targets())
                 checks.append({"window_end_s": round(sim.time_s, 6), "above_target": above})
