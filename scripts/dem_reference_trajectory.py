@@ -14,7 +14,7 @@ regenerate this file with this script and say so.
 Run::
 
     python scripts/dem_reference_trajectory.py [--out tests/dem/data/trajectory_reference.json]
-    python scripts/dem_reference_trajectory.py --check   # compare, print the largest differences
+    python scripts/dem_reference_trajectory.py --check   # compare with the stored digests, run by run
 """
 
 from __future__ import annotations
@@ -44,6 +44,19 @@ def host_cpu() -> str:
     import llvmlite.binding as ll
 
     return str(ll.get_host_cpu_name())
+
+
+def host_cpu_features() -> str:
+    """Short digest of the CPU features numba compiles for.
+
+    Two hosts that both report ``znver4`` gave different gas digests with the
+    same numba and numpy (2026-12-04; the mill slice's were the same), so the
+    features are part of the key as well. They may still not be all of it.
+    """
+    import llvmlite.binding as ll
+
+    feats = sorted(f for f in ll.get_host_cpu_features().flatten().split(",") if f.startswith("+"))
+    return hashlib.sha256(",".join(feats).encode()).hexdigest()[:16]
 
 def gas_sim(parallel: bool):
     """Dense frictional gas: 1200 spheres of 5 mm radius on a jittered lattice."""
@@ -132,6 +145,7 @@ def main() -> None:
             "msmill_version": msmill.__version__,
             "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "numba": __import__("numba").__version__, "numpy": np.__version__, "host_cpu": host_cpu(),
+            "host_cpu_features": host_cpu_features(),
             "runs": {"gas": "1200 spheres r 5 mm, E 2e10, e 0.5, mu 0.4, 400 steps dt 1e-6 s, seed 7",
                      "mill": "default slice, 30 mm, 30 t/h, 1500 rpm, gates 40 deg, 0.4 s"},
             "events": {k: int(res[f"{k}/ev_int"].shape[0]) for k in ("gas_par", "gas_ser", "mill")},

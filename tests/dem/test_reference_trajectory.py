@@ -37,7 +37,8 @@ def ref_script():
     import numba
     import numpy as np
 
-    here = {"numba": numba.__version__, "numpy": np.__version__, "host_cpu": mod.host_cpu()}
+    here = {"numba": numba.__version__, "numpy": np.__version__, "host_cpu": mod.host_cpu(),
+            "host_cpu_features": mod.host_cpu_features()}
     other = {k: (REF.get(k), v) for k, v in here.items() if REF.get(k) != v}
     if other:
         pytest.skip(f"bitwise reference written with another toolchain or CPU {other}: regenerate it with "
