@@ -730,8 +730,12 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
 
     Per-particle memory traffic is kept to what the particle needs: the force
     pass's ``frc``/``trq`` are read only for ``kind & K_HIT``, the partner
-    shares only for ``kind & K_REV`` (the total is written back if there
-    were any); any other particle feels its weight alone. A zero force leaves ``vel``
+    shares only for particles a partner stamped this step (``shs``; the total
+    is written back), any other particle feels its weight alone. The stamp
+    alone is tested: it implies ``kind & K_REV``, and a test of the kind as
+    well, true for ~80 % of the particles of the dense gas in no order, cost
+    a mispredicted branch (integration 17.6 -> 14.5 ns per particle-step
+    at phi = 0.30, docs/dem.md). A zero force leaves ``vel``
     unchanged and a zero torque ``omg`` (bit for bit the same as adding the
     zero increment: velocities and spins are never -0.0, see
     :func:`particle_kinds`), so neither is written then.
@@ -776,7 +780,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                 t0 = 0.0
                 t1 = 0.0
                 t2 = 0.0
-            if (ki & K_REV) != 0 and shs[i] == stamp:
+            if shs[i] == stamp:  # a partner wrote a share this step (implies K_REV)
                 got = False
                 for q in range(rv_start[i], rv_start[i + one]):
                     if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
@@ -827,7 +831,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                 t0 = 0.0
                 t1 = 0.0
                 t2 = 0.0
-            if (ki & K_REV) != 0 and shs[i] == stamp:
+            if shs[i] == stamp:  # a partner wrote a share this step (implies K_REV)
                 got = False
                 for q in range(rv_start[i], rv_start[i + one]):
                     if pc[q] == stamp:  # contact owned by a partner with a smaller id, this step
