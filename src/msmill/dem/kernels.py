@@ -367,24 +367,17 @@ def _close_event(evf, ref, t, peak, diss):
 
 
 
-@njit(cache=True, fastmath=False)
-def _close_untouched_rows(own_idx, q0, q1, kind, mask, keys, n, st, ev, pk, ds, tch, evf, t):
-    """End the contacts of the owners ``own_idx[q0:q1]`` whose slot was not touched this step.
+@njit(cache=True, fastmath=False, inline='always')
+def _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t):
+    """End the contacts of particle ``i`` whose slot was not touched this step.
 
     Their events are closed (peak overlap, dissipated energy) and the slot is
     refilled from the last one; touched slots are reset for the next step.
-    Serves particle and geometry partners alike. Only particles with
-    ``kind & mask`` can hold slots (see :func:`particle_kinds`).
+    Serves particle and geometry partners alike. Called per particle from the
+    force pass with the arrays as they are: measured there, the call costs no
+    more than the loop written out (numba's reference counting of array
+    arguments, docs/dem.md, Performance, did not show at this call site).
     """
-    for q in range(q0, q1):
-        i = own_idx[q]
-        if (kind[i] & mask) != 0 and n[i] > 0:
-            _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t)
-
-
-@njit(cache=True, fastmath=False, inline='always')
-def _close_untouched_row(keys, n, st, ev, pk, ds, tch, i, evf, t):
-    """:func:`_close_untouched_rows` for row ``i``."""
     q = 0
     while q < n[i]:
         if tch[i, q] == 1:
@@ -667,6 +660,13 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                     g_pk[i, slot] = s
                 g_ds[i, slot] -= _step_work(cfx, cfy, cfz, fn, nx, ny, nz, vx, vy, vz,
                                             invm[i], li * li * invi[i], dt)
+        # ---- end of contacts: the particle's slots not touched this step, while its rows are
+        # in cache (a row is only read and written by its own particle, so the order of closing
+        # is immaterial; a second pass over the chunk's owners cost ~6 % of the force pass)
+        if (ki & K_OWN) != 0 and h_n[i] > 0:
+            _close_untouched_row(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
+        if (ki & K_GEO) != 0 and g_n[i] > 0:
+            _close_untouched_row(g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, i, evf, t)
         if hit:
             frc[i, 0] = fx
             frc[i, 1] = fy
@@ -678,14 +678,6 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                 kind[i] = ki | K_HIT
         elif (ki & K_HIT) != 0:
             kind[i] = ki & ~K_HIT
-    # ---- end of contacts: slots not touched this step, once per chunk after its forces
-    # (a row's history is only read and written by its own particle, so this is the same
-    # as closing after each particle). Once per chunk, not per particle: numba wraps every
-    # entry of a helper with array arguments, inlined or not, in atomic reference counting
-    # (~30 ns per entry, docs/dem.md, Performance), which is also why the history-slot
-    # look-ups above are written out
-    _close_untouched_rows(own_idx, q0, q1, kind, K_OWN, h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, evf, t)
-    _close_untouched_rows(own_idx, q0, q1, kind, K_GEO, g_gid, g_n, g_st, g_ev, g_pk, g_ds, g_tch, evf, t)
     diag[c, D_OVER] = max(diag[c, D_OVER], ovmax)
 
 
