@@ -1,8 +1,8 @@
 """Benchmark: how much of the surrogate's stream error is the training runs' own sampling noise.
 
 Loads a surrogate file (default: the shipped default surrogate) and, for every
-transport-stream target (``sN.streams.k``, the log-ratio encoding of a stage's
-kickback and pass-through), compares the closed-form leave-one-out error of
+transport-stream target (``sN.streams.0`` = ln(kickback / pass-through),
+``sN.streams.1`` = ln(refeed / pass-through) of stage N), compares the closed-form leave-one-out error of
 the GP (:meth:`msmill.surrogate.gp.SurrogateGP.loo`, target units) with the
 sampling error the training runs themselves carry (their stored sampling
 variances, the same units). Their difference is the part of the LOO error
