@@ -58,6 +58,7 @@ def host_cpu_features() -> str:
     feats = sorted(f for f in ll.get_host_cpu_features().flatten().split(",") if f.startswith("+"))
     return hashlib.sha256(",".join(feats).encode()).hexdigest()[:16]
 
+
 def gas_sim(parallel: bool):
     """Dense frictional gas: 1200 spheres of 5 mm radius on a jittered lattice."""
     from msmill.dem import Simulation

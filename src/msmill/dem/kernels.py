@@ -662,7 +662,8 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
                                             invm[i], li * li * invi[i], dt)
         # ---- end of contacts: the particle's slots not touched this step, while its rows are
         # in cache (a row is only read and written by its own particle, so the order of closing
-        # is immaterial; a second pass over the chunk's owners cost ~6 % of the force pass)
+        # is immaterial; as a second pass over the chunk's owners, the serial force pass took 3-5 %
+        # longer, benchmarks/step_pass_pair.py)
         if (ki & K_OWN) != 0 and h_n[i] > 0:
             _close_untouched_row(h_pid, h_n, h_st, h_ev, h_pk, h_ds, h_tch, i, evf, t)
         if (ki & K_GEO) != 0 and g_n[i] > 0:
@@ -726,8 +727,9 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
     is written back), any other particle feels its weight alone. The stamp
     alone is tested: it implies ``kind & K_REV``, and a test of the kind as
     well, true for ~80 % of the particles of the dense gas in no order, cost
-    a mispredicted branch (integration 17.6 -> 14.5 ns per particle-step
-    at phi = 0.30, docs/dem.md). A zero force leaves ``vel``
+    a mispredicted branch (the serial integration pass took 0.91 of its
+    former time at phi = 0.30, ``benchmarks/step_pass_pair.py``, docs/dem.md).
+    A zero force leaves ``vel``
     unchanged and a zero torque ``omg`` (bit for bit the same as adding the
     zero increment: velocities and spins are never -0.0, see
     :func:`particle_kinds`), so neither is written then.
