@@ -50,8 +50,9 @@ N_DIAG = 6
 
 # per-particle work flags of the step passes (particle_kinds): owns half-list entries or
 # particle history slots, is the partner of entries, has geometry candidates or slots;
-# K_HIT is set by the force pass for this step when the particle's own contacts gave it a force
-K_OWN, K_REV, K_GEO, K_HIT = 1, 2, 4, 8
+# K_HIT is set by the force pass for this step when the particle's own contacts gave it a force;
+# K_WRAP: some of its half-list entries are periodic images (a shift other than 0, 0, 0)
+K_OWN, K_REV, K_GEO, K_HIT, K_WRAP = 1, 2, 4, 8, 16
 
 # advance() return reasons
 R_DONE, R_REBUILD, R_FLAGGED, R_EVFULL = 0, 1, 2, 3
@@ -457,6 +458,7 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
         xi, yi, zi = pos[i, 0], pos[i, 1], pos[i, 2]
         k0 = np.uint64(nb_start[i])
         k1 = np.uint64(nb_start[i + one]) if (ki & K_OWN) != 0 else k0
+        wrap = (ki & K_WRAP) != 0
         # ---- particle-particle: half list, row i holds partners with a larger id, so
         # i is the canonical owner (force on i, history, events); the partner's
         # share is stored per entry and gathered in the integration pass
@@ -464,9 +466,17 @@ def _force_chunk(c, t, dt, pos, vel, omg, rad, mass, invm, invi, mat, pid, frc, 
             j = np.uint64(nb_j[k])
             rj = rad[j]
             rs = ri + rj
-            dx = pos[j, 0] - xi + nb_sh[k, 0] * lx
-            dy = pos[j, 1] - yi + nb_sh[k, 1] * ly
-            dz = pos[j, 2] - zi + nb_sh[k, 2] * lz
+            if wrap:
+                ox = nb_sh[k, 0] * lx
+                oy = nb_sh[k, 1] * ly
+                oz = nb_sh[k, 2] * lz
+            else:  # no image in the row: every shift is 0, and 0 * l = +0.0
+                ox = 0.0
+                oy = 0.0
+                oz = 0.0
+            dx = pos[j, 0] - xi + ox
+            dy = pos[j, 1] - yi + oy
+            dz = pos[j, 2] - zi + oz
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs or d2 == 0.0:
                 continue
@@ -937,13 +947,15 @@ def work_lists(kind, nch):
 
 
 @njit(cache=True, fastmath=False)
-def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
+def particle_kinds(nb_start, nb_sh, rv_start, gc_start, h_n, g_n, vel, omg):
     """Per-particle work flags of the step passes for the list just built.
 
     ``K_OWN``: the particle owns half-list entries or particle history slots
     and ``K_GEO`` geometry candidates or slots, so the force pass visits it;
     ``K_REV``: it is the partner of half-list entries, so the integration
-    pass gathers shares.
+    pass gathers shares; ``K_WRAP``: some of its entries are periodic images,
+    so the force pass reads their shifts (for the others the shift term is
+    +0.0, which it adds without reading them).
     Also turns -0.0 velocity and spin components into +0.0 (what adding a
     zero increment does), so that skipping a zero increment is exact.
     """
@@ -957,6 +969,10 @@ def particle_kinds(nb_start, rv_start, gc_start, h_n, g_n, vel, omg):
             k |= K_GEO
         if rv_start[i + 1] > rv_start[i]:
             k |= K_REV
+        for q in range(nb_start[i], nb_start[i + 1]):
+            if nb_sh[q, 0] != 0 or nb_sh[q, 1] != 0 or nb_sh[q, 2] != 0:
+                k |= K_WRAP
+                break
         kind[i] = k
         for a in range(3):
             if vel[i, a] == 0.0:

@@ -661,7 +661,7 @@ class Simulation:
                                            self._gcl, self._gnc, self._ggrid[0], self._ggrid[1],
                                            par, self._maxg)
         self._maxg = int(self._gc[2] * 1.25) + 2
-        self._kind = K.particle_kinds(self._nb[0], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
+        self._kind = K.particle_kinds(self._nb[0], self._nb[2], self._nb[3], self._gc[0], p["h_n"], p["g_n"],
                                       p["vel"], p["omg"])
         self._work = K.work_lists(self._kind, self._nch)
         self._disp[0] = 0.0
