@@ -750,7 +750,7 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
     first, a particle with neither its own contacts (``K_HIT``) nor a partner
     share this step takes one branch to its weight; testing the two in turn
     cost two branches in no order for most particles (serial integration
-    0.88 of its time at phi = 0.30 and 0.93 in the 10 mm mill slice,
+    0.68 of its time at phi = 0.30 and 0.89 in the 10 mm mill slice,
     ``benchmarks/step_pass_pair.py``). Without gravity a particle of kind 0
     (no entries, slots or candidates) feels no force, so where fewer than
     half of a chunk's particles have a nonzero kind the first loop visits
