@@ -772,10 +772,11 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
     lo0, lo1, lo2, hi0, hi1, hi2 = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
     one = np.uint64(1)
     a0, a1 = np.uint64(act_start[c]), np.uint64(act_start[c + 1])
-    # the two-loop form pays where most particles fly free (a dilute gas); where most have
-    # work, one loop reads each particle once
+    # where most particles fly free and feel no weight (a dilute gas), the velocity loop visits
+    # only the active ones (act_idx); the move loop after it visits every particle either way
     sparse = no_weight and np.uint64(2) * (a1 - a0) < np.uint64(i1 - i0)
-    if sparse:
+    if sparse:  # the dense loop's updates below, written out for the active particles: one loop
+        # over either index source cost 1.13x at phi = 0.30 (benchmarks/step_pass_pair.py)
         for qa in range(a0, a1):
             i = np.uint64(act_idx[qa])
             ki = kind[i]
