@@ -28,11 +28,11 @@ sampling_share_median=<sampling var / LOO mse> loo_rms_at_003_median=<x'>``.
 from __future__ import annotations
 
 import argparse
-from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
 
+from msmill.model.providers import default_surrogate_path
 from msmill.surrogate import persist
 
 
@@ -61,9 +61,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--surrogate", type=Path, default=None, help="surrogate file (default: the shipped one)")
     args = ap.parse_args()
-    path = args.surrogate or Path(str(files("msmill.data") / "surrogates" / "default.json"))
-    if not path.is_file():
-        raise SystemExit(f"--surrogate: {path} is not a file (want a surrogate .json)")
+    path = args.surrogate or default_surrogate_path()
+    if path is None or not path.is_file():
+        raise SystemExit(f"--surrogate: {path or 'the shipped default'} is not a file (want a surrogate .json)")
     rows = stream_noise(path)
     if not rows:
         raise SystemExit(f"--surrogate: {path} has no stream targets")
