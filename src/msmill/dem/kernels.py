@@ -822,8 +822,10 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                 omg[i, 2] += t2 * ii * dt
     if not sparse:  # velocities and spins of every particle, then (below) every particle moves
         for i in range(np.uint64(i0), np.uint64(i1)):
+            ki = kind[i]
+            stamped = shs[i] == stamp  # a partner wrote a share this step (implies K_REV)
             # one branch, not two in no order, for the many particles with no contact this step
-            if not (((kind[i] & K_HIT) != 0) | (shs[i] == stamp)):
+            if not (((ki & K_HIT) != 0) | stamped):
                 if not no_weight:  # the weight alone
                     mi = mass[i]
                     f0 = mi * g0
@@ -835,8 +837,6 @@ def _integrate_chunk(c, t_new, dt, pos, vel, omg, frc, trq, kind, act_idx, act_s
                         vel[i, 1] = vel[i, 1] + f1 * im * dt
                         vel[i, 2] = vel[i, 2] + f2 * im * dt
             else:
-                ki = kind[i]
-                stamped = shs[i] == stamp  # a partner wrote a share this step (implies K_REV)
                 if (ki & K_HIT) != 0:
                     f0, f1, f2 = frc[i, 0], frc[i, 1], frc[i, 2]
                     t0, t1, t2 = trq[i, 0], trq[i, 1], trq[i, 2]
