@@ -56,6 +56,11 @@ def create_cmd(
     max_attempts: Annotated[int, typer.Option("--max-attempts", help="Attempts per run before it fails.")] = 3,
     ore: Annotated[str | None, typer.Option("--ore", help="Ore (rock material) name.")] = None,
     raw_dir: Annotated[Path | None, typer.Option("--raw-dir", help="Workers save raw run folders here.")] = None,
+    checkpoint_dir: Annotated[str | None, typer.Option(
+        "--checkpoint-dir", help="Workers checkpoint their runs here (one folder per run; on a cluster, a file "
+        "system every worker shares), so a re-claimed run continues; 'none': no checkpoints. Default: a folder "
+        "per store and campaign under ~/.local/share/msmill/checkpoints. Interval: --set checkpoint_every_s=S.")]
+    = None,
     size_range_mm: Annotated[tuple[float, float] | None, typer.Option(
         "--size-range-mm", help="Rock sizes the active-learning planner may choose (mm), LOW HIGH; "
                                 "default the paper's 2-30 mm.")] = None,
@@ -66,7 +71,11 @@ def create_cmd(
     from msmill.surrogate.campaign import run_settings_dict
 
     machine = Machine.default() if machine_toml == "default" else Machine.from_toml(Path(machine_toml))
-    opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None}
+    opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None,
+            "checkpoint_dir": None if checkpoint_dir is None else
+            "none" if checkpoint_dir.strip().lower() == "none" else str(Path(checkpoint_dir).resolve())}
+    if opts["checkpoint_dir"] is not None and not checkpoint_dir.strip():
+        raise MsmillInputError("--checkpoint-dir", checkpoint_dir, "a folder path or 'none'")
     if size_range_mm is not None:
         lo, hi = size_range_mm
         if not 0 < lo < hi:
@@ -204,3 +213,5 @@ def status_cmd(name: NameArg, db: DbOpt = None) -> None:
         if r.status in ("failed", "running") or (r.error and r.status == "planned"):
             last = (r.error or "").strip().splitlines()[-1:] or [""]
             typer.echo(f"run {r.id} {r.status} attempts {r.attempts} worker {r.worker or '-'}: {last[0][:160]}")
+        elif r.note:
+            typer.echo(f"run {r.id} {r.status}: {r.note[:160]}")

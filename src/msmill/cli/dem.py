@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from msmill.errors import MsmillInputError
+from msmill.validate import number
 
 EXIT_NOT_STEADY = 3  # the run ended at its time limit without steady state
 EXIT_CHOKED = 4  # the mill did not pass the feed rate (product persistently below feed)
@@ -16,11 +19,20 @@ app = typer.Typer(help="DEM of the multi-shaft mill: run to steady state, per-st
                   no_args_is_help=True)
 
 
-@app.command("run")
+#: where ``msmill dem run --out DIR`` keeps its checkpoint while it runs (removed once the outputs are written)
+CHECKPOINT_SUBDIR = "checkpoint"
+#: options ``--resume`` accepts besides itself (the rest come from the checkpoint)
+_RESUME_OPTIONS = {"resume", "checkpoint_every_s", "no_progress", "vtk"}
+
+
+@app.command("run", epilog="Exit status: 0 steady; 2 bad input; 3 not steady by the time limit; 4 choked "
+                           "(statistics are written and marked in 3 and 4).")
 def run_cmd(
-    machine_toml: Annotated[Path, typer.Argument(help="Machine description (TOML); 'default' for the shipped one.")],
-    size_mm: Annotated[float, typer.Option("--size-mm", help="Rock diameter (mm).")],
-    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
+    ctx: typer.Context,
+    machine_toml: Annotated[Path | None, typer.Argument(
+        help="Machine description (TOML); 'default' for the shipped one (not with --resume).")] = None,
+    size_mm: Annotated[float | None, typer.Option("--size-mm", help="Rock diameter (mm).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Output directory.")] = None,
     feed_tph: Annotated[float, typer.Option("--feed-tph", help="Feed rate of the full mill (t/h).")] = 30.0,
     speed_rpm: Annotated[float, typer.Option("--speed-rpm", help="Upper-stage shaft speed (rpm).")] = 1500.0,
     bottom_factor: Annotated[float, typer.Option("--bottom-factor", help="Bottom / upper stage speed.")] = 2.0,
@@ -48,14 +60,100 @@ def run_cmd(
     window_from: Annotated[str, typer.Option(
         "--window-from", help="detection: measure from the time steady state is detected; onset: from its "
         "onset (the two steady windows are not simulated again; what campaign runs do).")] = "detection",
+    checkpoint_every_s: Annotated[float, typer.Option(
+        "--checkpoint-every-s", help="Wall time between checkpoints (s), kept in OUT/checkpoint while the run "
+        "lasts: a run that is stopped continues with --resume OUT, losing at most this much work.")] = 600.0,
+    resume: Annotated[Path | None, typer.Option(
+        "--resume", help="Continue the stopped run whose --out was this folder from its checkpoint, with the "
+        "settings it was started with (only --checkpoint-every-s, --vtk and --no-progress may be given).")] = None,
 ) -> None:
     """Run the mill DEM to steady state, record a window, write events, statistics and plots."""
     from msmill.cli.output import atomic_output, check_writable
+    from msmill.dem.checkpoint import has_checkpoint, remove_checkpoint
+    from msmill.dem.mill.run import resume_mill, run_mill, save_run
+
+    if resume is not None:
+        given = sorted(k for k, v in ctx.params.items() if k not in _RESUME_OPTIONS
+                       and getattr(ctx.get_parameter_source(k), "name", "") == "COMMANDLINE")
+        if given:
+            raise MsmillInputError(_option(ctx, given[0]), ctx.params[given[0]],
+                                   "nothing with --resume (the run continues with its checkpoint's settings)")
+        out = check_writable(resume, "--resume")
+        ckpt = out / CHECKPOINT_SUBDIR
+        if not has_checkpoint(ckpt):
+            raise MsmillInputError("--resume", str(resume), "the --out folder of a stopped 'msmill dem run' "
+                                   f"(it has no {CHECKPOINT_SUBDIR}/state.pkl)")
+        number(checkpoint_every_s, "--checkpoint-every-s", unit="s", ge=0)
+        inputs = _checkpoint_inputs(ckpt)
+        result = _with_progress(no_progress, inputs["size_mm"], inputs["settings"],
+                                lambda cb: resume_mill(ckpt, progress=cb, checkpoint_every_s=checkpoint_every_s))
+        run_settings = {"resumed_from": str(ckpt), **inputs["settings"]}
+        inputs_files: list[Path] = []
+    else:
+        machine, op, settings, warm, out = _fresh_inputs(
+            machine_toml, size_mm, out, feed_tph, speed_rpm, bottom_factor, gate_deg, max_time_s, measure_s, seed,
+            adaptive, max_measure_s, feed_speed_m_s, start, window_from, checkpoint_every_s, warm_start)
+        ckpt = out / CHECKPOINT_SUBDIR
+        if has_checkpoint(ckpt):
+            raise MsmillInputError("--out", str(out), f"a folder without the checkpoint of a stopped run (continue "
+                                   f"it with 'msmill dem run --resume {out}', or delete {ckpt})")
+        mode = "slice" if slice_ else "full"
+        result = _with_progress(no_progress, size_mm, asdict(settings),
+                                lambda cb: run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings,
+                                                    progress=cb, start=warm, checkpoint_dir=ckpt))
+        run_settings = {"size_mm": size_mm, "mode": mode, "operating_point": op.model_dump(), "seed": seed,
+                        "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk, "start": start,
+                        "window_from": window_from, "adaptive": adaptive}
+        inputs_files = [] if str(machine_toml) == "default" else [machine_toml]
+    from msmill.plots.dem import plot_run
+
+    with atomic_output(out, inputs=inputs_files, settings=run_settings) as stage:
+        save_run(result, stage, vtk=vtk)
+        plot_run(result, stage)
+    remove_checkpoint(ckpt)  # the outputs are in place: the run is complete
+    st = result.stats.run if result.stats else None
+    ss = result.steady_state_time_s
+    parts = len(result.extra.get("parts", [])) or 1
+    typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "
+               f"{result.window_s[0]:.2f}-{result.window_s[1]:.2f} s; wall {result.wall_s:.1f} s, CPU "
+               f"{result.extra.get('cpu_s', float('nan')):.1f} s" + (f" in {parts} parts" if parts > 1 else "")
+               + f"; dt {result.extra['dt_s']:.3g} s")
+    if st is not None:
+        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s "
+                   f"({100 * st.mass_out_rate_kg_s / result.scene.feed_kg_s:.0f} % of feed); written to {out}")
+    if result.outcome != "steady":
+        # statistics are written but marked; ingest refuses them unless explicitly allowed
+        msg = result.verdict.message if result.verdict else result.outcome
+        typer.echo(f"error: {result.outcome} after {result.window_s[1]:.2f} s (limit "
+                   f"{result.extra['time_limit_s']:.2f} s): {msg}; statistics marked '{result.outcome}'", err=True)
+        raise typer.Exit(code=EXIT_CHOKED if result.outcome == "choked" else EXIT_NOT_STEADY)
+
+
+def _option(ctx: typer.Context, name: str) -> str:
+    """The command-line spelling of a parameter (``--feed-tph``, or the argument's name)."""
+    for p in ctx.command.params:
+        if p.name == name:
+            return max(p.opts, key=len) if p.opts else name
+    return name
+
+
+def _fresh_inputs(machine_toml: Path | None, size_mm: float | None, out: Path | None, feed_tph: float,
+                  speed_rpm: float, bottom_factor: float, gate_deg: float, max_time_s: float | None,
+                  measure_s: float, seed: int, adaptive: bool, max_measure_s: float | None, feed_speed_m_s: float,
+                  start: str, window_from: str, checkpoint_every_s: float, warm_start: Path | None) -> tuple:
+    """Machine, operating point, settings, warm start and output folder of a new run, every one checked
+    (and --out probed for writing) before the (long) simulation starts."""
+    from msmill.cli.output import check_writable
     from msmill.dem.mill.checks import check_run_inputs
-    from msmill.dem.mill.run import RunSettings, run_mill, save_run
+    from msmill.dem.mill.run import RunSettings
     from msmill.machine import Machine, OperatingPoint
 
-    # every input is checked, and --out probed for writing, before the (long) simulation starts
+    if machine_toml is None:
+        raise MsmillInputError("MACHINE_TOML", None, "a machine TOML file or 'default' (or --resume DIR)")
+    if size_mm is None:
+        raise MsmillInputError("--size-mm", None, "a rock diameter (mm)")
+    if out is None:
+        raise MsmillInputError("--out", None, "an output folder")
     machine = Machine.default() if str(machine_toml) == "default" else Machine.from_toml(machine_toml)
     try:
         op = OperatingPoint(feed_tph=feed_tph, speed_rpm=speed_rpm, bottom_speed_factor=bottom_factor,
@@ -67,51 +165,42 @@ def run_cmd(
         raise MsmillInputError(field, exc.value, exc.allowed) from None
     extra = {} if max_measure_s is None else {"max_measure_s": max_measure_s}
     settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive,
-                           feed_speed_m_s=feed_speed_m_s, start=start, window_from=window_from, **extra)
+                           feed_speed_m_s=feed_speed_m_s, start=start, window_from=window_from,
+                           checkpoint_every_s=checkpoint_every_s, **extra)
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
-    mode = "slice" if slice_ else "full"
     warm = None
     if warm_start is not None:
         from msmill.dem.mill.warmstart import WarmStart
 
         warm = WarmStart.from_dir(warm_start)
+    return machine, op, settings, warm, out
+
+
+def _checkpoint_inputs(ckpt: Path) -> dict:
+    from msmill.dem.checkpoint import read_header
+
+    return read_header(ckpt)["inputs"]
+
+
+def _with_progress(no_progress: bool, size_mm: float | None, settings: dict, go: Callable) -> Any:
+    """``go(callback)`` with a progress bar over the run's longest simulated time (or none)."""
     if no_progress:
-        result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, start=warm)
-    else:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+        return go(None)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
-                      TimeElapsedColumn()) as bar:
-            window_s = settings.max_measure_s if adaptive else measure_s  # an adaptive window may end sooner
-            task = bar.add_task("DEM", total=settings.time_limit_s(size_mm) + window_s, info="")
+    from msmill.dem.mill.run import RunSettings
 
-            def cb(t: float, n: int, phase: str) -> None:
-                bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
+    rs = RunSettings(**{k: v for k, v in settings.items() if k in RunSettings.__dataclass_fields__})
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                  TimeElapsedColumn()) as bar:
+        window_s = rs.max_measure_s if rs.adaptive else rs.measure_s  # an adaptive window may end sooner
+        task = bar.add_task("DEM", total=rs.time_limit_s(size_mm or 10.0) + window_s, info="")
 
-            result = run_mill(machine, op, size_mm=size_mm, mode=mode, settings=settings, progress=cb, start=warm)
-    from msmill.plots.dem import plot_run
+        def cb(t: float, n: int, phase: str) -> None:
+            bar.update(task, completed=t, info=f"t={t:.2f} s  particles={n}  {phase}")
 
-    inputs = [] if str(machine_toml) == "default" else [machine_toml]
-    run_settings = {"size_mm": size_mm, "mode": mode, "operating_point": op.model_dump(), "seed": seed,
-                    "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk, "start": start,
-                    "window_from": window_from, "adaptive": adaptive}
-    with atomic_output(out, inputs=inputs, settings=run_settings) as stage:
-        save_run(result, stage, vtk=vtk)
-        plot_run(result, stage)
-    st = result.stats.run if result.stats else None
-    ss = result.steady_state_time_s
-    typer.echo(f"steady state: {'not reached' if ss is None else f'{ss:.2f} s'}; window "
-               f"{result.window_s[0]:.2f}-{result.window_s[1]:.2f} s; wall {result.wall_s:.1f} s; dt {result.extra['dt_s']:.3g} s")
-    if st is not None:
-        typer.echo(f"tau = {st.characteristic_time_s:.4f} s; mass out {st.mass_out_rate_kg_s:.3f} kg/s "
-                   f"({100 * st.mass_out_rate_kg_s / result.scene.feed_kg_s:.0f} % of feed); written to {out}")
-    if result.outcome != "steady":
-        # statistics are written but marked; ingest refuses them unless explicitly allowed
-        msg = result.verdict.message if result.verdict else result.outcome
-        typer.echo(f"error: {result.outcome} after {result.window_s[1]:.2f} s (limit "
-                   f"{result.extra['time_limit_s']:.2f} s): {msg}; statistics marked '{result.outcome}'", err=True)
-        raise typer.Exit(code=EXIT_CHOKED if result.outcome == "choked" else EXIT_NOT_STEADY)
+        return go(cb)
 
 
 @app.command("stats")

@@ -83,6 +83,10 @@ class EventRecorder:
         if n_open.max() > cap // 4:
             self._grow(2 * cap)
 
+    def append_only_lists(self) -> dict[str, list[np.ndarray]]:
+        """The finished-event chunks (float and int columns): lists that :meth:`flush` only appends to."""
+        return {"events_f": self._done_f, "events_i": self._done_i}
+
     def _grow(self, cap: int) -> None:
         old = self.capacity
         evf = np.zeros((self.n_chunks, cap, K.N_EVF))

@@ -202,6 +202,24 @@ class Simulation:
         self.stats = {"rebuilds": 0, "steps": 0, "loop_time_s": 0.0}
         self._stamp = 0  # steps run, stamps the partner shares (kernels.advance)
 
+    # ------------------------------------------------------------------ checkpoints
+    def __getstate__(self) -> dict[str, Any]:
+        # the slot-field views alias the slot records: pickled, they would become copies the kernels
+        # write while the records (which _keep permutes) stay behind; they are bound again on load
+        state = self.__dict__.copy()
+        state["_p"] = {k: v for k, v in self._p.items() if k not in _SLOT_VIEWS}
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        _slot_views(self._p)
+
+    def append_only_lists(self) -> dict[str, list]:
+        """The run's records that only ever grow (finished events, removed particles, time series,
+        snapshots): a checkpoint writes each item once (:mod:`msmill.dem.checkpoint`)."""
+        return {**self._rec.append_only_lists(), "removed": self._removed, "timeseries": self._ts,
+                "snapshots": self._snaps}
+
     # ------------------------------------------------------------------ declaration
     def add_material(self, name: str, *, youngs_modulus_pa: float, poisson_ratio: float,
                      density_kg_m3: float) -> int:

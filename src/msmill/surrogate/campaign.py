@@ -56,8 +56,8 @@ from msmill.surrogate.store import Store
 from msmill.surrogate.store.hashing import file_sha256, outcome_of, read_statistics
 from msmill.surrogate.store.queue import Claim, new_token
 
-__all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "design_grid", "execute_run",
-           "run_campaign", "run_settings_dict"]
+__all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "checkpoint_base", "design_grid",
+           "execute_run", "run_campaign", "run_settings_dict"]
 
 #: heartbeat age after which a running run is taken to be lost (s)
 DEFAULT_STALE_S = 120.0
@@ -168,7 +168,11 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
 
     ``task`` holds ``machine_toml``, ``design`` (DesignPoint fields), ``mode``,
     ``run_settings`` (RunSettings fields), ``options`` (``ore``; ``raw_dir``:
-    save the raw run folder there) and ``run_id``/``attempt``.
+    save the raw run folder there), ``run_id``/``attempt`` and ``checkpoint_dir``
+    (None: no checkpoints). A checkpoint there from an earlier attempt of the
+    run (a killed worker, a stopped machine) is continued if it matches the
+    run's inputs and the code, and otherwise removed, with a ``note`` saying
+    why; the driver removes the checkpoint once the result is recorded.
     """
     try:
         import numba
@@ -177,7 +181,8 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
     except (ImportError, ValueError):
         pass
     from msmill._version import __version__
-    from msmill.dem.mill.run import RunSettings, run_mill, save_run
+    from msmill.dem.checkpoint import has_checkpoint, remove_checkpoint
+    from msmill.dem.mill.run import RunSettings, check_checkpoint, run_inputs, run_mill, save_run
     from msmill.machine import Machine, OperatingPoint
 
     machine = Machine.from_toml(task["machine_toml"])
@@ -185,7 +190,21 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
     op = OperatingPoint(feed_tph=d.feed_tph, stage_speeds_rpm=d.stage_speeds_rpm, gate_deg=d.gate_deg)
     settings = RunSettings(**task["run_settings"])
     opts = task.get("options", {})
-    run = run_mill(machine, op, size_mm=d.size_mm, mode=task["mode"], settings=settings, ore=opts.get("ore"))
+    ckpt = task.get("checkpoint_dir")
+    note = None
+    if ckpt and has_checkpoint(ckpt):  # an earlier attempt was stopped: continue it if it is this run's
+        try:
+            check_checkpoint(ckpt, run_inputs(machine, op, d.size_mm, None, task["mode"], None, opts.get("ore"),
+                                              settings, None, None))
+        except MsmillInputError as exc:
+            note = f"started afresh: {exc}"
+            remove_checkpoint(ckpt)
+    run = run_mill(machine, op, size_mm=d.size_mm, mode=task["mode"], settings=settings, ore=opts.get("ore"),
+                   checkpoint_dir=ckpt)
+    parts = run.extra.get("parts", [])
+    if len(parts) > 1:
+        note = (f"resumed from its checkpoint {len(parts) - 1} time(s); parts (sim s, wall s): "
+                + ", ".join(f"{p['sim_from_s']:.2f}-{p['sim_to_s']:.2f} {p['wall_s']:.0f}" for p in parts))
     stats = run.stats.run
     raw: list[dict[str, Any]] = []
     if opts.get("raw_dir"):
@@ -193,7 +212,8 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
         raw = [{"kind": p.stem, "path": str(p.resolve()), "sha256": file_sha256(p), "size_bytes": p.stat().st_size}
                for p in sorted(folder.glob("*.parquet"))]
     return {"statistics": stats.model_dump_json(), "outcome": run.extra.get("outcome") or outcome_of(stats),
-            "wall_s": run.wall_s, "engine": f"msmill.dem {__version__}", "package_version": __version__,
+            "wall_s": run.wall_s, "cpu_s": run.extra.get("cpu_s"), "note": note,
+            "engine": f"msmill.dem {__version__}", "package_version": __version__,
             "git_commit": run.extra.get("git_commit"), "raw_files": raw, "worker": _worker_name()}
 
 
@@ -222,10 +242,30 @@ def _cluster_client(scheduler: str | None, n_workers: int | None) -> tuple[Any, 
     return Client(cluster), cluster
 
 
-def _task(store_info: Any, claim: Claim) -> dict[str, Any]:
+def checkpoint_base(store: Store, info: Any) -> Path | None:
+    """Folder of a campaign's run checkpoints (one sub-folder per run), or None if the campaign has none.
+
+    The campaign's ``checkpoint_dir`` option (``msmill campaign create --checkpoint-dir``; ``"none"``
+    switches checkpoints off), else a folder per store and campaign under the per-user data folder
+    (``$XDG_DATA_HOME/msmill/checkpoints``). Workers on other machines need the option, on a file
+    system they share with the driver.
+    """
+    import hashlib
+
+    opt = info.options.get("checkpoint_dir")
+    if opt == "none":
+        return None
+    if opt:
+        return Path(opt)
+    base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "msmill" / "checkpoints"
+    return base / hashlib.sha256(store.url.encode()).hexdigest()[:12] / info.name
+
+
+def _task(store_info: Any, claim: Claim, ckpt_base: Path | None) -> dict[str, Any]:
     return {"machine_toml": store_info.machine_toml, "design": claim.design.model_dump(), "mode": store_info.mode,
             "run_settings": dict(store_info.run_settings, seed=claim.seed), "options": store_info.options,
-            "run_id": claim.run_id, "attempt": claim.attempt}
+            "run_id": claim.run_id, "attempt": claim.attempt,
+            "checkpoint_dir": None if ckpt_base is None else str(ckpt_base / f"run{claim.run_id:06d}")}
 
 
 class _Driver:
@@ -238,6 +278,7 @@ class _Driver:
         self.token = new_token()
         self.me = f"driver {socket.gethostname()}:{os.getpid()}"
         self.info = store.campaign(name)
+        self.ckpt_base = checkpoint_base(store, self.info)
         self.inflight: dict[Any, Claim] = {}
         self.workers: dict[int, str] = {}
         self.report = CampaignReport()
@@ -253,7 +294,7 @@ class _Driver:
         if free <= 0:
             return
         for c in self.store.claim(self.name, free, self.me, self.token):
-            fut = self.client.submit(self.executor, _task(self.info, c), pure=False,
+            fut = self.client.submit(self.executor, _task(self.info, c, self.ckpt_base), pure=False,
                                      key=f"msmill-run{c.run_id}-a{c.attempt}-{self.token[:8]}")
             self.inflight[fut] = c
 
@@ -266,13 +307,17 @@ class _Driver:
                 ok = self.store.complete(c.run_id, c.token, stats, outcome=r["outcome"], wall_s=r["wall_s"],
                                          engine=r["engine"], package_version=r["package_version"],
                                          git_commit=r["git_commit"], raw_files=r["raw_files"],
-                                         worker=r["worker"])
+                                         worker=r["worker"], cpu_s=r.get("cpu_s"), note=r.get("note"))
             except MsmillInputError as exc:  # an invalid result is a failed attempt, not a driver crash
                 self.store.fail(c.run_id, c.token, f"invalid result: {exc}")
                 self.report.failed_attempts += 1
                 return
             self.report.recorded += ok
             self.report.rejected += not ok
+            if ok and self.ckpt_base is not None:  # recorded: the run's checkpoint has served
+                from msmill.dem.checkpoint import remove_checkpoint
+
+                remove_checkpoint(self.ckpt_base / f"run{c.run_id:06d}")
             return
         exc = fut.exception()
         text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)) if exc else fut.status

@@ -58,6 +58,7 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     check_start(getattr(settings, "start", "empty"), "--start")
     check_window_from(getattr(settings, "window_from", "detection"), "--window-from")
     number(getattr(settings, "settle_s", 0.0), "settings.settle_s", unit="s", ge=0)
+    number(getattr(settings, "checkpoint_every_s", 600.0), "--checkpoint-every-s", unit="s", ge=0)
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
         raise MsmillInputError("--max-time-s", settings.max_time_s,

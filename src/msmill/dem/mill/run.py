@@ -36,6 +36,8 @@ and the outcome is ``choked`` or ``not_steady`` (:func:`msmill.steadystate.asses
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import math
 import subprocess
 import time
@@ -51,6 +53,14 @@ import pandas as pd
 import tomli_w
 
 from msmill._version import __version__
+from msmill.dem.checkpoint import (
+    CheckpointWriter,
+    code_digest,
+    first_difference,
+    has_checkpoint,
+    read_checkpoint,
+    read_header,
+)
 from msmill.dem.mill.checks import check_run_budget, check_run_inputs
 from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene, scene_extent
 from msmill.dem.mill.stats import (
@@ -73,9 +83,9 @@ from msmill.steadystate import (
     first_steady,
 )
 
-__all__ = ["MillRun", "RunSettings", "WarmStart", "check_stats_settings", "design_point", "load_raw", "mark_statistics",
-           "retrospective_outcome", "run_mill", "sampling_errors_reached", "save_run", "saved_run_feed_kg_s",
-           "saved_run_verdict", "stats_from_dir"]
+__all__ = ["MillRun", "RunSettings", "WarmStart", "check_checkpoint", "check_stats_settings", "design_point",
+           "load_raw", "mark_statistics", "resume_mill", "retrospective_outcome", "run_inputs", "run_mill",
+           "sampling_errors_reached", "save_run", "saved_run_feed_kg_s", "saved_run_verdict", "stats_from_dir"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +152,9 @@ class RunSettings:
     # (stage 2 kickback 0.43 in 0.2-0.4 s, 0.30 from 0.6 s on), 0.4-0.6 s at 10 mm, 0.2-0.3 s at 14-20 mm
     # (docs/mill-dem.md section 3)
     settle_s: float = 0.6
+    # wall time (s) between checkpoints of a run given a checkpoint directory (issue 35): a kill loses at
+    # most this much work; a checkpoint costs what the run recorded since the last one (docs/campaign.md)
+    checkpoint_every_s: float = 600.0
 
     def targets(self) -> dict[str, float]:
         """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
@@ -240,6 +253,7 @@ def run_mill(
     stats_settings: StatsSettings | None = None,
     progress: Callable[[float, int, str], None] | None = None,
     start: WarmStart | None = None,
+    checkpoint_dir: str | Path | None = None,
 ) -> MillRun:
     """Build the scene, run to steady state plus a measurement window, compute statistics.
 
@@ -255,65 +269,247 @@ def run_mill(
     start : WarmStart, optional
         Start from this finished run's hold-up (:mod:`msmill.dem.mill.warmstart`)
         instead of an empty mill (or of the stage table's, ``settings.start = "table"``).
+    checkpoint_dir : path, optional
+        Write the run's complete state there every ``settings.checkpoint_every_s`` of wall time and
+        when it ends (:mod:`msmill.dem.checkpoint`). A checkpoint already there continues the run
+        (:func:`resume_mill`) if it belongs to these inputs and this code; one of other inputs is refused
+        in one line.
     """
     rs = settings or RunSettings()
     check_run_inputs(machine, rs, size_mm, feed_psd)  # before any work: times, sizes (dem/mill/checks.py)
-    wall0 = time.perf_counter()
+    inputs = run_inputs(machine, op, size_mm, feed_psd, mode, rock, ore, rs, stats_settings, start)
+    if checkpoint_dir is not None and has_checkpoint(checkpoint_dir):
+        check_checkpoint(checkpoint_dir, inputs)
+        return resume_mill(checkpoint_dir, progress=progress, checkpoint_every_s=rs.checkpoint_every_s)
+    clock = _PartClock()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
     scene = build_scene(machine, op, size_mm=size_mm, feed_psd=feed_psd, mode=mode, rock=rock, ore=ore,
                         max_overlap_fraction=rs.max_overlap_fraction, feed_speed_m_s=rs.feed_speed_m_s, seed=rs.seed)
     check_run_budget(scene, rs)  # step count and rocks fed within msmill.validate.LIMITS
-    sim = scene.sim
-    kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
-          "snapshot_every_s": rs.snapshot_every_s, "progress": False}
-    crit = rs.criterion()
-    limit = rs.time_limit_s(scene.size_mm)
     if start is not None:
         warm = place_warm_start(scene, start, seed=rs.seed)
     elif rs.start == "table":
         warm = place_table_start(scene, seed=rs.seed)
     else:
         warm = None
-    found = None
+    loop = _Loop(limit_s=rs.time_limit_s(scene.size_mm), inputs=inputs,
+                 extra={"git_commit": commit0, "warm_start": warm})
+    writer = CheckpointWriter(checkpoint_dir) if checkpoint_dir is not None else None
+    return _drive(scene, rs, stats_settings, loop, clock, writer, progress)
+
+
+def resume_mill(checkpoint_dir: str | Path, progress: Callable[[float, int, str], None] | None = None,
+                checkpoint_every_s: float | None = None) -> MillRun:
+    """Continue a run from the checkpoint in ``checkpoint_dir`` (written by :func:`run_mill`).
+
+    The run continues with the inputs it was started with and gives the trajectory and statistics the
+    uninterrupted run would have given (bitwise, on the same machine and libraries). Its wall and CPU
+    time are the sums over its parts (``extra["parts"]``; the work a killed part did after its last
+    checkpoint is done again and not counted). A checkpoint of other code than this
+    (:func:`msmill.dem.checkpoint.code_digest`) is refused in one line.
+
+    Parameters
+    ----------
+    checkpoint_dir : path
+    progress : callable, optional
+        As for :func:`run_mill`.
+    checkpoint_every_s : float, optional
+        Another checkpoint interval (s of wall time) for the rest of the run.
+    """
+    clock = _PartClock()
+    head = read_header(checkpoint_dir)
+    if head.get("kind") != CHECKPOINT_KIND:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir), "a checkpoint of a mill run (msmill dem run)")
+    digest = code_digest()
+    if head.get("code_digest") != digest:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir),
+                               f"a checkpoint of this code (DEM code {digest}; it was written by "
+                               f"{head.get('code_digest')}, msmill {head.get('msmill_version')}, commit "
+                               f"{str(head.get('git_commit'))[:12]}): start the run afresh")
+    head, state = read_checkpoint(checkpoint_dir)
+    rs: RunSettings = state["settings"]
+    if checkpoint_every_s is not None:
+        rs = replace(rs, checkpoint_every_s=float(checkpoint_every_s))
+    writer = CheckpointWriter(checkpoint_dir, head["segments"])
+    return _drive(state["scene"], rs, state["stats_settings"], state["loop"], clock, writer, progress, resumed=True)
+
+
+def check_checkpoint(checkpoint_dir: str | Path, inputs: dict[str, Any]) -> None:
+    """Raise :class:`MsmillInputError` (one line) unless the checkpoint belongs to ``inputs`` and this code.
+
+    ``inputs``: :func:`run_inputs` of the run that would continue from it.
+    """
+    head = read_header(checkpoint_dir)
+    digest = code_digest()
+    if head.get("code_digest") != digest:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir),
+                               f"a checkpoint of this code (DEM code {digest}, the checkpoint's "
+                               f"{head.get('code_digest')})")
+    diff = first_difference(json.loads(json.dumps(inputs, default=str)), head.get("inputs", {}))
+    if diff is not None:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir), f"a checkpoint of this run's settings ({diff})")
+
+
+def run_inputs(machine: Machine, op: OperatingPoint, size_mm: float | None, feed_psd: tuple[Any, Any] | None,
+               mode: str, rock: RockMaterial | None, ore: str | None, settings: RunSettings,
+               stats_settings: StatsSettings | None, start: WarmStart | None) -> dict[str, Any]:
+    """What a run's checkpoint must match: every input of :func:`run_mill` (JSON-able; not the
+    checkpoint interval, which a resumed run may change)."""
+    rs = asdict(settings)
+    rs.pop("checkpoint_every_s")
+    feed = None if feed_psd is None else [np.asarray(x, float).tolist() for x in feed_psd]
+    warm = None
+    if start is not None:
+        h = hashlib.sha256(pd.util.hash_pandas_object(start.particles, index=False).to_numpy().tobytes())
+        warm = {"source": start.source, "time_s": start.time_s, "particles_sha256": h.hexdigest()}
+    return {"machine": machine.model_dump(mode="json"), "operating_point": op.model_dump(mode="json"),
+            "size_mm": size_mm, "feed_psd": feed, "mode": mode, "rock": None if rock is None else asdict(rock),
+            "ore": ore, "settings": rs, "stats_settings": None if stats_settings is None else asdict(stats_settings),
+            "warm_start": warm}
+
+
+CHECKPOINT_KIND = "msmill.dem.mill.run"
+
+
+class _PartClock:
+    """Wall and CPU time of this process's part of a run (not checkpointed: each part has its own)."""
+
+    def __init__(self) -> None:
+        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
+
+    def update(self, part: dict[str, Any]) -> None:
+        part["wall_s"] = time.perf_counter() - self.wall0
+        part["cpu_s"] = time.process_time() - self.cpu0
+
+
+@dataclass
+class _Loop:
+    """The run loop's state between engine chunks: what a checkpoint holds besides the scene.
+
+    ``phase``: ``"transient"`` (waiting for steady state, at most ``limit_s``), ``"measure"`` (the
+    window ``t_start``-``t_stop``, the adaptive window's next check at ``t_check``), ``"done"``.
+    ``parts``: one record per process that ran part of the run (host, wall and CPU time, simulated
+    time from / to).
+    """
+
+    limit_s: float
+    inputs: dict[str, Any]
+    extra: dict[str, Any]
+    phase: str = "transient"
+    found: tuple[float, float] | None = None
+    verdict: SteadyStateVerdict | None = None
+    t_start: float = 0.0
+    t_stop: float = 0.0
+    t_check: float = 0.0
+    parts: list[dict[str, Any]] = field(default_factory=list)
+
+    def totals(self) -> tuple[float, float]:
+        """Wall and CPU time (s) over the parts."""
+        return sum(p["wall_s"] for p in self.parts), sum(p["cpu_s"] for p in self.parts)
+
+
+def _drive(scene: MillScene, rs: RunSettings, stats_settings: StatsSettings | None, loop: _Loop,
+           clock: _PartClock, writer: CheckpointWriter | None,
+           progress: Callable[[float, int, str], None] | None, resumed: bool = False) -> MillRun:
+    """Run the loop from its state to the end; checkpoint on the way; the finished run."""
+    import platform
+
+    sim = scene.sim
+    kw = {"dt_s": rs.dt_s, "max_relative_speed_m_s": scene.max_impact_speed_m_s, "safety": rs.safety,
+          "snapshot_every_s": rs.snapshot_every_s, "progress": False}
+    crit = rs.criterion()
+    part = {"host": platform.node(), "started_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "resumed": resumed, "sim_from_s": float(sim.time_s), "sim_to_s": float(sim.time_s),
+            "wall_s": 0.0, "cpu_s": 0.0, "git_commit": git_commit() if resumed else loop.extra.get("git_commit")}
+    loop.parts.append(part)
+    last_write = time.perf_counter()
 
     def remaining(t_end: float) -> float:
         # time left, treating less than half a step as nothing (the engine runs whole steps)
         left = t_end - sim.time_s
         return left if left > 0.5 * (sim.dt_s or 0.0) + 1e-12 else 0.0
 
-    while remaining(limit) > 0:
-        sim.run(min(rs.chunk_s, remaining(limit)), **kw)
+    def advance(t_end: float, phase: str) -> None:
+        sim.run(min(rs.chunk_s, remaining(t_end)), **kw)
         if progress:
-            progress(sim.time_s, int(sim.n_particles), "transient")
-        found = _first_steady(sim.timeseries(), scene.feed_kg_s, crit)
-        if found is not None:
-            break
-    verdict = _verdict(sim.timeseries(), scene.feed_kg_s, crit)
-    t_start = window_start_s(rs, found, sim.time_s)
-    extra = {"git_commit": commit0, "time_limit_s": limit, "warm_start": warm, "outcome": verdict.outcome}
+            progress(sim.time_s, int(sim.n_particles), phase)
+
+    def checkpoint_if_due() -> None:
+        # at the end of a loop pass, with the loop's state updated: a resumed loop starts the next pass
+        nonlocal last_write
+        if writer is not None and time.perf_counter() - last_write >= rs.checkpoint_every_s:
+            _write_checkpoint(writer, scene, rs, stats_settings, loop, clock, part)
+            last_write = time.perf_counter()
 
     def finish(ss: StatsSettings | None = stats_settings) -> MillRun:
-        return _finish(scene, rs, found, verdict, (t_start, sim.time_s), time.perf_counter() - wall0, extra, ss)
+        clock.update(part)
+        part["sim_to_s"] = float(sim.time_s)
+        wall_s, cpu_s = loop.totals()
+        loop.extra.update(cpu_s=cpu_s, parts=[dict(p) for p in loop.parts])
+        return _finish(scene, rs, loop.found, loop.verdict, (loop.t_start, sim.time_s), wall_s, loop.extra, ss)
 
     quick = check_stats_settings(stats_settings)
-    if found is not None:
-        t_stop = t_start + (rs.max_measure_s if rs.adaptive else rs.measure_s)
-        t_check = t_start + rs.min_measure_s
-        checks: list[dict[str, Any]] = []
-        extra["window_checks"] = checks  # what each check found above its target (provenance)
-        while remaining(t_stop) > 0:
-            if rs.adaptive and rs.check_due(t_check, sim.time_s):
-                t_check = rs.next_check_s(t_start, sim.time_s)
-                above = missed_targets(finish(quick).stats.run.sampling_error_reached, rs.targets())
-                checks.append({"window_end_s": round(sim.time_s, 6), "above_target": above})
-                if not above:
-                    break
-            sim.run(min(rs.chunk_s, remaining(t_stop)), **kw)
-            if progress:
-                progress(sim.time_s, int(sim.n_particles), "measure")
+    while loop.phase != "done":
+        if loop.phase == "transient":
+            if remaining(loop.limit_s) > 0:
+                advance(loop.limit_s, "transient")
+                loop.found = _first_steady(sim.timeseries(), scene.feed_kg_s, crit)
+            if loop.found is None and remaining(loop.limit_s) > 0:
+                checkpoint_if_due()
+                continue
+            _enter_window(loop, rs, sim.timeseries(), scene.feed_kg_s, crit, sim.time_s)
+        elif remaining(loop.t_stop) <= 0:
+            loop.phase = "done"
+        elif rs.adaptive and rs.check_due(loop.t_check, sim.time_s) and _window_check(loop, rs, finish(quick),
+                                                                                      sim.time_s):
+            loop.phase = "done"
+        else:
+            advance(loop.t_stop, "measure")
+            checkpoint_if_due()
+    if writer is not None:  # the finished state: a kill while the results are computed or saved loses nothing
+        _write_checkpoint(writer, scene, rs, stats_settings, loop, clock, part)
     run = finish()
-    run.wall_s = time.perf_counter() - wall0
+    clock.update(part)  # the statistics' time too
+    run.wall_s, cpu_s = loop.totals()
+    run.extra.update(cpu_s=cpu_s, parts=[dict(p) for p in loop.parts])
     return run
+
+
+def _enter_window(loop: _Loop, rs: RunSettings, ts: pd.DataFrame, feed_kg_s: float, crit: SteadyStateCriterion,
+                  now_s: float) -> None:
+    """End of the transient: the verdict, the measurement window and the adaptive window's first check."""
+    loop.verdict = _verdict(ts, feed_kg_s, crit)
+    loop.t_start = window_start_s(rs, loop.found, now_s)
+    loop.extra.update(time_limit_s=loop.limit_s, outcome=loop.verdict.outcome)
+    if loop.found is None:
+        loop.phase = "done"
+        return
+    loop.t_stop = loop.t_start + (rs.max_measure_s if rs.adaptive else rs.measure_s)
+    loop.t_check = loop.t_start + rs.min_measure_s
+    loop.extra["window_checks"] = []  # what each check found above its target (provenance)
+    loop.phase = "measure"
+
+
+def _window_check(loop: _Loop, rs: RunSettings, run: MillRun, now_s: float) -> bool:
+    """One check of the adaptive window on the run so far; True when every target is met."""
+    loop.t_check = rs.next_check_s(loop.t_start, now_s)
+    above = missed_targets(run.stats.run.sampling_error_reached, rs.targets())
+    loop.extra["window_checks"].append({"window_end_s": round(now_s, 6), "above_target": above})
+    return not above
+
+
+def _write_checkpoint(writer: CheckpointWriter, scene: MillScene, rs: RunSettings,
+                      stats_settings: StatsSettings | None, loop: _Loop, clock: _PartClock,
+                      part: dict[str, Any]) -> None:
+    clock.update(part)
+    part["sim_to_s"] = float(scene.sim.time_s)
+    wall_s, cpu_s = loop.totals()
+    header = {"kind": CHECKPOINT_KIND, "code_digest": code_digest(), "msmill_version": __version__,
+              "git_commit": loop.extra.get("git_commit"), "inputs": json.loads(json.dumps(loop.inputs, default=str)),
+              "written_utc": datetime.now(UTC).isoformat(timespec="seconds"), "sim_time_s": float(scene.sim.time_s),
+              "phase": loop.phase, "wall_s": wall_s, "cpu_s": cpu_s, "parts": len(loop.parts)}
+    state = {"scene": scene, "settings": rs, "stats_settings": stats_settings, "loop": loop}
+    writer.write(header, state, scene.sim.append_only_lists())
 
 
 def check_stats_settings(stats_settings: StatsSettings | None = None) -> StatsSettings:
@@ -456,6 +652,9 @@ def _provenance(run: MillRun) -> dict[str, Any]:
         "run_settings": asdict(run.settings),
         "dt_s": run.extra.get("dt_s"),
         "wall_s": run.wall_s,
+        # over the run's parts (one per process that ran it: a run resumed from checkpoints has several)
+        "cpu_s": run.extra.get("cpu_s"),
+        "parts": run.extra.get("parts"),
         "steady_state_detected_s": run.steady_state_detected_s,
         "steady_state_reached": run.steady_state_time_s is not None,
         "end_time_s": run.window_s[1],

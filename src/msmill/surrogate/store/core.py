@@ -113,6 +113,8 @@ class RunRecord:
     package_version: str | None
     engine: str | None
     run_settings: dict[str, Any] | None
+    cpu_s: float | None = None
+    note: str | None = None
 
     @classmethod
     def from_row(cls, r: RunRow, campaign: str | None) -> RunRecord:
@@ -123,7 +125,8 @@ class RunRecord:
                    campaign=campaign, mode=r.mode, source=r.source, status=r.status, outcome=r.outcome,
                    attempts=r.attempts, seed=r.seed, worker=r.worker, error=r.error, wall_s=r.wall_s,
                    content_hash=r.content_hash, source_path=r.source_path, git_commit=r.git_commit,
-                   package_version=r.package_version, engine=r.engine, run_settings=r.run_settings)
+                   package_version=r.package_version, engine=r.engine, run_settings=r.run_settings,
+                   cpu_s=r.cpu_s, note=r.note)
 
 
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:

@@ -188,8 +188,11 @@ class QueueMixin:
     def complete(self, run_id: int, token: str, stats: RunStatistics, *, outcome: str | None = None,
                  wall_s: float | None = None, engine: str | None = None, package_version: str | None = None,
                  git_commit: str | None = None, raw_files: list[dict[str, Any]] | None = None,
-                 worker: str | None = None) -> bool:
-        """Record the result of a claimed run; False (nothing written) if this driver no longer holds it."""
+                 worker: str | None = None, cpu_s: float | None = None, note: str | None = None) -> bool:
+        """Record the result of a claimed run; False (nothing written) if this driver no longer holds it.
+
+        ``wall_s``, ``cpu_s``: over the run's parts; ``note``: e.g. that it resumed from a checkpoint.
+        """
         outcome = outcome or outcome_of(stats)
         if outcome not in OUTCOMES:
             raise MsmillInputError("outcome", outcome, ", ".join(OUTCOMES))
@@ -197,7 +200,7 @@ class QueueMixin:
             if not self._take(s, run_id, token, {"status": "done", "outcome": outcome, "finished_at": utcnow(),
                                                  "wall_s": wall_s, "heartbeat_at": None, "engine": engine,
                                                  "package_version": package_version, "git_commit": git_commit,
-                                                 "worker": worker}):
+                                                 "worker": worker, "cpu_s": cpu_s, "note": note}):
                 return False
             run = s.get(RunRow, run_id, populate_existing=True)
             h = statistics_hash(stats, run.machine.content_hash)

@@ -107,7 +107,10 @@ class RunRow(Base):
     planned_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime)
-    wall_s: Mapped[float | None] = mapped_column(Float)
+    wall_s: Mapped[float | None] = mapped_column(Float)  # over the run's parts (a resumed run has several)
+    cpu_s: Mapped[float | None] = mapped_column(Float)
+    # what the run record should say besides errors: resumed from a checkpoint, a checkpoint refused
+    note: Mapped[str | None] = mapped_column(Text)
     error: Mapped[str | None] = mapped_column(Text)
     engine: Mapped[str | None] = mapped_column(String(100))  # e.g. "msmill.dem 0.1.0", "LIGGGHTS 3.8"
     package_version: Mapped[str | None] = mapped_column(String(50))
