@@ -501,6 +501,7 @@ def _window_check(loop: _Loop, rs: RunSettings, run: MillRun, now_s: float) -> b
 def _write_checkpoint(writer: CheckpointWriter, scene: MillScene, rs: RunSettings,
                       stats_settings: StatsSettings | None, loop: _Loop, clock: _PartClock,
                       part: dict[str, Any]) -> None:
+    tic = time.perf_counter()
     clock.update(part)
     part["sim_to_s"] = float(scene.sim.time_s)
     wall_s, cpu_s = loop.totals()
@@ -510,6 +511,9 @@ def _write_checkpoint(writer: CheckpointWriter, scene: MillScene, rs: RunSetting
               "phase": loop.phase, "wall_s": wall_s, "cpu_s": cpu_s, "parts": len(loop.parts)}
     state = {"scene": scene, "settings": rs, "stats_settings": stats_settings, "loop": loop}
     writer.write(header, state, scene.sim.append_only_lists())
+    # the cost of checkpointing, in the part's record (a checkpoint holds those before it)
+    part["checkpoints"] = part.get("checkpoints", 0) + 1
+    part["checkpoint_s"] = part.get("checkpoint_s", 0.0) + (time.perf_counter() - tic)
 
 
 def check_stats_settings(stats_settings: StatsSettings | None = None) -> StatsSettings:
