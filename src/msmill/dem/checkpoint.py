@@ -41,7 +41,7 @@ SEGMENTS = "seg"
 #: modules whose code decides a run's trajectory and when it stops (engine, mill scene and run loop,
 #: statistics behind the adaptive window, steady-state test, machine): a checkpoint written by other
 #: code of these is refused. Other modules (model, CLI, docs) may change under a long run.
-TRAJECTORY_CODE = ("dem", "steadystate.py", "machine.py", "stageparams.py", "distributions.py")
+TRAJECTORY_CODE = ("dem", "steadystate.py", "machine.py", "stageparams.py", "distributions.py", "sampling.py")
 
 
 def code_digest() -> str:

@@ -261,7 +261,7 @@ def checkpoint_base(store: Store, info: Any) -> Path | None:
     return base / hashlib.sha256(store.url.encode()).hexdigest()[:12] / info.name
 
 
-def _task(store_info: Any, claim: Claim, ckpt_base: Path | None) -> dict[str, Any]:
+def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None) -> dict[str, Any]:
     return {"machine_toml": store_info.machine_toml, "design": claim.design.model_dump(), "mode": store_info.mode,
             "run_settings": dict(store_info.run_settings, seed=claim.seed), "options": store_info.options,
             "run_id": claim.run_id, "attempt": claim.attempt,

@@ -78,6 +78,7 @@ from msmill.distributions import (
 )
 from msmill.errors import MsmillError, MsmillInputError
 from msmill.machine import Machine
+from msmill.sampling import slice_sums
 from msmill.stageparams import (
     FILLING_BINS,
     FILLING_MIN_TAGS,
@@ -157,6 +158,9 @@ class StatsSettings:
     count_criterion: str = "bic"
     velocity_fit: str = "ml"
     with_filling_transport: bool = True
+    #: record each statistic's per-slice numerator and denominator over this many equal slices of the window
+    #: (:attr:`MillStatistics.series`; 0: none), the input of every estimator of :mod:`msmill.sampling`
+    series_slices: int = 0
 
     def __post_init__(self) -> None:
         if self.velocity_fit not in ("ml", "binned_kl"):
@@ -173,6 +177,9 @@ class MillStatistics:
     streams_by_size: pd.DataFrame | None = None
     #: standard error of the window's mean hold-up over that mean (batch means of the time series; NaN: none)
     holdup_rel_se: float = float("nan")
+    #: ``StatsSettings.series_slices > 0``: per statistic (``"s<stage>.<name>"``, ``"holdup"``) its ratio's
+    #: per-slice ``num`` and ``den`` over equal slices of the window (``window_s``: the slices' span, s)
+    series: dict[str, dict[str, Any]] | None = None
 
 
 # --------------------------------------------------------------------------- basics
@@ -590,7 +597,7 @@ def compute_statistics(
     tr = _transport(machine, snaps, clean.removed, clock, rock_density_kg_m3, s_.n_batches)
     ev = identify_impacts(machine, clean.events, clean.snapshots)
     prim = ev[ev["is_primary"]]
-    hits, hits_b = _hit_probabilities(tr.pairs, prim)
+    hits, hits_b, hit_tags = _hit_probabilities(tr.pairs, prim)
     counts = _secondary_counts(ev, (t0, t1), clock.tau_s, s_)
     region_streams = _region_streams(machine, snaps, tr.pairs) if mode == "full" and len(tr.pairs) else None
     holdup = snaps.assign(stage=stage_of_z(machine, snaps["z_m"].to_numpy()),
@@ -634,7 +641,49 @@ def compute_statistics(
         filling_transport=(filling_transport(machine, clean.snapshots, clean.removed, (t0, t1), clock.lag,
                                              rock_density_kg_m3) if s_.with_filling_transport else None),
     )
-    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size, holdup_rel_se=hold_rel_se)
+    series = (_slice_series(machine.n_stages, tr.pairs, hit_tags, prim, ev, counts, timeseries, (t0, t1), clock.tau_s,
+                            s_.series_slices) if s_.series_slices > 0 else None)
+    return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size, holdup_rel_se=hold_rel_se,
+                          series=series)
+
+
+def _slice_series(n_stages: int, pairs: pd.DataFrame, hit_tags: pd.DataFrame, prim: pd.DataFrame, ev: pd.DataFrame,
+                  counts: _Counts, timeseries: pd.DataFrame, window_s: tuple[float, float], tau_s: float,
+                  n: int) -> dict[str, dict[str, Any]]:
+    """Every statistic's ratio as per-slice numerator and denominator (:attr:`MillStatistics.series`).
+
+    Streams and hit probability: tagged mass going each way (hit) over tagged mass, by tag time; velocity
+    means: speeds over impacts, by impact time; count mean: secondary impacts over primaries, by the
+    primary's time in the window's counted part ``(t0, t1 - tau)``; hold-up: mass over samples of the
+    time series.
+    """
+    def pack(span: tuple[float, float], t: np.ndarray, num_w: np.ndarray, den_w: np.ndarray | float) -> dict:
+        return {"window_s": [float(span[0]), float(span[1])],
+                "num": slice_sums(t, num_w, span, n).tolist(), "den": slice_sums(t, den_w, span, n).tolist()}
+
+    t0, t1 = window_s
+    out: dict[str, dict[str, Any]] = {}
+    counted = (t0, max(t1 - tau_s, t0 + 1e-9))
+    for s in range(1, n_stages + 1):
+        p = pairs[pairs["stage_from"] == s] if len(pairs) else pairs
+        if len(p):
+            t, m, cat = p["time_s"].to_numpy(), p["mass_kg"].to_numpy(), p["category"].to_numpy()
+            for k, name in enumerate(("kickback", "refeed", "pass_through")):
+                out[f"s{s}.{name}"] = pack(window_s, t, m * (cat == k), m)
+        h = hit_tags[hit_tags["stage"] == s] if len(hit_tags) else hit_tags
+        if len(h):
+            out[f"s{s}.primary_hit_probability"] = pack(window_s, h["time_s"].to_numpy(), h["mh"].to_numpy(),
+                                                        h["mass_kg"].to_numpy())
+        sp = prim["stage"].to_numpy() == s
+        out[f"s{s}.primary_velocity_mean_m_s"] = pack(window_s, prim["time_s"].to_numpy()[sp],
+                                                      prim["vn_m_s"].to_numpy()[sp], 1.0)
+        rows = counts.sec_rows[counts.sec_stage == s]
+        out[f"s{s}.secondary_velocity_mean_m_s"] = pack(window_s, counts.time_s[rows], counts.vn_m_s[rows], 1.0)
+        pr = counts.pr_rows[counts.pr_stage == s]
+        out[f"s{s}.secondary_lambda"] = pack(counted, counts.time_s[pr], counts.counts_all[pr], 1.0)
+    if len(timeseries):
+        out["holdup"] = pack(window_s, timeseries["time_s"].to_numpy(), timeseries["mass_kg"].to_numpy(), 1.0)
+    return out
 
 
 @dataclass(frozen=True)
@@ -729,10 +778,11 @@ def _transport(machine: Machine, snaps: pd.DataFrame, removed: pd.DataFrame, clo
     return _Transport(pairs, _destinations(pairs_all, machine.n_stages), streams, bstreams)
 
 
-def _hit_probabilities(pairs: pd.DataFrame, prim: pd.DataFrame) -> tuple[pd.Series, pd.DataFrame]:
-    """Per stage (and per stage and batch): mass share of tagged rock hit by a rotor of its stage in (t, t + tau]."""
+def _hit_probabilities(pairs: pd.DataFrame, prim: pd.DataFrame) -> tuple[pd.Series, pd.DataFrame, pd.DataFrame]:
+    """Per stage (and per stage and batch): mass share of tagged rock hit by a rotor of its stage in (t, t + tau];
+    and the tags with their hit mass ``mh``."""
     if not len(pairs):
-        return pd.Series(dtype=float), pd.DataFrame()
+        return pd.Series(dtype=float), pd.DataFrame(), pd.DataFrame()
     tags = pairs[["time_s", "t_to", "particle_id", "stage_from", "mass_kg", "batch"]].rename(
         columns={"stage_from": "stage"}).sort_values("time_s")
     p = prim[["time_s", "particle_id", "stage"]].rename(columns={"time_s": "t_hit"}).sort_values("t_hit")
@@ -744,7 +794,7 @@ def _hit_probabilities(pairs: pd.DataFrame, prim: pd.DataFrame) -> tuple[pd.Seri
     nxt["mh"] = nxt["mass_kg"] * nxt["hit"]
     g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
     gb = nxt.groupby(["stage", "batch"])[["mh", "mass_kg"]].sum()
-    return g["mh"] / g["mass_kg"], (gb["mh"] / gb["mass_kg"]).rename("p").reset_index()
+    return g["mh"] / g["mass_kg"], (gb["mh"] / gb["mass_kg"]).rename("p").reset_index(), nxt
 
 
 @dataclass(frozen=True)

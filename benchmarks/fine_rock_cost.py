@@ -1,0 +1,83 @@
+"""Benchmark: what a campaign run costs at fine rock, from the committed exports (runs no DEM; issue 35).
+
+Reads ``benchmarks/data/fine_rock_cost/<size>mm/cost.json`` (written by ``scripts/fine_rock_cost.py``:
+one campaign-protocol slice run per size at 30 t/h, 1500 rpm, gates 40 deg) and prints per size the
+wall and CPU time, rocks in the slice, time step, onset, settle and window lengths, the step kernels'
+share and the checkpoints' cost. Then the cost model the active-learning planner uses
+(:class:`msmill.surrogate.active.CostModel`, fitted to the training campaign's wall times) against the
+measured points, and the model refitted with them, and the physical scaling from the coarsest
+measured size (rock-steps: rocks in the slice x simulated time / time step).
+
+Last line: ``sizes_mm=<s,...> wall_h=<...> cpu_h=<...> rocks=<...>`` (sizes without an export are left
+out and named on the line above).
+
+Run: ``python benchmarks/fine_rock_cost.py [--data DIR] [--sizes-mm 4 3 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from msmill.surrogate.active import CostModel
+from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
+
+DATA = Path(__file__).parent / "data" / "fine_rock_cost"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--sizes-mm", type=float, nargs="+", default=[4.0, 3.0, 2.0])
+    a = ap.parse_args(argv)
+    rows, missing = [], []
+    for s in a.sizes_mm:
+        f = a.data / f"{s:g}mm" / "cost.json"
+        if f.is_file():
+            rows.append(json.loads(f.read_text(encoding="utf-8")))
+        else:
+            missing.append(s)
+    print("size_mm  wall_h  cpu_h  parts  rocks  dt_us  onset_s  window_s  kernels  checkpoints(s)")
+    for r in rows:
+        ck = sum(p.get("checkpoint_s", 0.0) for p in r["parts"])
+        nck = sum(p.get("checkpoints", 0) for p in r["parts"])
+        onset = r["steady_state_time_s"]
+        print(f"{r['size_mm']:7g}  {r['wall_s'] / 3600:6.3f}  {r['cpu_s'] / 3600:5.3f}  {len(r['parts']):5d}  "
+              f"{r['rocks_in_slice_window_mean']:5.0f}  {r['dt_s'] * 1e6:5.2f}  "
+              f"{'-' if onset is None else f'{onset:.2f}':>7}  {r['window_length_s']:8.2f}  "
+              f"{r['step_kernels_share_of_wall']:7.2f}  {nck} ({ck:.1f})")
+    if missing:
+        print("no export yet for: " + ", ".join(f"{s:g} mm" for s in missing))
+    if rows:
+        X = np.array([[r["size_mm"], r["feed_tph"], r["speed_rpm"], r["gate_deg"]] for r in rows])
+        t = np.array([r["wall_s"] for r in rows])
+        train = [x.stats for x in split_runs(read_export(default_export_dir()))[0]]
+        planner = CostModel.from_runs(train)  # what campaign.active_planner fits
+        timed = [x for x in train if x.provenance.get("wall_s")]
+        X_train = np.array([[x.design.size_mm, x.design.feed_tph, x.design.speed_rpm, x.design.gate_deg]
+                            for x in timed])
+        refit = CostModel.from_timings(np.vstack([X_train, X]), [x.provenance["wall_s"] for x in timed] + list(t))
+        pred, pred2 = planner.predict_s(X), refit.predict_s(X)
+        print(f"planner's cost model ({planner.n_timings} training-run timings): wall ~ size^{planner.coef[1]:.2f} "
+              f"feed^{planner.coef[2]:.2f}; refitted with these {len(rows)}: size^{refit.coef[1]:.2f} "
+              f"feed^{refit.coef[2]:.2f}")
+        ref = rows[int(np.argmax(X[:, 0]))]
+        for r, p1, p2 in zip(rows, pred, pred2, strict=True):
+            # rock-steps from the coarsest measured size: rocks x simulated time / dt
+            phys = (ref["wall_s"] * (r["rocks_in_slice_window_mean"] / ref["rocks_in_slice_window_mean"])
+                    * (r["window_s"][1] / ref["window_s"][1]) * (ref["dt_s"] / r["dt_s"]))
+            print(f"{r['size_mm']:g} mm: measured {r['wall_s'] / 3600:.3f} h; planner predicted {p1 / 3600:.3f} h "
+                  f"({p1 / r['wall_s']:.2f}x); refitted {p2 / 3600:.3f} h ({p2 / r['wall_s']:.2f}x); rocks x "
+                  f"steps from {ref['size_mm']:g} mm {phys / 3600:.3f} h ({phys / r['wall_s']:.2f}x)")
+    print("sizes_mm=" + ",".join(f"{r['size_mm']:g}" for r in rows)
+          + " wall_h=" + ",".join(f"{r['wall_s'] / 3600:.3f}" for r in rows)
+          + " cpu_h=" + ",".join(f"{r['cpu_s'] / 3600:.3f}" for r in rows)
+          + " rocks=" + ",".join(f"{r['rocks_in_slice_window_mean']:.0f}" for r in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
