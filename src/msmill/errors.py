@@ -39,6 +39,10 @@ class OutOfDomainWarning(UserWarning):
     """An input lies outside the range a model or surrogate was built on."""
 
 
+class ThinDataWarning(OutOfDomainWarning):
+    """Inside the trained range, but far from every training run: the prediction rests on thin data."""
+
+
 class SummaryNote(UserWarning):
     r"""Information for the run's summary, not a warning (e.g. sizes clamped to the DEM data).
 

@@ -131,6 +131,9 @@ class StageParameters:
         DEM measured it (``destinations``); rows sum to 1.
     extrapolated : ndarray, shape (N,) of bool or None
         Size classes whose parameters were extrapolated outside the sizes measured.
+    thin_data : ndarray, shape (N,) of bool or None
+        Size classes inside the sizes measured whose parameters rest on thin data: far from every
+        training run (a surrogate's posterior spread above what its own runs have, each left out).
     transition_lag_s : ndarray, shape (N,) or None
         Lag (s) at which each class's ``transition`` was measured (the runs'
         characteristic times, interpolated); the transport converts it to the step.
@@ -161,6 +164,7 @@ class StageParameters:
     secondary_count: CountArrays | None = None
     transition: np.ndarray | None = None
     extrapolated: np.ndarray | None = None
+    thin_data: np.ndarray | None = None
     transition_lag_s: np.ndarray | None = None
     filling_fill: np.ndarray | None = None
     filling_residence_ratio: np.ndarray | None = None

@@ -113,6 +113,9 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         *(_capacity_rows(result) if result.capacity_tph is not None else []),
         ("feed / product mass with extrapolated stage statistics (%)",
          f"{result.extrapolated_feed_pct:.3g} / {result.extrapolated_product_pct:.3g}"),
+        *([("feed / product mass with stage statistics from thin data (%)",
+            f"{result.thin_data_feed_pct:.3g} / {result.thin_data_product_pct:.3g}")]
+          if result.thin_data_product_pct == result.thin_data_product_pct else []),  # not NaN
     ]
     for r in rows:
         t.add_row(*r)

@@ -528,13 +528,16 @@ class Mill:
 
 
 def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
-    """The result with the feed and product mass % whose stage parameters were extrapolated."""
-    mask = getattr(params, "extrapolated", None)
-    if mask is None:
-        return res
-    mask = np.asarray(mask, dtype=bool)
-    return dataclasses.replace(res, extrapolated_feed_pct=100.0 * float(res.feed_psd.fractions[mask].sum()),
-                               extrapolated_product_pct=100.0 * float(res.product_psd.fractions[mask].sum()))
+    """The result with the feed and product mass % whose stage parameters were extrapolated, or rest on
+    thin data (inside the trained sizes, far from every training run)."""
+    out = {}
+    for field, key in (("extrapolated", "extrapolated"), ("thin_data", "thin_data")):
+        mask = getattr(params, field, None)
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            out[f"{key}_feed_pct"] = 100.0 * float(res.feed_psd.fractions[mask].sum())
+            out[f"{key}_product_pct"] = 100.0 * float(res.product_psd.fractions[mask].sum())
+    return dataclasses.replace(res, **out) if out else res
 
 
 def simulate(ore: Any, feed: PSD, operating_point: Any, stage_parameters: Any, machine: Any = None,

@@ -63,6 +63,10 @@ class MillResult:
     extrapolated_feed_pct, extrapolated_product_pct : float
         Mass % of the feed and of the product in size classes whose stage
         parameters were extrapolated outside the sizes the statistics cover.
+    thin_data_feed_pct, thin_data_product_pct : float
+        Mass % of the feed and of the product in size classes inside the sizes
+        covered whose stage parameters rest on thin data (far from every
+        training run, :class:`msmill.errors.ThinDataWarning`).
     p80_band_mm : tuple of float or None
         5-95 % band of P80 (mm) over posterior samples of the stage
         parameters, when the provider gives them (the GP surrogate); else None
@@ -107,6 +111,8 @@ class MillResult:
     notes: tuple[str, ...] = ()
     extrapolated_feed_pct: float = float("nan")
     extrapolated_product_pct: float = float("nan")
+    thin_data_feed_pct: float = float("nan")
+    thin_data_product_pct: float = float("nan")
     p80_band_mm: tuple[float, float] | None = None
     psd_band: pd.DataFrame | None = None
     band_samples: int = 0
@@ -130,6 +136,7 @@ class MillResult:
             "mass_balance_error": self.mass_balance_error,
             "extrapolated_feed_pct": self.extrapolated_feed_pct,
             "extrapolated_product_pct": self.extrapolated_product_pct,
+            "thin_data_feed_pct": self.thin_data_feed_pct, "thin_data_product_pct": self.thin_data_product_pct,
         })
 
 

@@ -204,6 +204,29 @@ class SurrogateGP:
             std = np.sqrt(np.maximum(var, 0.0)).T * st.y_std
         return mean, std
 
+    def spread_ratio(self, X: np.ndarray) -> np.ndarray:
+        """Posterior sd of the mean over the prior sd at ``X`` (P, 4), the median over targets: (P,).
+
+        Near a training run it is small (the run pins the mean down to its noise); far from every
+        run it approaches 1 (the GP knows only its prior there).
+        """
+        _mean, std = self.predict(X, return_std=True)
+        st = self._stacked()
+        return np.median(std / (np.sqrt(st.prior_var) * st.y_std)[None, :], axis=1)
+
+    def loo_spread_ratio(self) -> np.ndarray:
+        """:meth:`spread_ratio` at every training run with that run left out (closed form): (R,).
+
+        The leave-one-out predictive variance including the run's noise is ``1 / [K^-1]_ii``; less
+        the noise (the sampling variance, the fitted white noise and the jitter) it is the latent
+        variance the other runs leave at the run's point.
+        """
+        st = self._stacked()
+        kinv_diag = np.einsum("tri,tri->ti", st.L_inv, st.L_inv)  # diag of K^-1 = L^-T L^-1, (T, R)
+        noise = (self.noise_var_ / self.y_std_**2).T + JITTER + st.white[:, None]
+        var = np.maximum(1.0 / kinv_diag - noise, 0.0)
+        return np.median(np.sqrt(var / st.prior_var[:, None]), axis=0)
+
     def sample(self, X: np.ndarray, n_samples: int, outputs=None, rng=None) -> np.ndarray:
         """Joint posterior samples of the latent targets over the points ``X``.
 

@@ -11,7 +11,10 @@ uncertainty bands on the product.
 
 Warnings (:class:`msmill.errors.OutOfDomainWarning`, saying by how much):
 sizes, feed rate, gate angle or a stage's (equivalent) speed outside what the
-surrogate was trained on, and operating points outside the design space.
+surrogate was trained on, and operating points outside the design space;
+(:class:`msmill.errors.ThinDataWarning`) size classes inside the trained box
+that lie far from every training run (:meth:`StageSurrogate.data_support`),
+naming the nearest run.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msmill.errors import OutOfDomainWarning, SummaryNote
+from msmill.errors import OutOfDomainWarning, SummaryNote, ThinDataWarning
 from msmill.providers_base import CountArrays, MixtureArrays, StageParameters
 from msmill.surrogate.space import INPUTS
 from msmill.surrogate.stage_model import StageSurrogate
@@ -125,11 +128,31 @@ class SurrogateProvider:
         if msgs:
             warnings.warn(f"{self.source}: extrapolating: " + "; ".join(msgs), OutOfDomainWarning, stacklevel=3)
 
-    def _params(self, Ys: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray) -> list[StageParameters]:
+    def _thin(self, X: np.ndarray) -> np.ndarray:
+        """Size classes inside the trained sizes whose point lies far from every training run (warned once)."""
+        m = self.surrogate
+        sup = m.data_support(X[0])
+        inside = m.domain_excess(X)[0, :, 0] <= 1e-9
+        thin = sup.thin & inside
+        if thin.any():
+            k = int(np.argmax(np.where(thin, sup.spread_ratio, -np.inf)))
+            r = m.training_.X[sup.nearest_run[k]]
+            sizes = X[0, thin, 0]
+            warnings.warn(
+                f"{self.source}: thin data: {int(thin.sum())} of {int(inside.sum())} size classes inside the trained "
+                f"sizes ({sizes.min():.3g}-{sizes.max():.3g} mm) lie far from every training run (posterior "
+                f"spread {sup.spread_ratio[k]:.3g} of the prior against at most {sup.threshold:.3g} at 90 % of "
+                f"the runs); nearest run to {X[0, k, 0]:.3g} mm: {r[0]:.3g} mm, {r[1]:.3g} t/h, {r[2]:.0f} rpm, "
+                f"{r[3]:.0f} deg ({sup.nearest_distance[k]:.2f} of the unit design cube away)",
+                ThinDataWarning, stacklevel=3)
+        return thin
+
+    def _params(self, Ys: np.ndarray, sizes_mm: np.ndarray, X: np.ndarray,
+                thin: np.ndarray | None = None) -> list[StageParameters]:
         """Stage parameters of target rows ``Ys`` (n, S, N, T): the sets decoded in batches of up to 64."""
         if len(Ys) > DECODE_CHUNK_SETS:  # bounded memory: the decode copies the rows
             return [p for i in range(0, len(Ys), DECODE_CHUNK_SETS)
-                    for p in self._params(Ys[i:i + DECODE_CHUNK_SETS], sizes_mm, X)]
+                    for p in self._params(Ys[i:i + DECODE_CHUNK_SETS], sizes_mm, X, thin)]
         m = self.surrogate
         n, S, N, T = Ys.shape
         flat = np.swapaxes(Ys, 0, 1).reshape(S, n * N, T)  # every set's rows side by side
@@ -166,7 +189,7 @@ class SurrogateProvider:
             region_weights=None if rw is None else rw[i], region_streams=None if rs is None else rs[i],
             source=self.source, velocities_at_requested_speeds=True,
             secondary_count=None if counts is None else CountArrays(counts[0][i], counts[1][i]),
-            extrapolated=extrapolated.copy(),
+            extrapolated=extrapolated.copy(), thin_data=None if thin is None else thin.copy(),
             transition=None if tr is None else tr[i], transition_lag_s=None if tr is None else lag[i],
         ) for i in range(n)]
 
@@ -176,7 +199,7 @@ class SurrogateProvider:
         Y = self.surrogate.predict_targets(X)
         if self.correction is not None:
             Y = self.correction.apply(Y)
-        return self._params(Y[None], sizes_mm, X)[0]
+        return self._params(Y[None], sizes_mm, X, self._thin(X))[0]
 
     def sample_stage_parameters(self, sizes_mm, n_samples: int, stage_speeds_rpm=None, feed_tph=None,
                                 gate_deg=None, seed: int | None = 0) -> list[StageParameters]:

@@ -20,6 +20,7 @@ speed lies outside the speeds it was trained on is reported by
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,36 @@ from msmill.stageparams import RunStatistics
 from msmill.surrogate.gp import SurrogateGP
 from msmill.surrogate.space import INPUTS, DesignSpace
 from msmill.surrogate.targets import StagePrediction, TrainingSet, decode_stage
+
+#: A point is *thin in data* when the surrogate's posterior spread there exceeds this quantile of the
+#: spreads its training runs have with themselves left out: farther from the other runs than 90 % of
+#: the runs are from theirs (docs/surrogate.md, "Where the data are thin").
+THIN_DATA_QUANTILE = 0.9
+
+
+@dataclass(frozen=True)
+class DataSupport:
+    """How well the training runs cover query points (:meth:`StageSurrogate.data_support`).
+
+    Attributes
+    ----------
+    spread_ratio : ndarray (N,)
+        Posterior sd of the mean over the prior sd (median over targets) at each point.
+    threshold : float
+        The :data:`THIN_DATA_QUANTILE` quantile of the same ratio at the training runs, each left out.
+    thin : ndarray (N,) of bool
+        ``spread_ratio > threshold``.
+    nearest_run : ndarray (N,) of int
+        Index of the nearest training run (unit-cube distance, size in ln).
+    nearest_distance : ndarray (N,)
+        Its distance in the unit cube of the design space (0-2: the cube's diagonal is 2).
+    """
+
+    spread_ratio: np.ndarray
+    threshold: float
+    thin: np.ndarray
+    nearest_run: np.ndarray
+    nearest_distance: np.ndarray
 
 
 class StageSurrogate:
@@ -109,6 +140,24 @@ class StageSurrogate:
         ex = np.maximum(lo - X, 0.0) + np.maximum(X - hi, 0.0)
         ex[..., 0] = np.maximum(lo[0] / X[..., 0], X[..., 0] / hi[0]) - 1.0
         return np.maximum(ex, 0.0)
+
+    def data_support(self, X: np.ndarray) -> DataSupport:
+        """How well the training runs cover design points ``X`` (N, 4) (physical units).
+
+        The posterior spread is the GP's own measure of distance to data: it grows with the distance to
+        the training runs in units of the fitted length scales. It is compared with the spread each
+        training run would have without itself (closed-form leave-one-out, computed once per surrogate).
+        """
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        loo = self.__dict__.get("_loo_spread")
+        if loo is None:
+            loo = self.__dict__["_loo_spread"] = self.gp_.loo_spread_ratio()
+        ratio = self.gp_.spread_ratio(X)
+        thr = float(np.quantile(loo, THIN_DATA_QUANTILE))
+        u, ut = self.design_space.to_unit(X), self.design_space.to_unit(self.training_.X)
+        d = np.sqrt(np.sum((u[:, None, :] - ut[None, :, :]) ** 2, axis=-1))
+        near = np.argmin(d, axis=1)
+        return DataSupport(ratio, thr, ratio > thr, near, d[np.arange(len(X)), near])
 
     # ------------------------------------------------------------------ predicting
     def _outputs(self, stage: int) -> np.ndarray:
