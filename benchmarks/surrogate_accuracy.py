@@ -9,8 +9,10 @@ them per stage. The paper's figure: mean KL 0.012 after 177 runs.
 
     python benchmarks/surrogate_accuracy.py [--surrogate FILE] [--export DIR] [--loo refit|closed]
 
-Last line: ``runs=<n> domain_size_mm=<lo>-<hi> loo_kl_velocity_mean=<x>
-loo_kl_count_mean=<y> stream_mae=<z> hit_prob_mae=<w>``.
+The line before the last: the closed-form leave-one-out coverage of the 90 % predictive interval per
+kind of target (``coverage90_streams=... coverage90_hit=... coverage90_count=... coverage90_velocity=...``,
+:func:`msmill.surrogate.accuracy.loo_coverage`). Last line: ``runs=<n> domain_size_mm=<lo>-<hi>
+loo_kl_velocity_mean=<x> loo_kl_count_mean=<y> stream_mae=<z> hit_prob_mae=<w>``.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     from msmill.model.providers import default_surrogate_path
-    from msmill.surrogate.accuracy import loo_scores
+    from msmill.surrogate.accuracy import loo_coverage, loo_scores
     from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
     from msmill.surrogate.persist import load
 
@@ -57,6 +59,9 @@ def main(argv: list[str] | None = None) -> None:
     s = rep.summary()
     sizes = model.training_.X[:, 0]
     print(f"paper: mean KL 0.012 after 177 runs; here {s['mean_kl_velocity']:.4f} after {s['n_runs']} runs")
+    cov = loo_coverage(model, 0.9)
+    print("closed-form LOO coverage of the 90 % predictive interval (target space, noise included): "
+          + " ".join(f"coverage90_{k}={v:.3f}" for k, v in cov.items()))
     print(f"runs={s['n_runs']} domain_size_mm={sizes.min():g}-{sizes.max():g} "
           f"loo_kl_velocity_mean={s['mean_kl_velocity']:.4f} loo_kl_count_mean={s['mean_kl_count']:.4f} "
           f"stream_mae={s['stream_mae']:.4f} hit_prob_mae={s['hit_probability_mae']:.4f}")

@@ -50,3 +50,16 @@ def test_predictions_warn_and_report_the_thin_share():
         near = mill.run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40), timeseries=False)
     assert not [w for w in caught if issubclass(w.category, ThinDataWarning)]
     assert near.thin_data_feed_pct == 0.0
+
+
+def test_loo_coverage_counts_targets_inside_their_interval(shipped, monkeypatch):
+    from msmill.surrogate.accuracy import COVERAGE_KINDS, loo_coverage
+
+    cov90, cov50 = loo_coverage(shipped, 0.9), loo_coverage(shipped, 0.5)
+    assert set(cov90) == set(COVERAGE_KINDS)
+    assert all(0.0 <= cov50[k] <= cov90[k] <= 1.0 for k in cov90)
+    mean, var = shipped.gp_.loo()
+    monkeypatch.setattr(shipped.gp_, "loo", lambda: (mean, var * 1e-8))  # far too narrow: nothing covered
+    assert max(loo_coverage(shipped, 0.9).values()) < 0.05
+    monkeypatch.setattr(shipped.gp_, "loo", lambda: (mean, var * 1e8))  # far too wide: everything
+    assert min(loo_coverage(shipped, 0.9).values()) == 1.0

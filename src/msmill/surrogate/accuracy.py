@@ -178,3 +178,31 @@ def loo_scores(model: StageSurrogate, refit: bool = False) -> LooReport:
     metric_cols = [c for c in per_point.columns if c.startswith(("kl_", "stream_", "hit_", "representation_"))]
     per_stage = per_point.groupby("stage")[metric_cols].mean().reset_index()
     return LooReport(per_point, per_stage, pd.DataFrame(pairs), "refit LOO" if refit else "closed-form LOO")
+
+
+#: target groups behind each kind of coverage (``count``: its first target, the mean)
+COVERAGE_KINDS = {"streams": ("streams",), "hit": ("hit",), "count": ("count",),
+                  "velocity": ("primary_velocity", "secondary_velocity")}
+
+
+def loo_coverage(model: StageSurrogate, level: float = 0.9) -> dict[str, float]:
+    """Share of held-out targets inside the closed-form leave-one-out predictive interval of ``level``.
+
+    The interval is the LOO mean +- the normal quantile times the LOO sd, which includes the held-out
+    run's own sampling noise and the fitted white noise (:meth:`SurrogateGP.loo`): what a new DEM run at
+    the point should fall in. Per kind of target (:data:`COVERAGE_KINDS`, in the surrogate's target
+    space: logits of the streams and hit probability, log mean count, velocity quantiles), over every
+    run and stage. An honest band covers about ``level``.
+    """
+    ts = model.training_
+    mean, var = model.gp_.loo()
+    z = np.abs(ts.Y - mean) / np.sqrt(var)
+    q = float(stats.norm.ppf(0.5 + 0.5 * level))
+    names = ts.layout.names
+    out = {}
+    for kind, groups in COVERAGE_KINDS.items():
+        cols = [j for j, n in enumerate(names) if n.startswith("s") and n.split(".")[1] in groups
+                and (kind != "count" or n.endswith(".0"))]
+        out[kind] = float(np.mean(z[:, cols] <= q)) if cols else float("nan")
+    return out
+
