@@ -13,6 +13,8 @@ import pytest
 
 from msmill.model.experiments import experiment_from_dict
 from msmill.model.fitting import (
+    FITTABLE,
+    _direct_columns,
     build_breakage,
     compare_submodels,
     fit_impact_tests,
@@ -21,7 +23,7 @@ from msmill.model.fitting import (
 )
 from msmill.model.mill import breakage_parameters
 from msmill.model.synthetic import SIEVES_MM, synthetic_impact_test
-from msmill.psd import PSD
+from msmill.psd import PSD, SizeGrid
 
 FEEDS = {"13x16": {"size_mm": [13.2, 16.0], "passing_pct": [0.0, 100.0]},
          "26x32": {"size_mm": [26.5, 31.5], "passing_pct": [0.0, 100.0]}}
@@ -76,3 +78,16 @@ def test_held_out_comparison_prefers_the_generating_submodel():
     held = compare_submodels(tests, "Platreef")
     mean = held.groupby("submodel")["ks_held_out"].mean()
     assert mean["vogel_swebrec"] < 0.01 < mean["ab_t10"]
+
+
+@pytest.mark.parametrize("name", sorted(FITTABLE))
+def test_fitted_columns_are_each_submodels_own_forward_model(name):
+    # a fit evaluates the appearance columns directly (no tables); they must be the sub-model's own,
+    # t10 convention included: jk_t10 (t10 = A) was once fitted with ab_t10's t10 = A P_b columns
+    bk = build_breakage(name, breakage_parameters("UG2"), {})
+    grid = SizeGrid.geometric(0.05, 40.0)
+    pb = np.linspace(0.05, 0.95, grid.n_classes)
+    direct = _direct_columns(bk, grid, pb)
+    forward = bk.fragments(grid.edges_mm, np.arange(grid.n_classes), pb)
+    assert direct.shape == forward.shape
+    assert np.max(np.abs(direct - forward)) < 2e-3, name  # the forward model's tables interpolate in P_b

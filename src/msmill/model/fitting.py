@@ -123,13 +123,8 @@ def _direct_columns(breakage: Any, grid: SizeGrid, pb: np.ndarray) -> np.ndarray
     the mill solvers use would be rebuilt each time; here the columns are
     computed exactly at the parents' own ``t10``.
     """
-    from msmill import breakage as _bk
-
-    if hasattr(breakage, "direct_fragments"):
+    if hasattr(breakage, "direct_fragments"):  # each sub-model's own columns (its own t10 convention)
         return breakage.direct_fragments(grid.edges_mm, pb)
-    if isinstance(breakage, sm.AbT10Breakage):
-        B = _bk.appearance_matrix(grid, breakage.ore.A_pct * pb, breakage.ore.tn)  # (class, parent)
-        return np.ascontiguousarray(B.T)
     return breakage.fragments(grid.edges_mm, np.arange(grid.n_classes), pb)
 
 
@@ -212,8 +207,8 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
         ``kind = "single_impact"`` experiments (one ore).
     ore : str or Ore or BreakageParameters
         Ore supplying held parameters and start values.
-    submodel : {"ab_t10", "vogel_swebrec"}
-        Breakage sub-model.
+    submodel : {"ab_t10", "jk_t10", "vogel_swebrec"}
+        Breakage sub-model (:data:`FITTABLE`).
     fit : sequence of str, optional
         Parameters to fit (default all of :data:`FITTABLE` ``[submodel]``).
     start : dict, optional
@@ -270,8 +265,10 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
 
 
 def compare_submodels(tests: Sequence[Any], ore: Any,
-                      submodels: Sequence[str] = ("ab_t10", "vogel_swebrec")) -> pd.DataFrame:
+                      submodels: Sequence[str] | None = None) -> pd.DataFrame:
     """Held-out K-S of each sub-model: fit on all impact speeds but one, predict the held-out speed.
+
+    ``submodels``: default every fittable one (:data:`FITTABLE`), the mill's default ``jk_t10`` among them.
 
     Returns
     -------
@@ -279,6 +276,7 @@ def compare_submodels(tests: Sequence[Any], ore: Any,
         One row per (sub-model, held-out test): ``submodel, held_out_speed_m_s,
         id, ks_held_out``. Needs tests at two or more speeds.
     """
+    submodels = tuple(FITTABLE) if submodels is None else tuple(submodels)
     tests = list(tests)
     speeds = sorted({float(t.impact_speed_m_s) for t in tests})
     if len(speeds) < 2:

@@ -623,6 +623,16 @@ class AbT10Breakage:
         return np.asarray(_bk.breakage_probability(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
                                                    self.ore.l_ref_mm, damage))
 
+    def direct_fragments(self, edges_mm: np.ndarray, pb: np.ndarray) -> np.ndarray:
+        """Appearance columns ``(parent, class)`` at one ``pb`` per parent class, computed exactly (no table).
+
+        What a fit evaluates at every step (``A`` changes, so the tables would be rebuilt each time);
+        equal to :meth:`fragments` to the tabulation error.
+        """
+        B = _bk.appearance_matrix(SizeGrid(np.asarray(edges_mm, dtype=float)),
+                                  self.ore.A_pct * np.asarray(pb, dtype=float), self.ore.tn)  # (class, parent)
+        return np.ascontiguousarray(B.T)
+
     def fragments(self, edges_mm, parent, pb):
         """Appearance columns at ``t10 = A pb``, linear in ``pb`` between tabulated nodes.
 
@@ -712,6 +722,11 @@ class JkT10Breakage(AbT10Breakage):
                 _APPEARANCE_TABLES.pop(next(iter(_APPEARANCE_TABLES)))
             _APPEARANCE_TABLES[key] = col
         return col
+
+    def direct_fragments(self, edges_mm: np.ndarray, pb: np.ndarray) -> np.ndarray:
+        """Appearance columns ``(parent, class)``: the ``t10 = A`` column of every parent, whatever ``pb``
+        (overrides the parent's ``t10 = A P_b`` columns: a fit must use this model's own convention)."""
+        return self.columns(edges_mm).copy()
 
     def fragments(self, edges_mm, parent, pb):
         """The appearance column at ``t10 = A`` for every ``pb``."""
