@@ -41,3 +41,28 @@ def test_bad_documents_are_one_line(saved, tmp_path):
             persist.load(bad)
     with pytest.raises(MsmillInputError, match="existing surrogate"):
         persist.load(tmp_path / "missing.json")
+
+
+def test_cached_factors_load_without_refitting_and_predict_the_same(fitted, saved, tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    first = persist.load(saved)  # refactorises and writes the cache
+    cached = list((tmp_path / "cache" / "msmill" / "surrogates").glob("*.npz"))
+    assert len(cached) == 1
+    calls = []
+    real = persist.SurrogateGP.rebuild
+    monkeypatch.setattr(persist.SurrogateGP, "rebuild", classmethod(
+        lambda cls, *a, **k: calls.append(1) or real.__func__(cls, *a, **k)))
+    second = persist.load(saved)
+    assert not calls and second.gp_.__dict__["_estimators"] is None  # read, not refitted
+    X = fitted.stage_inputs(np.geomspace(3, 40, 9), [1450.0] * 4 + [2900.0], 35.0, 30.0)
+    for m in (first, second):
+        a, sa = fitted.predict_targets(X, return_std=True)
+        b, sb = m.predict_targets(X, return_std=True)
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(sa, sb, equal_nan=True)
+        assert np.array_equal(fitted.sample_targets(X, 4, rng=3), m.sample_targets(X, 4, rng=3), equal_nan=True)
+    assert second.gp_.hyperparameters() == fitted.gp_.hyperparameters()
+    assert np.array_equal(second.gp_.loo()[1], fitted.gp_.loo()[1])  # estimators rebuilt on demand
+    cached[0].write_bytes(b"damaged")  # a damaged cache is made again, never trusted
+    third = persist.load(saved)
+    assert np.array_equal(third.predict_targets(X), fitted.predict_targets(X), equal_nan=True)
+    assert persist.load(saved, cache=False).gp_.__dict__["_estimators"] is not None

@@ -144,13 +144,72 @@ class SurrogateGP:
         return self.noise_var_[:, j] / self.y_std_[j] ** 2 + JITTER
 
     @property
+    def estimators_(self) -> list[Any]:
+        """The fitted scikit-learn GPRs; a GP loaded from its factors (:meth:`from_factors`) rebuilds
+        them on first use (refits, leave-one-out, acquisition), predictions never need them."""
+        if "_estimators" not in self.__dict__:  # unfitted (scikit-learn style: no fitted attribute)
+            raise AttributeError("estimators_")
+        ests = self.__dict__["_estimators"]
+        if ests is None:
+            ests = SurrogateGP.rebuild(self.X_train_, self.Y_train_, self.noise_var_, self._hyper,
+                                       self.design_space).estimators_
+            self.__dict__["_estimators"] = ests
+            st = self.__dict__.get("_stacked_cache")
+            if st is not None:
+                st.source = ests  # the same fit: the stored factors stay valid
+        return ests
+
+    @estimators_.setter
+    def estimators_(self, value: list[Any]) -> None:
+        self.__dict__["_estimators"] = value
+
+    @property
     def n_targets(self) -> int:
         """Number of target columns."""
-        return len(self.estimators_)
+        return len(self._hyper) if self.__dict__.get("_estimators") is None else len(self.estimators_)
 
     def hyperparameters(self) -> list[dict[str, Any]]:
         """Fitted kernel values per target (plain floats; see :func:`make_kernel`)."""
+        if self.__dict__.get("_estimators") is None:
+            return [dict(h) for h in self._hyper]
         return [kernel_params(e.kernel_) for e in self.estimators_]
+
+    def factors(self) -> dict[str, np.ndarray]:
+        """What prediction needs beyond the stored data and hyperparameters (:meth:`from_factors`):
+        every target's dual coefficients ``alpha`` (T, R) and inverse Cholesky factor ``L_inv`` (T, R, R)."""
+        st = self._stacked()
+        return {"alpha": st.alpha, "L_inv": st.L_inv}
+
+    @classmethod
+    def from_factors(cls, X, Y, noise_var, hyperparameters, factors: dict[str, np.ndarray],
+                     design_space: DesignSpace | None = None) -> SurrogateGP:
+        """A fitted instance from stored data, hyperparameters and :meth:`factors`, without scikit-learn.
+
+        Bit for bit the :meth:`rebuild` of the same data when ``factors`` came from it (they are its
+        numbers); the estimators are rebuilt only if something asks for them.
+        """
+        gp = cls(design_space, optimize=False, warm_start=list(hyperparameters))
+        X, Y = np.asarray(X, dtype=float), np.atleast_2d(np.asarray(Y, dtype=float))
+        gp.X_train_, gp.Y_train_ = X.copy(), Y.copy()
+        gp.noise_var_ = np.array(np.broadcast_to(np.asarray(noise_var, float), Y.shape), dtype=float)
+        gp.y_mean_ = Y.mean(axis=0)  # as fit computes them
+        std = Y.std(axis=0)
+        gp.y_std_ = np.where(std > 1e-12, std, 1.0)
+        gp.__dict__["_hyper"] = [dict(h) for h in hyperparameters]
+        gp.__dict__["_estimators"] = None
+        gp.white_ = np.array([float(h["white"]) for h in hyperparameters])
+        hp = gp._hyper
+        arrays = {"c32": np.array([h["c32"] for h in hp]), "c52": np.array([h["c52"] for h in hp]),
+                  "ls32": np.array([np.broadcast_to(h["ls32"], (4,)) for h in hp]),
+                  "ls52": np.array([np.broadcast_to(h["ls52"], (4,)) for h in hp]),
+                  "white": gp.white_, "alpha": np.asarray(factors["alpha"], dtype=float),
+                  "L_inv": np.asarray(factors["L_inv"], dtype=float), "y_mean": gp.y_mean_, "y_std": gp.y_std_}
+        n_t, n_r = Y.shape[1], X.shape[0]
+        if arrays["alpha"].shape != (n_t, n_r) or arrays["L_inv"].shape != (n_t, n_r, n_r):
+            raise MsmillInputError("factors", f"alpha {arrays['alpha'].shape}, L_inv {arrays['L_inv'].shape}",
+                                   f"({n_t}, {n_r}) and ({n_t}, {n_r}, {n_r})")
+        gp.__dict__["_stacked_cache"] = _Stacked(None, gp.design_space.to_unit(X), **arrays)
+        return gp
 
     @classmethod
     def rebuild(cls, X, Y, noise_var, hyperparameters, design_space: DesignSpace | None = None) -> SurrogateGP:
@@ -257,7 +316,7 @@ class SurrogateGP:
     def _stacked(self) -> _Stacked:
         """The fitted estimators as arrays (made once per fit)."""
         st = self.__dict__.get("_stacked_cache")
-        if st is None or st.source is not self.estimators_:
+        if st is None or st.source is not self.__dict__.get("_estimators"):
             st = _Stacked.of(self)
             self.__dict__["_stacked_cache"] = st
         return st

@@ -23,7 +23,9 @@ Layout (``schema_version`` 1)::
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
+import os
 import platform
 from pathlib import Path
 from typing import Any
@@ -87,8 +89,12 @@ def save(model: StageSurrogate, path: str | Path, provenance: dict[str, Any] | N
     return p
 
 
-def from_dict(doc: dict[str, Any], source: str = "surrogate") -> StageSurrogate:
-    """Rebuild a fitted surrogate from its document (no re-optimisation)."""
+def from_dict(doc: dict[str, Any], source: str = "surrogate", factors_key: str | None = None) -> StageSurrogate:
+    """Rebuild a fitted surrogate from its document (no re-optimisation).
+
+    ``factors_key``: read the GP's factorisations from the user's cache under this key instead of
+    refactorising (and write them there when missing): :func:`load` keys them by the file's bytes.
+    """
     if not isinstance(doc, dict) or doc.get("kind") != KIND:
         raise MsmillInputError(f"{source}.kind", doc.get("kind") if isinstance(doc, dict) else None, KIND)
     if doc.get("schema_version") != SCHEMA_VERSION:
@@ -105,7 +111,17 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate") -> StageSurrogate:
     if Y.shape[1] != layout.n_targets or len(hyper) != layout.n_targets:
         raise MsmillInputError(f"{source}.training.Y", f"{Y.shape[1]} targets", f"{layout.n_targets}")
     ts = TrainingSet(X, Y, nv, layout, np.array(doc["speed_factors"], dtype=float), tuple(tr["run_ids"]), runs)
-    gp = SurrogateGP.rebuild(X, Y, nv, hyper, space)
+    gp = None
+    factors = _read_factors(factors_key) if factors_key else None
+    if factors is not None:
+        try:
+            gp = SurrogateGP.from_factors(X, Y, nv, hyper, factors, space)
+        except MsmillInputError:  # a cache of another shape: made again below
+            gp = None
+    if gp is None:
+        gp = SurrogateGP.rebuild(X, Y, nv, hyper, space)
+        if factors_key:
+            _write_factors(factors_key, gp.factors())
     model = StageSurrogate(space)
     model._set(ts, gp)
     model.provenance_ = dict(doc.get("provenance", {}))
@@ -116,16 +132,62 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate") -> StageSurrogate:
     return model
 
 
-def load(path: str | Path) -> StageSurrogate:
-    """Read a surrogate file written by :func:`save`; errors are one line."""
+def load(path: str | Path, cache: bool = True) -> StageSurrogate:
+    """Read a surrogate file written by :func:`save`; errors are one line.
+
+    ``cache``: keep the GP's factorisations (what prediction needs beyond the file:
+    :meth:`SurrogateGP.factors`, about 27 MB for the shipped surrogate) in the user's cache folder
+    (``$XDG_CACHE_HOME/msmill/surrogates``, ``~/.cache`` by default), keyed by the file's SHA-256 and
+    the numerical libraries' versions, so that a later load reads them (milliseconds) instead of
+    refactorising every target (seconds); the predictions are bit for bit the same.
+    """
     p = Path(path)
     if not p.is_file():
         raise MsmillInputError("surrogate", str(p), "an existing surrogate JSON file")
+    raw = p.read_bytes()
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise MsmillInputError(str(p), "not UTF-8 text", "a surrogate JSON file") from None
     except json.JSONDecodeError as exc:
         raise MsmillInputError(str(p), f"line {exc.lineno}", "valid JSON") from None
-    return from_dict(doc, source=p.name)
+    return from_dict(doc, source=p.name, factors_key=factors_key(raw) if cache else None)
+
+
+def factors_key(raw: bytes) -> str:
+    """Cache key of a surrogate file's factorisations: its bytes and the libraries that factorise."""
+    # the versions, not the libraries themselves: importing scikit-learn costs about a second
+    from importlib.metadata import version
+
+    h = hashlib.sha256(raw)
+    h.update(" ".join(f"{d} {version(d)}" for d in ("numpy", "scipy", "scikit-learn")).encode())
+    return h.hexdigest()[:32]
+
+
+def factors_cache_dir() -> Path:
+    """Folder of cached factorisations (``$XDG_CACHE_HOME/msmill/surrogates``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "msmill" / "surrogates"
+
+
+def _read_factors(key: str) -> dict[str, np.ndarray] | None:
+    f = factors_cache_dir() / f"{key}.npz"
+    try:
+        with np.load(f, allow_pickle=False) as z:
+            return {k: z[k] for k in ("alpha", "L_inv")}
+    except (OSError, KeyError, ValueError):  # missing, unreadable or damaged: refactorise
+        return None
+
+
+def _write_factors(key: str, factors: dict[str, np.ndarray]) -> None:
+    d = factors_cache_dir()
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        tmp = d / f".{key}.{os.getpid()}.npz"
+        np.savez(tmp, **factors)
+        os.replace(tmp, d / f"{key}.npz")
+    except OSError:  # a read-only home: no cache, every load refactorises
+        pass
 
 
 def is_surrogate_file(path: str | Path) -> bool:
