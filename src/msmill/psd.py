@@ -27,13 +27,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from msmill.errors import MsmillInputError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = [
     "PSD",
@@ -354,6 +356,8 @@ class PSD:
 
         Rows are sorted by size first; see :meth:`from_passing` for ``grid``.
         """
+        import pandas as pd
+
         if not isinstance(frame, pd.DataFrame):
             raise MsmillInputError("frame", type(frame).__name__, "a pandas DataFrame")
         missing = [c for c in ("size_mm", "passing_pct") if c not in frame.columns]
@@ -404,10 +408,14 @@ class PSD:
     # ---------------------------------------------------------------- outputs
     def to_frame(self) -> pd.DataFrame:
         """Cumulative passing table: columns ``size_mm`` (``edges_mm[1:]``), ``passing_pct``."""
+        import pandas as pd
+
         return pd.DataFrame({"size_mm": self.sizes_mm, "passing_pct": self.passing_pct})
 
     def class_table(self) -> pd.DataFrame:
         """Per-class table: ``lower_mm``, ``upper_mm``, ``mid_mm``, ``mass_fraction``, ``passing_pct``."""
+        import pandas as pd
+
         g = self._grid
         return pd.DataFrame(
             {

@@ -1,0 +1,36 @@
+"""Commands load only what they use (issue 39): `import msmill`, `msmill --help` and `msmill ore list` start light."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("matplotlib", "sqlalchemy", "dask", "distributed", "fastapi", "numba", "sklearn", "scipy.stats",
+         "msmill.dem", "pandas")
+
+PROBE = """
+import contextlib, io, json, sys
+code = sys.argv[1]
+if code == "import":
+    import msmill
+else:
+    from msmill.cli.main import run
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        try:
+            run(code.split())
+        except SystemExit:
+            pass
+print(json.dumps(sorted(m for m in json.loads(sys.argv[2]) if m in sys.modules)))
+"""
+
+
+@pytest.mark.parametrize("command,allowed", [("import", ()), ("--help", ()), ("ore list", ()),
+                                             ("ore show UG2", ())])
+def test_light_commands_do_not_load_heavy_libraries(command, allowed):
+    out = subprocess.run([sys.executable, "-c", PROBE, command, json.dumps(HEAVY)], capture_output=True,
+                         text=True, timeout=120, check=True)
+    loaded = set(json.loads(out.stdout.strip().splitlines()[-1])) - set(allowed)
+    assert not loaded, f"'{command}' imports {sorted(loaded)}"
