@@ -115,7 +115,8 @@ def fit_cmd(
 
 @app.command("score")
 def score_cmd(
-    surrogate: Annotated[Path, typer.Argument(help="Surrogate JSON (msmill surrogate fit).")],
+    surrogate: Annotated[Path, typer.Argument(help="Surrogate JSON (msmill surrogate fit), or 'default' for "
+                                                   "the shipped one.")],
     refit: Annotated[bool, typer.Option("--refit/--closed-form", help="Refit for every left-out run.")] = False,
     plot: Annotated[Path | None, typer.Option(help="Write the predicted-vs-DEM plot (PNG).")] = None,
 ) -> None:
@@ -123,6 +124,13 @@ def score_cmd(
     from msmill.surrogate import persist
     from msmill.surrogate.accuracy import loo_scores
 
+    if str(surrogate) == "default" and not surrogate.exists():
+        from msmill.model.providers import default_surrogate_path
+
+        shipped = default_surrogate_path()
+        if shipped is None:
+            raise MsmillInputError("surrogate", "default", "a surrogate JSON file (no shipped surrogate installed)")
+        surrogate = shipped
     model = persist.load(surrogate)
     con = _console()
     con.print(repr(model))
