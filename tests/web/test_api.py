@@ -120,3 +120,19 @@ def test_attachments(client: TestClient) -> None:
     assert r.status_code == 422 and "feed_csv" in r.json()["detail"]["field"]
     req["attachments"] = {"secret_file": "x"}
     assert client.post("/predict", json=req).status_code == 422
+
+
+def test_requests_leave_no_temporary_files(client: TestClient, tmp_path: Path, monkeypatch) -> None:
+    # every request's attachment folder goes with it, after a success and after a refused request
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    ore_text = (ROOT / "src" / "msmill" / "data" / "ores" / "ug2.toml").read_text(encoding="utf-8")
+    ok = _example()
+    ok["attachments"] = {"ore_toml": ore_text, "feed_csv": "size_mm,passing_pct\n1,5\n4,20\n8,45\n16,80\n22.4,100\n"}
+    bad = _example()
+    bad["attachments"] = {"ore_toml": "not = [toml"}
+    for _ in range(3):
+        assert client.post("/predict", json=ok).status_code == 200
+        assert client.post("/predict", json=bad).status_code == 422
+    assert list(tmp_path.iterdir()) == []

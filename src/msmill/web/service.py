@@ -143,15 +143,17 @@ class PredictionService:
         self._cache_size = cache_size
         self._lock = threading.Lock()
 
-    def run_file(self, data: dict[str, Any]) -> tuple[Any, dict[str, str], dict[str, Any]]:
-        """Validate a request: ``(RunFile, attachments, materialised body)``; raises MsmillInputError."""
+    def run_file(self, data: dict[str, Any], folder: Path) -> tuple[Any, dict[str, str], dict[str, Any]]:
+        """Validate a request: ``(RunFile, attachments, materialised body)``; raises MsmillInputError.
+
+        Attached files are written to ``folder`` (the request's own temporary folder, removed with it).
+        """
         from msmill.model.runfile import RunFile
 
         body, att = _strip_attachments(data)
         _no_server_paths(body)
-        tmp = Path(tempfile.mkdtemp(prefix="msmill-web-"))
-        full = _materialise(body, att, tmp)
-        return RunFile.from_mapping(full, name="request", base_dir=tmp), att, full
+        full = _materialise(body, att, folder)
+        return RunFile.from_mapping(full, name="request", base_dir=folder), att, full
 
     def _mill(self, rf: Any, att: dict[str, str]) -> tuple[Any, Any, Any]:
         key = _cache_key(rf, att)
@@ -170,11 +172,13 @@ class PredictionService:
 
     def predict(self, data: dict[str, Any]) -> dict[str, Any]:
         """Predict a request and return the JSON-ready response (see :func:`result_payload`)."""
-        rf, att, body = self.run_file(data)
-        with self._lock, warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            mill, feed, op = self._mill(rf, att)
-            result = mill.run(feed, op)
+        # the request's files live only as long as the request, also when it fails
+        with tempfile.TemporaryDirectory(prefix="msmill-web-") as tmp:
+            rf, att, body = self.run_file(data, Path(tmp))
+            with self._lock, warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                mill, feed, op = self._mill(rf, att)
+                result = mill.run(feed, op)
         messages = list(dict.fromkeys(str(w.message) for w in caught))
         payload = result_payload(result)
         payload["warnings"] = messages
