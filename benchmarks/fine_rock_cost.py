@@ -33,11 +33,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--sizes-mm", type=float, nargs="+", default=[4.0, 3.0, 2.0])
     a = ap.parse_args(argv)
-    rows, missing = [], []
+    rows, missing, partial = [], [], []
     for s in a.sizes_mm:
         f = a.data / f"{s:g}mm" / "cost.json"
         if f.is_file():
             rows.append(json.loads(f.read_text(encoding="utf-8")))
+        elif (a.data / f"{s:g}mm" / "cost_partial.json").is_file():
+            partial.append(json.loads((a.data / f"{s:g}mm" / "cost_partial.json").read_text(encoding="utf-8")))
         else:
             missing.append(s)
     print("size_mm  wall_h  cpu_h  parts  rocks  dt_us  onset_s  window_s  kernels  checkpoints(s)")
@@ -49,12 +51,22 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['rocks_in_slice_window_mean']:5.0f}  {r['dt_s'] * 1e6:5.2f}  "
               f"{'-' if onset is None else f'{onset:.2f}':>7}  {r['window_length_s']:8.2f}  "
               f"{r['step_kernels_share_of_wall']:7.2f}  {nck} ({ck:.1f})")
+    for p in partial:
+        # CPU per simulated second after the first chunk (which holds the scene build and the table start)
+        tr = p["trace"]
+        if len(tr) >= 3:
+            rate = (tr[-1]["cpu_s"] - tr[0]["cpu_s"]) / (tr[-1]["sim_s"] - tr[0]["sim_s"])
+            end = rows[0]["window_s"][1] if rows else float("nan")
+            print(f"{p['size_mm']:g} mm: partial run to {tr[-1]['sim_s']:.3f} s simulated in {tr[-1]['wall_s'] / 3600:.2f} h "
+                  f"wall, {np.mean([x['rocks'] for x in tr]):.0f} rocks: {rate / 3600:.2f} h of CPU per simulated "
+                  f"second; a run to {end:.2f} s (the measured runs' end) would take about {rate * end / 3600:.2f} h "
+                  "of CPU (estimated, not measured)")
     if missing:
         print("no export yet for: " + ", ".join(f"{s:g} mm" for s in missing))
     if rows:
         X = np.array([[r["size_mm"], r["feed_tph"], r["speed_rpm"], r["gate_deg"]] for r in rows])
         t = np.array([r["wall_s"] for r in rows])
-        train = [x.stats for x in split_runs(read_export(default_export_dir()))[0]]
+        train = [x.statistics for x in split_runs(read_export(default_export_dir()))[0]]
         planner = CostModel.from_runs(train)  # what campaign.active_planner fits
         timed = [x for x in train if x.provenance.get("wall_s")]
         X_train = np.array([[x.design.size_mm, x.design.feed_tph, x.design.speed_rpm, x.design.gate_deg]

@@ -11,6 +11,11 @@ slice, time step, onset, settle and window lengths, engine steps and rebuilds, t
 and ``profile.txt`` (cProfile of ``--profile-s`` more simulated seconds of the finished scene: where
 the time of a chunk goes). The raw record stays in ``WORK/<size>mm/run`` (not for git).
 
+With ``--budget-s S`` the run stops after ``S`` seconds of wall time if it has not finished (its
+checkpoint stays in ``WORK``) and writes ``cost_partial.json`` instead: the trace of wall time, CPU time,
+simulated time and rocks after every engine chunk, from which ``benchmarks/fine_rock_cost.py`` takes the
+cost per simulated second at the steady hold-up the table start places (a run too long for one session).
+
 Run: ``NUMBA_NUM_THREADS=1 python scripts/fine_rock_cost.py --size-mm 4 [--work /work/fine_rock]``
 """
 
@@ -82,6 +87,10 @@ def profile_chunks(run, sim_s: float, top: int = 25) -> str:
     return out.getvalue()
 
 
+class _OutOfBudget(Exception):
+    """The wall-time budget of a partial run is spent (its checkpoint stays)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size-mm", type=float, required=True)
@@ -90,17 +99,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint-every-s", type=float, default=600.0)
     ap.add_argument("--profile-s", type=float, default=0.02)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--budget-s", type=float, default=None, help="stop after this much wall time (s)")
+    ap.add_argument("--chunk-s", type=float, default=None, help="engine chunk (s of simulated time; default the "
+                    "run settings'): a shorter one traces a partial run more finely")
     a = ap.parse_args(argv)
     tag = f"{a.size_mm:g}mm"
     work = a.work / tag
     work.mkdir(parents=True, exist_ok=True)
     started = datetime.now(UTC).isoformat(timespec="seconds")
-    settings = RunSettings(**CAMPAIGN_RUN_DEFAULTS, seed=a.seed, checkpoint_every_s=a.checkpoint_every_s)
-    run = run_mill(Machine.default(), OperatingPoint(**POINT), size_mm=a.size_mm, mode="slice", settings=settings,
-                   checkpoint_dir=work / "checkpoint", progress=lambda t, n, ph: print(
-                       f"{datetime.now(UTC):%H:%M:%S} t={t:.3f} s rocks={n} {ph}", flush=True))
-    save_run(run, work / "run")
+    extra = {} if a.chunk_s is None else {"chunk_s": a.chunk_s}
+    settings = RunSettings(**CAMPAIGN_RUN_DEFAULTS, seed=a.seed, checkpoint_every_s=a.checkpoint_every_s, **extra)
     out = a.export / tag
+    trace: list[dict] = []
+    t0 = time.perf_counter()
+
+    def progress(t: float, n: int, phase: str) -> None:
+        trace.append({"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time(), "sim_s": t, "rocks": n,
+                      "phase": phase})
+        print(f"{datetime.now(UTC):%H:%M:%S} t={t:.3f} s rocks={n} {phase}", flush=True)
+        if a.budget_s is not None and time.perf_counter() - t0 > a.budget_s:
+            raise _OutOfBudget
+
+    try:
+        run = run_mill(Machine.default(), OperatingPoint(**POINT), size_mm=a.size_mm, mode="slice",
+                       settings=settings, checkpoint_dir=work / "checkpoint", progress=progress)
+    except _OutOfBudget:
+        out.mkdir(parents=True, exist_ok=True)
+        doc = {"size_mm": a.size_mm, **POINT, "complete": False, "trace": trace, "budget_s": a.budget_s,
+               "provenance": {"command": " ".join(["python", "scripts/fine_rock_cost.py", *(argv or sys.argv[1:])]),
+                              "msmill_version": __version__, "git_commit": git_commit(),
+                              "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                              "run_settings": asdict(settings), "machine": "default", "started_utc": started}}
+        (out / "cost_partial.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        print(f"{tag}: stopped after {a.budget_s:g} s at t = {trace[-1]['sim_s']:.3f} s; written {out}")
+        return 0
+    save_run(run, work / "run")
     out.mkdir(parents=True, exist_ok=True)
     run.stats.run.to_json(out / "statistics.json")
     cost = cost_summary(run, started)
