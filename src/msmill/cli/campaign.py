@@ -204,7 +204,7 @@ def resume_cmd(
 @app.command("status")
 def status_cmd(name: NameArg, db: DbOpt = None) -> None:
     """Runs of a campaign per status, and the last error of each failed run."""
-    st = open_store(db)
+    st = open_store(db, create=False)
     info = st.campaign(name)
     c = st.counts(name)
     typer.echo(f"{name}: machine {info.machine_hash[:12]}, {info.mode}, max attempts {info.max_attempts}")

@@ -18,11 +18,14 @@ DbOpt = Annotated[str | None, typer.Option(
 RangeOpt = Annotated[str | None, typer.Option(help="Value or range LOW:HIGH (either side may be empty).")]
 
 
-def open_store(db: str | None):  # returns a Store (imported lazily)
-    """The store at ``--db`` / ``MSMILL_DB`` / the default file, migrated."""
+def open_store(db: str | None, create: bool = True):  # returns a Store (imported lazily)
+    """The store at ``--db`` / ``MSMILL_DB`` / the default file, migrated.
+
+    ``create=False`` (read commands): a SQLite file that does not exist is an error, not a new store.
+    """
     from msmill.surrogate.store import Store
 
-    return Store(db)
+    return Store(db, create=create)
 
 
 def parse_range(name: str, text: str | None) -> tuple[float | None, float | None] | None:
@@ -34,9 +37,12 @@ def parse_range(name: str, text: str | None) -> tuple[float | None, float | None
         if not sep:
             v = float(lo)
             return v - 1e-9 * max(1.0, abs(v)), v + 1e-9 * max(1.0, abs(v))
-        return (float(lo) if lo.strip() else None), (float(hi) if hi.strip() else None)
+        low, high = (float(lo) if lo.strip() else None), (float(hi) if hi.strip() else None)
     except ValueError:
         raise MsmillInputError(f"--{name.replace('_', '-')}", text, "a number or LOW:HIGH") from None
+    if low is not None and high is not None and low > high:
+        raise MsmillInputError(f"--{name.replace('_', '-')}", text, "LOW:HIGH with LOW <= HIGH")
+    return low, high
 
 
 def design_filters(**ranges: str | None) -> dict[str, tuple[float | None, float | None]]:
@@ -52,7 +58,7 @@ def design_filters(**ranges: str | None) -> dict[str, tuple[float | None, float 
 @app.command("info")
 def info_cmd(db: DbOpt = None) -> None:
     """Show the store's URL, schema revision and number of runs per status."""
-    st = open_store(db)
+    st = open_store(db, create=False)
     runs = st.runs()
     by = {}
     for r in runs:
@@ -100,7 +106,7 @@ def export_cmd(
     """Write every done run as one JSON document (readable back by 'msmill db ingest')."""
     from msmill.surrogate.store.transfer import export_runs
 
-    paths = export_runs(open_store(db), out, campaign=campaign)
+    paths = export_runs(open_store(db, create=False), out, campaign=campaign)
     typer.echo(f"exported {len(paths)} runs to {out}")
 
 
@@ -117,7 +123,7 @@ def list_cmd(
 
     from msmill.cli.console import console
 
-    runs = open_store(db).runs(campaign=campaign, status=status, machine_hash=machine, filters=design_filters(
+    runs = open_store(db, create=False).runs(campaign=campaign, status=status, machine_hash=machine, filters=design_filters(
         size_mm=size_mm, feed_tph=feed_tph, speed_rpm=speed_rpm, gate_deg=gate_deg))
     t = Table("id", "status", "outcome", "size_mm", "feed_tph", "speed_rpm", "gate_deg", "mode", "source",
               "campaign", "attempts", "wall_s", "machine")
@@ -133,14 +139,16 @@ def list_cmd(
 @app.command("show")
 def show_cmd(run_id: Annotated[int, typer.Argument(help="Run id (see 'msmill db list').")], db: DbOpt = None) -> None:
     """Show one run: its facts, per-stage statistics and raw files."""
-    st = open_store(db)
+    st = open_store(db, create=False)
     r = st.run(run_id)
     d = r.design
     typer.echo(f"run {r.id}: {r.status} ({r.outcome or '-'}), {r.mode}, source {r.source}, attempts {r.attempts}")
     typer.echo(f"design: size {d.size_mm:g} mm, feed {d.feed_tph:g} t/h, speed {d.speed_rpm:g} rpm, "
                f"gate {d.gate_deg:g} deg, stage speeds {d.stage_speeds_rpm}")
     typer.echo(f"machine {r.machine_hash[:16]}; engine {r.engine}; msmill {r.package_version}; "
-               f"commit {r.git_commit}; seed {r.seed}; wall {r.wall_s}")
+               f"commit {r.git_commit}; seed {r.seed}; wall {r.wall_s} s; CPU {r.cpu_s} s")
+    if r.note:
+        typer.echo(f"note: {r.note}")
     if r.source_path:
         typer.echo(f"source: {r.source_path}")
     if r.error:

@@ -78,14 +78,29 @@ def default_url() -> str:
     return f"sqlite:///{base / 'msmill' / 'store.sqlite'}"
 
 
-def _normalise_url(url: str | None) -> str:
+def _normalise_url(url: str | None, create: bool = True) -> str:
+    """The SQLAlchemy URL of ``url`` (a URL or a SQLite file path); ``create``: make a SQLite file's folder.
+
+    Without ``create`` a SQLite file that does not exist is refused in one line (a read command never
+    creates a store, nor folders for it).
+    """
     url = url or default_url()
     if "://" not in url:  # a plain path: a SQLite file
         url = f"sqlite:///{Path(url).expanduser().resolve()}"
     if url.startswith("postgresql://") or url.startswith("postgres://"):
         url = "postgresql+psycopg://" + url.split("://", 1)[1]
     if url.startswith("sqlite:///") and not url.startswith("sqlite:///:memory:"):
-        Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        f = Path(url.removeprefix("sqlite:///"))
+        if f.is_dir():
+            raise MsmillInputError("--db", str(f), "a SQLite file or a database URL (this is a folder)")
+        if create:
+            try:
+                f.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise MsmillInputError("--db", str(f), f"a store in a writable folder ({exc.strerror})") from None
+        elif not f.is_file():
+            raise MsmillInputError("--db", str(f), "an existing store (no such file; 'msmill db ingest' or "
+                                   "'msmill campaign create' makes one)")
     return url
 
 
@@ -129,6 +144,23 @@ class RunRecord:
                    cpu_s=r.cpu_s, note=r.note)
 
 
+def _redacted(url: str) -> str:
+    """The URL without its password (for messages)."""
+    from sqlalchemy.engine import make_url
+
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # an unparsable URL is shown as given
+        return url
+
+
+def _cause(exc: BaseException) -> str:
+    """The driver's own message, on one line (SQLAlchemy wraps it with SQL and a link)."""
+    orig = getattr(exc, "orig", None) or exc
+    text = " ".join(str(orig).split())
+    return (text[:200] + "...") if len(text) > 200 else text or type(orig).__name__
+
+
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
     dbapi_conn.isolation_level = None  # SQLAlchemy's "begin" event below issues BEGIN IMMEDIATE itself
     cur = dbapi_conn.cursor()
@@ -153,12 +185,23 @@ class Store(QueueMixin):
         Migrate the database to the newest schema on opening (default True).
     """
 
-    def __init__(self, url: str | None = None, upgrade: bool = True) -> None:
-        self.url = _normalise_url(url)
-        self.engine: Engine = self._make_engine(self.url)
+    def __init__(self, url: str | None = None, upgrade: bool = True, create: bool = True) -> None:
+        from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
+
+        self.url = _normalise_url(url, create=create)
+        shown = _redacted(self.url)
+        try:
+            self.engine: Engine = self._make_engine(self.url)
+        except (ArgumentError, NoSuchModuleError, ImportError) as exc:
+            raise MsmillInputError("--db", shown, f"a SQLAlchemy URL or a SQLite file ({_cause(exc)})") from None
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
-        if upgrade:
-            self.upgrade()
+        try:
+            if upgrade:
+                self.upgrade()
+            else:
+                self.revision()  # reach it now: a store that cannot be opened says so here, in one line
+        except SQLAlchemyError as exc:
+            raise MsmillInputError("--db", shown, f"a store that can be opened ({_cause(exc)})") from None
 
     @staticmethod
     def _make_engine(url: str) -> Engine:
