@@ -36,3 +36,16 @@ def test_an_inverted_range_is_an_error(tmp_path, capsys):
     assert cli(["db", "list", "--db", db, "--size-mm", "40:20"]) == 2
     assert "LOW <= HIGH" in capsys.readouterr().err
     assert cli(["db", "list", "--db", db, "--size-mm", "20:40"]) == 0
+
+
+@pytest.mark.parametrize("args,field", [
+    (["", ], "campaign name"), (["../../etc/x"], "campaign name"), (["a/b"], "campaign name"),
+    ([".hidden"], "campaign name"), (["ok", "--ore", "Gold"], "--ore"),
+    (["ok", "--set", "max_time_s=-5"], "--max-time-s"), (["ok", "--set", "measure_s=0"], "--measure-s"),
+])
+def test_campaign_create_checks_its_arguments_at_once(tmp_path, capsys, args, field):
+    db = str(tmp_path / "s.sqlite")
+    assert cli(["campaign", "create", *args, "--db", db]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {field}:") and err.count("\n") == 1, err
+    assert cli(["campaign", "status", "ok", "--db", db]) == 2  # nothing was created

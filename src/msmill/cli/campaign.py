@@ -67,10 +67,21 @@ def create_cmd(
     db: DbOpt = None,
 ) -> None:
     """Create a campaign: machine, slice/full and the DEM run settings."""
+    from msmill.dem.mill.checks import check_run_inputs
+    from msmill.dem.mill.run import RunSettings
     from msmill.machine import Machine
     from msmill.surrogate.campaign import run_settings_dict
+    from msmill.surrogate.store.queue import check_campaign_name
 
+    check_campaign_name(name)
     machine = Machine.default() if machine_toml == "default" else Machine.from_toml(Path(machine_toml))
+    settings = run_settings_dict(_settings(set_ or []))
+    check_run_inputs(machine, RunSettings(**settings))  # bad settings fail here, not when the runs execute
+    if ore is not None:
+        from msmill.ore import list_ores
+
+        if ore not in list_ores():
+            raise MsmillInputError("--ore", ore, "one of " + ", ".join(list_ores()))
     opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None,
             "checkpoint_dir": None if checkpoint_dir is None else
             "none" if checkpoint_dir.strip().lower() == "none" else str(Path(checkpoint_dir).resolve())}
@@ -82,7 +93,7 @@ def create_cmd(
             raise MsmillInputError("--size-range-mm", f"{lo} {hi}", "two sizes 0 < LOW < HIGH (mm)")
         opts["size_range_mm"] = [lo, hi]
     info = open_store(db).create_campaign(name, machine, mode="full" if full else "slice",
-                                          run_settings=run_settings_dict(_settings(set_ or [])),
+                                          run_settings=settings,
                                           max_attempts=max_attempts, options={k: v for k, v in opts.items() if v})
     typer.echo(f"campaign {info.name}: machine {info.machine_hash[:12]}, {info.mode}, settings {info.run_settings}")
 

@@ -83,6 +83,19 @@ def _info(c: CampaignRow) -> CampaignInfo:
                         max_attempts=c.max_attempts, allow_not_steady=bool(c.allow_not_steady))
 
 
+#: characters a campaign name may hold (names become folder names: checkpoints, raw runs)
+CAMPAIGN_NAME_CHARS = "letters, digits, '.', '_' and '-', not starting with '.'"
+
+
+def check_campaign_name(name: Any) -> str:
+    """A campaign name as given, or one line saying what is allowed (it becomes a folder name)."""
+    import re
+
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,199}", name):
+        raise MsmillInputError("campaign name", name, f"1-200 {CAMPAIGN_NAME_CHARS}")
+    return name
+
+
 class QueueMixin:
     """Campaign methods of :class:`msmill.surrogate.store.Store`."""
 
@@ -96,6 +109,7 @@ class QueueMixin:
                         run_settings: dict[str, Any] | None = None, max_attempts: int = 3,
                         allow_not_steady: bool = False, options: dict[str, Any] | None = None) -> CampaignInfo:
         """Create a campaign (its DEM setting: machine, mode, ``RunSettings`` fields as a dict)."""
+        check_campaign_name(name)
         if mode not in ("slice", "full"):
             raise MsmillInputError("mode", mode, "slice or full")
         if max_attempts < 1:
