@@ -136,3 +136,19 @@ def test_requests_leave_no_temporary_files(client: TestClient, tmp_path: Path, m
         assert client.post("/predict", json=ok).status_code == 200
         assert client.post("/predict", json=bad).status_code == 422
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_warmed_service_answers_its_first_request_from_the_built_mill(monkeypatch) -> None:
+    from msmill.model.runfile import RunFile
+    from msmill.web.service import PredictionService, default_request
+
+    svc = PredictionService()
+    assert svc.warm() > 0 and len(svc._cache) == 1
+
+    def no_build(self):
+        raise AssertionError("the first request built a mill again")
+
+    monkeypatch.setattr(RunFile, "build", no_build)
+    req = default_request()
+    req["feed"]["rate_tph"] = 45.0  # another operating point: the mill (provider, ore, grid) is reused
+    assert svc.predict(req)["summary"]["feed_tph"] == 45.0

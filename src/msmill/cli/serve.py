@@ -24,13 +24,18 @@ def serve(
     import uvicorn
 
     from msmill.web.app import create_app
+    from msmill.web.service import PredictionService
 
     if port == 0:
         with socket.socket() as s:
             s.bind((host, 0))
             port = s.getsockname()[1]
-    typer.echo(f"msmill serve: http://{host}:{port}/  (API: http://{host}:{port}/docs; Ctrl-C stops)")
+    svc = PredictionService()
+    typer.echo("msmill serve: warming the model with the shipped UG2 example ...")
+    warm_s = svc.warm()  # the first request then costs what later ones do
+    typer.echo(f"msmill serve: ready in {warm_s:.1f} s at http://{host}:{port}/  (API: http://{host}:{port}/docs; "
+               "Ctrl-C stops)")
     try:
-        uvicorn.run(create_app(), host=host, port=port, log_level=log_level)
+        uvicorn.run(create_app(svc), host=host, port=port, log_level=log_level)
     except OSError as exc:
         raise MsmillInputError("--port", port, f"a free port on {host} ({exc.strerror})") from None

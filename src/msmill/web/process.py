@@ -23,8 +23,12 @@ def serve_in_subprocess(startup_s: float = 20.0) -> Iterator[str]:
     proc = subprocess.Popen([sys.executable, "-m", "msmill", "serve", "--port", "0"], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
-        line = proc.stdout.readline()
-        m = re.search(r"http://[\d.]+:\d+/", line)
+        m, line = None, ""
+        for _ in range(20):  # "warming ..." first, then the ready line with the address
+            line = proc.stdout.readline()
+            m = re.search(r"http://[\d.]+:\d+/", line)
+            if m or not line:
+                break
         if not m:
             raise RuntimeError(f"msmill serve did not start: {line!r}")
         url = m.group(0)

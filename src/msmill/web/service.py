@@ -170,6 +170,17 @@ class PredictionService:
             op.stage_speeds(mill.provider.n_stages)  # same check as RunFile.build
         return mill, feed, op
 
+    def warm(self) -> float:
+        """Build and run the page's default prediction once (the mill, its provider and caches), so that the
+        first request costs what later ones do; returns the seconds it took."""
+        import time
+
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.predict(default_request())
+        return time.perf_counter() - t0
+
     def predict(self, data: dict[str, Any]) -> dict[str, Any]:
         """Predict a request and return the JSON-ready response (see :func:`result_payload`)."""
         # the request's files live only as long as the request, also when it fails
