@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -58,6 +57,7 @@ from pathlib import Path
 from msmill._version import __version__
 from msmill.dem.mill.run import saved_run_filling_transport
 from msmill.model.providers import pool_filling_curves
+from msmill.provenance import git_commit
 from msmill.stageparams import (
     FillingTags,
     FillingTransport,
@@ -126,11 +126,7 @@ def pooled_tags_curve(run: RunStatistics, replicas: list[dict]) -> FillingTransp
 
 def commit() -> str:
     """The repository's HEAD commit, or 'unknown'."""
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).resolve().parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+    return git_commit() or "unknown"
 
 
 def main() -> None:

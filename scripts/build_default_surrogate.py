@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,15 +29,11 @@ EXPORT = ROOT / "src/msmill/data/campaigns/default"
 OUT = ROOT / "src/msmill/data/surrogates/default.json"
 
 
-def git_state(root: Path = ROOT) -> dict[str, object]:
+def git_state() -> dict[str, object]:
     """Commit of the repository and whether the export folder has uncommitted changes."""
-    def run(*a: str) -> str:
-        try:
-            return subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True, check=True).stdout
-        except (OSError, subprocess.CalledProcessError):
-            return ""
-    return {"git_commit": run("rev-parse", "HEAD").strip() or "unknown",
-            "export_uncommitted": bool(run("status", "--porcelain", "--", str(EXPORT)).strip())}
+    from msmill.provenance import git_commit, git_uncommitted
+
+    return {"git_commit": git_commit() or "unknown", "export_uncommitted": git_uncommitted([EXPORT])}
 
 
 def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,

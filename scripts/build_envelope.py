@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,13 +36,9 @@ SHOW = ((14.0, 1500.0, 5.0), (14.0, 1500.0, 40.0), (20.0, 1500.0, 10.0), (20.0, 
 
 def git_state(paths: list[Path]) -> dict[str, object]:
     """Commit of the repository and whether the inputs have uncommitted changes."""
-    def run(*a: str) -> str:
-        try:
-            return subprocess.run(["git", "-C", str(ROOT), *a], capture_output=True, text=True, check=True).stdout
-        except (OSError, subprocess.CalledProcessError):
-            return ""
-    return {"git_commit": run("rev-parse", "HEAD").strip() or "unknown",
-            "inputs_uncommitted": bool(run("status", "--porcelain", "--", *map(str, paths)).strip())}
+    from msmill.provenance import git_commit, git_uncommitted
+
+    return {"git_commit": git_commit() or "unknown", "inputs_uncommitted": git_uncommitted(paths)}
 
 
 def _rel(p: Path) -> str:

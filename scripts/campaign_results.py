@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -676,12 +675,10 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
 
 
 def git_commit() -> str:
-    """HEAD of the repository."""
-    try:
-        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+    """HEAD of the repository (abbreviated)."""
+    from msmill.provenance import git_commit as commit
+
+    return commit(short=True) or "unknown"
 
 
 def main(argv: list[str] | None = None) -> None:

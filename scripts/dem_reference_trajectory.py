@@ -23,7 +23,6 @@ import argparse
 import datetime as _dt
 import hashlib
 import json
-import subprocess
 import warnings
 from pathlib import Path
 
@@ -140,8 +139,9 @@ def main() -> None:
             print(f"{k}: {'identical' if ref.get(k) == h else 'DIFFERS'}")
         print(f"identical={all(ref.get(k) == h for k, h in hashes.items())}")
         return
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
+    from msmill.provenance import git_commit
+
+    commit = git_commit() or ""
     prov = {"command": "python scripts/dem_reference_trajectory.py", "commit": commit,
             "msmill_version": msmill.__version__,
             "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

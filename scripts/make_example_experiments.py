@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import subprocess
 import sys
 import warnings
 from datetime import UTC, datetime
@@ -125,11 +124,9 @@ def main(argv: list[str] | None = None) -> None:
         old.unlink()
     for e in exps:
         write_experiment(e, args.out / f"{e.id}.toml")
-    try:
-        commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
-                                text=True, check=False).stdout.strip()
-    except OSError:
-        commit = ""
+    from msmill.provenance import git_commit
+
+    commit = git_commit() or ""
     prov = {"SYNTHETIC": "model-made example data, not measurements",
             "command": "python scripts/make_example_experiments.py " + " ".join(argv or sys.argv[1:]),
             "msmill_version": __version__, "git_commit": commit,

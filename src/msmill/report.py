@@ -14,7 +14,6 @@ import base64
 import hashlib
 import html
 import platform
-import subprocess
 import warnings
 from datetime import UTC, datetime
 from pathlib import Path
@@ -54,13 +53,9 @@ def _frame(df: Any, formats: dict[str, str] | None = None) -> str:
 
 
 def _git_commit() -> str:
-    try:
-        here = Path(__file__).resolve().parent
-        out = subprocess.run(["git", "-C", str(here), "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, check=False, timeout=5)
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
+    from msmill.provenance import git_commit
+
+    return git_commit(short=True) or "unknown"
 
 
 def _stage_figure(result: Any, power: Any) -> Any:

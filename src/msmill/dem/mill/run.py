@@ -39,7 +39,6 @@ import functools
 import hashlib
 import json
 import math
-import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -232,13 +231,10 @@ def design_point(machine: Machine, op: OperatingPoint, size_mm: float) -> Design
 
 
 def git_commit() -> str | None:
-    """Current git commit of the source tree, if available."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
-                             cwd=Path(__file__).parent)
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
+    """Current git commit of the source tree, if available (:func:`msmill.provenance.git_commit`)."""
+    from msmill.provenance import git_commit as commit
+
+    return commit()
 
 
 def run_mill(
