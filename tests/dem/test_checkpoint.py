@@ -197,3 +197,8 @@ def test_cli_refuses_to_overwrite_a_stopped_runs_checkpoint(reference, tmp_path,
     assert (d / "statistics.json").is_file() and not (d / "checkpoint").exists()
     saved = json.loads((d / "statistics.json").read_text())
     assert saved["stages"] == reference[0]["stats"]["stages"]
+    capsys.readouterr()
+    assert cli(["dem", "stats", str(d)]) == 0  # says the outcome and what the window missed, in one line
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("outcome:")]
+    assert len(line) == 1 and line[0].startswith(f"outcome: {saved['outcome']}; window 0.25 s")
+    assert "every sampling target met" in line[0] or "above their targets" in line[0]

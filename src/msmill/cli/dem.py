@@ -234,7 +234,25 @@ def stats_cmd(
                    f"p_hit {s.primary_hit_probability:.3f} lambda {s.secondary_lambda:.2f}"
                    + (f" counts {s.secondary_count_selection.chosen} (KL {s.secondary_count_selection.kl:.3f})"
                       if s.secondary_count_selection else ""))
+    typer.echo(_outcome_line(run_dir, ms.run))
     typer.echo(f"written {target}")
+
+
+def _outcome_line(run_dir: Path, st: Any) -> str:
+    """The run's outcome and the sampling targets its window missed (targets of its own run settings)."""
+    from msmill.dem.mill.run import RunSettings, missed_targets
+    from msmill.validate import read_toml
+
+    saved = read_toml(run_dir / "run.toml", "run_dir/run.toml", "run.toml of a DEM run").get("run", {})
+    rs = RunSettings(**{k: v for k, v in saved.items() if k in RunSettings.__dataclass_fields__})
+    missed = missed_targets(st.sampling_error_reached or {}, rs.targets())
+    window = st.measurement_window_s
+    head = f"outcome: {st.outcome or 'not recorded'}; window {window:.2f} s"
+    if not missed:
+        return head + "; every sampling target met"
+    return head + "; sampling errors above their targets: " + ", ".join(
+        f"{k} {'no samples' if v is None else f'{v:.3g}'} (target {rs.targets()[k]:.3g}, "
+        f"{'-' if v is None else f'{v / rs.targets()[k]:.1f}x'})" for k, v in missed.items())
 
 
 @app.command("envelope")
