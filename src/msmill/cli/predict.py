@@ -16,9 +16,9 @@ import typer
 
 def predict(
     run_file: Annotated[Path, typer.Argument(help="Run file (TOML); see msmill.model.runfile.")],
-    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: [output] dir).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: the run file's \\[output] dir).")] = None,
     plots: Annotated[bool | None, typer.Option("--plots/--no-plots", help="Write PNG plots.")] = None,
-    solver: Annotated[str | None, typer.Option(help="Override [model] solver.")] = None,
+    solver: Annotated[str | None, typer.Option(help="Override the run file's \\[model] solver.")] = None,
     envelope: Annotated[Path | None, typer.Option(
         "--envelope", help="DEM envelope (JSON: scripts/build_envelope.py or 'msmill dem envelope') to check the "
         "feed rate against, instead of the shipped one.")] = None,
