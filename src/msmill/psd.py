@@ -354,12 +354,16 @@ class PSD:
     def from_frame(cls, frame: pd.DataFrame, grid: SizeGrid | None = None) -> PSD:
         """Build a PSD from a DataFrame with ``size_mm`` and ``passing_pct`` columns.
 
-        Rows are sorted by size first; see :meth:`from_passing` for ``grid``.
+        Rows are sorted by size first; see :meth:`from_passing` for ``grid``. msmill's own per-class
+        product table (``msmill predict``'s ``*_product.csv``: ``upper_mm`` and ``product_passing_pct``)
+        is read as the product's passing at each class's upper edge.
         """
         import pandas as pd
 
         if not isinstance(frame, pd.DataFrame):
             raise MsmillInputError("frame", type(frame).__name__, "a pandas DataFrame")
+        if "size_mm" not in frame.columns and {"upper_mm", "product_passing_pct"} <= set(frame.columns):
+            frame = frame.rename(columns={"upper_mm": "size_mm", "product_passing_pct": "passing_pct"})
         missing = [c for c in ("size_mm", "passing_pct") if c not in frame.columns]
         if missing:
             raise MsmillInputError(

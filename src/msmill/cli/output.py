@@ -147,6 +147,7 @@ def atomic_output(folder: str | Path, *, field: str = "--out", inputs: Iterable[
     parent = out.parent if fresh else out
     parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(dir=parent, prefix=_STAGE_PREFIX if not fresh else f".{out.name}{_STAGE_PREFIX}"))
+    os.chmod(stage, 0o777 & ~_umask())  # mkdtemp makes 0700: the folder follows the user's umask
     try:
         yield stage
         if any(p.is_dir() for p in stage.iterdir()):
@@ -169,6 +170,13 @@ def atomic_output(folder: str | Path, *, field: str = "--out", inputs: Iterable[
         shutil.rmtree(stage, ignore_errors=True)
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: str | Path, data: bytes, field: str = "--out") -> Path:
     """Write one file atomically: a hidden temporary file beside it, then ``os.replace``."""
     p = Path(path).expanduser()
@@ -178,6 +186,7 @@ def atomic_write_bytes(path: str | Path, data: bytes, field: str = "--out") -> P
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600: the file follows the user's umask
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         os.replace(tmp, p)

@@ -16,7 +16,7 @@ app = typer.Typer(help="Particle size distributions: percentiles and distributio
 
 @app.command("stats")
 def stats_cmd(
-    path: Annotated[Path, typer.Argument(help="Cumulative passing CSV: size_mm, passing_pct.")],
+    path: Annotated[Path, typer.Argument(help="Cumulative passing CSV: size_mm, passing_pct (or the product CSV of 'msmill predict').")],
     percentile: Annotated[list[float] | None, typer.Option(
         "--percentile", "-p", help="Extra percentiles (repeatable), e.g. -p 10 -p 90.")] = None,
 ) -> None:
@@ -28,7 +28,7 @@ def stats_cmd(
     pcts = sorted({50.0, 80.0, *(number(q, "--percentile", unit="%", gt=0, le=100) for q in (percentile or []))})
     frame = read_csv(path, "path", "PSD CSV file")
     psd = PSD.from_frame(frame)
-    given = frame["size_mm"].astype(float)
+    given = frame["size_mm" if "size_mm" in frame.columns else "upper_mm"].astype(float)  # or predict's table
     lo_mm, hi_mm = float(given.min()), float(given.max())
     con = console(120)
     table = Table(title=f"{path.name}: {len(given)} sieves, {lo_mm:.4g}-{hi_mm:.4g} mm")

@@ -61,8 +61,9 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     number(getattr(settings, "checkpoint_every_s", 600.0), "--checkpoint-every-s", unit="s", ge=0)
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
+        shown = math.ceil(t_fall * 100) / 100  # the figure printed is itself allowed
         raise MsmillInputError("--max-time-s", settings.max_time_s,
-                               f"at least {t_fall:.2f} s (the free-fall time from the roof to the outlet; "
+                               f"at least {shown:.2f} s (the free-fall time from the roof to the outlet; "
                                "a shorter run has no rock through the stages to measure)")
     sizes = [size_mm] if size_mm is not None else list(feed_psd[0]) if feed_psd is not None else []
     top = largest_rock_mm(machine)

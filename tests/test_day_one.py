@@ -1,0 +1,52 @@
+"""Small things a user meets on day one (issue 40 item 7)."""
+
+from __future__ import annotations
+
+import os
+import re
+import stat
+from pathlib import Path
+
+import pytest
+
+from msmill.cli.main import run as cli
+from msmill.psd import PSD
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_outputs_follow_the_umask(tmp_path, capsys):
+    from msmill.cli.output import atomic_output, atomic_write_bytes
+
+    old = os.umask(0o022)
+    try:
+        with atomic_output(tmp_path / "out") as stage:
+            (stage / "a.csv").write_text("x\n")
+        single = atomic_write_bytes(tmp_path / "one.json", b"{}")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755  # colleagues on a shared drive can read
+    assert stat.S_IMODE(single.stat().st_mode) == 0o644
+
+
+def test_psd_stats_reads_predicts_own_product_table(tmp_path, capsys):
+    out = tmp_path / "p"
+    assert cli(["predict", str(ROOT / "examples" / "ug2.toml"), "--out", str(out), "--no-plots"]) == 0
+    p80 = re.search(r"P80 \(mm\)\s*│\s*([\d.]+)", capsys.readouterr().out).group(1)
+    table = next(out.glob("*_product.csv"))
+    assert cli(["psd", "stats", str(table)]) == 0
+    shown = float(re.search(r"P80\s*│\s*([\d.]+) mm", capsys.readouterr().out).group(1))
+    assert shown == pytest.approx(float(p80), rel=5e-3)
+    import pandas as pd
+
+    assert PSD.from_frame(pd.read_csv(table)).p80_mm == pytest.approx(float(p80), rel=5e-3)
+
+
+def test_the_smallest_time_limit_printed_is_accepted(capsys):
+    assert cli(["dem", "run", "default", "--size-mm", "20", "--max-time-s", "0.1", "--out", "unused"]) == 2
+    shown = float(re.search(r"at least ([\d.]+) s", capsys.readouterr().err).group(1))
+    from msmill.dem.mill.checks import check_run_inputs
+    from msmill.dem.mill.run import RunSettings
+    from msmill.machine import Machine
+
+    check_run_inputs(Machine.default(), RunSettings(max_time_s=shown), 20.0)  # no error
