@@ -831,3 +831,15 @@ def _upgraded(data: Any) -> Any:
     if isinstance(data, dict) and data.get("schema_version") == 1:
         return {**data, "schema_version": SCHEMA_VERSION}
     return data
+
+
+@functools.cache
+def default_stage_table() -> StageParameterTable:
+    """The packaged default stage-parameter table (``msmill/data/stage_parameters/default.json``), read once.
+
+    The DEM's table start and time limits and the model's table provider all read this one file.
+    """
+    from importlib import resources
+
+    return StageParameterTable.from_json(str(resources.files("msmill") / "data" / "stage_parameters" / "default.json"))
+

@@ -12,7 +12,7 @@ from msmill.dem.mill.stats import stage_of_z
 from msmill.dem.mill.warmstart import place_table_start, table_residence_s
 from msmill.errors import MsmillInputError, OutOfDomainWarning
 from msmill.machine import Machine, OperatingPoint
-from msmill.stageparams import StageParameterTable
+from msmill.stageparams import StageParameterTable, default_stage_table
 
 M = Machine.default()
 RHO = 2700.0
@@ -126,14 +126,14 @@ def test_mass_per_compartment_matches_the_chain_within_one_rock(size, feed):
     assert np.all(np.abs(placed[:-1] - target) <= rock_kg)
     assert np.allclose(rep["compartment_placed_kg"], placed[:-1])
     # at a size of the table the target is that run's chain at this feed
-    table = run_mod._default_table()
+    table = default_stage_table()
     [run] = [r for r in table.runs if abs(r.design.size_mm - size) < 1e-6]
     assert np.allclose(target, chain_holdup_kg(run, sc.feed_kg_s), rtol=1e-6)
     assert rep["placed_kg"] == pytest.approx(rep["target_kg"], abs=0.5 * len(target) * rock_kg)  # half a rock each
 
 
 def test_residence_interpolates_in_log_size_and_scales_with_feed():
-    table = run_mod._default_table()
+    table = default_stage_table()
     r14, _ = table_residence_s(14.0, 5)
     r20, _ = table_residence_s(20.0, 5)
     r17, src = table_residence_s(17.0, 5)

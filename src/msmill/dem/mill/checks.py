@@ -74,10 +74,12 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
                                    "feed chute, the gaps between stages and the liner gaps)")
 
 
+#: kinds of start of a run (``RunSettings.start``; :mod:`msmill.dem.mill.warmstart` places them)
+START_KINDS = ("empty", "table")
+
+
 def check_start(start: Any, field: str = "settings.start") -> None:
     """Raise :class:`MsmillInputError` unless ``start`` is a kind of start (``RunSettings.start``)."""
-    from msmill.dem.mill.warmstart import START_KINDS
-
     one_of(start, field, START_KINDS)
 
 

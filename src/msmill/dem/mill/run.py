@@ -35,7 +35,6 @@ and the outcome is ``choked`` or ``not_steady`` (:func:`msmill.steadystate.asses
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
@@ -43,7 +42,6 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +59,7 @@ from msmill.dem.checkpoint import (
     read_header,
 )
 from msmill.dem.mill.checks import check_run_budget, check_run_inputs
+from msmill.dem.mill.saved import load_raw
 from msmill.dem.mill.scene import MillScene, RockMaterial, build_scene, scene_extent
 from msmill.dem.mill.stats import (
     MillStatistics,
@@ -73,7 +72,7 @@ from msmill.dem.mill.stats import (
 from msmill.dem.mill.warmstart import WarmStart, place_table_start, place_warm_start
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
-from msmill.stageparams import DesignPoint, StageParameterTable
+from msmill.stageparams import DesignPoint, default_stage_table
 from msmill.steadystate import (
     SteadyStateCriterion,
     SteadyStateVerdict,
@@ -190,18 +189,12 @@ class RunSettings:
 
 def expected_residence_s(size_mm: float) -> float:
     """Expected residence time (s) of rock of ``size_mm``: transport chain of the nearest default-table run."""
-    table = _default_table()
+    table = default_stage_table()
     sizes = table.sizes_mm
     r = table.runs[int(np.argmin(np.abs(np.log(sizes / size_mm))))]
     st = r.stages
     return expected_residence_time_s(np.array([x.kickback for x in st]), np.array([x.refeed for x in st]),
                                      np.array([x.pass_through for x in st]), r.characteristic_time_s)
-
-
-@functools.cache
-def _default_table() -> StageParameterTable:
-    path = resources.files("msmill") / "data" / "stage_parameters" / "default.json"
-    return StageParameterTable.from_json(str(path))
 
 
 @dataclass
@@ -740,29 +733,6 @@ def _toml_safe(d: Any) -> Any:
     if isinstance(d, np.generic):
         return d.item()
     return d
-
-
-def load_raw(run_dir: str | Path) -> dict[str, Any]:
-    """Read the raw tables and settings a :func:`save_run` directory holds."""
-    d = Path(run_dir)
-    if not d.is_dir():
-        raise MsmillInputError("run_dir", str(d), "an existing directory written by 'msmill dem run'")
-    if not (d / "events.parquet").exists():
-        raise MsmillInputError("run_dir", str(d), "a directory written by 'msmill dem run' (events.parquet missing)")
-    from msmill.validate import read_toml
-
-    settings = read_toml(d / "run.toml", "run_dir/run.toml", "run.toml of a DEM run")
-    for key in ("design", "result", "feed", "rock"):
-        if not isinstance(settings.get(key), dict):
-            raise MsmillInputError(f"run.toml.{key}", settings.get(key), "a table written by 'msmill dem run'")
-    raw: dict[str, Any] = {"settings": settings, "machine": Machine.from_toml(d / "machine.toml")}
-    for name in ("events", "removed", "timeseries", "snapshots"):
-        try:
-            raw[name] = pd.read_parquet(d / f"{name}.parquet")
-        except Exception as exc:  # pyarrow raises many types for a damaged file
-            raise MsmillInputError(f"{name}.parquet", str(d / f"{name}.parquet"),
-                                   f"a readable Parquet file written by 'msmill dem run' ({type(exc).__name__})") from None
-    return raw
 
 
 def stats_from_dir(run_dir: str | Path, stats_settings: StatsSettings | None = None,

@@ -92,14 +92,15 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
+from msmill.dem.mill.checks import START_KINDS
+from msmill.dem.mill.saved import load_raw
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, rpm_to_rad_s
-from msmill.stageparams import RunStatistics, StageParameterTable, chain_visits
+from msmill.stageparams import RunStatistics, StageParameterTable, chain_visits, default_stage_table
 
 __all__ = ["START_KINDS", "WarmStart", "place_table_start", "place_warm_start", "table_residence_s"]
 
 #: Values of ``RunSettings.start``: an empty mill, or the stage table's expected hold-up.
-START_KINDS = ("empty", "table")
 
 
 @dataclass(frozen=True)
@@ -130,8 +131,6 @@ class WarmStart:
     @classmethod
     def from_dir(cls, run_dir: str | Path) -> WarmStart:
         """From a directory written by ``msmill dem run`` (its last snapshot)."""
-        from msmill.dem.mill.run import load_raw
-
         raw = load_raw(run_dir)
         s = raw["settings"]
         d, res = s["design"], s["result"]
@@ -246,9 +245,7 @@ def table_residence_s(size_mm: float, n_stages: int,
         ``table_sizes_mm`` and ``table_weights`` of the runs used, and a ``source`` line.
     """
     if table is None:
-        from msmill.dem.mill.run import _default_table
-
-        table = _default_table()
+        table = default_stage_table()
     runs = [r for r in table.runs if r.n_stages == n_stages and r.inlet_destinations is not None
             and all(st.destinations is not None for st in r.stages)]
     if not runs:
