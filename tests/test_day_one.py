@@ -50,3 +50,30 @@ def test_the_smallest_time_limit_printed_is_accepted(capsys):
     from msmill.machine import Machine
 
     check_run_inputs(Machine.default(), RunSettings(max_time_s=shown), 20.0)  # no error
+
+
+@pytest.mark.parametrize("args,field", [
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--n-grid", "0"], "--n-grid"),
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--n-grid", "1000000"], "--n-grid"),
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--target-p80-mm", "-3"], "--target-p80-mm"),
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--target-p80-mm", "nan"], "--target-p80-mm"),
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--target-passing", "2:150"], "--target-passing (percent)"),
+    (["optimize", "--bound", "speed_rpm=1200:1900", "--bound", "speed_rpm=1300:1400"], "--bound"),
+    (["sweep", "--var", "speed_rpm=1200:1900:8", "--var", "speed_rpm=1200:1900:3"], "--var"),
+    (["sweep", "--var", "speed_rpm=1200:1900:1000", "--var", "feed_tph=10:60:1000"], "--var"),
+])
+def test_sweep_and_optimize_refuse_nonsense_before_computing(args, field, capsys):
+    cmd, *rest = args
+    assert cli([cmd, str(ROOT / "examples" / "ug2.toml"), *rest]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {field}:") and err.count("\n") == 1, err
+
+
+def test_a_resource_limit_is_raised_by_its_environment_variable(monkeypatch):
+    from msmill.errors import MsmillInputError
+    from msmill.validate import limit
+
+    with pytest.raises(MsmillInputError, match="MSMILL_LIMIT_SWEEP_POINTS"):
+        limit(20_000, "--var", "sweep_points")
+    monkeypatch.setenv("MSMILL_LIMIT_SWEEP_POINTS", "50000")
+    limit(20_000, "--var", "sweep_points")

@@ -73,6 +73,9 @@ LIMITS: dict[str, tuple[int, str]] = {
     "dem_particles": (5_000_000, "DEM rocks fed during a run"),
     "dem_steps": (100_000_000, "DEM time steps"),
     "csv_rows": (50_000_000, "CSV rows"),
+    # a sweep or optimiser grid costs a steady state (and its band) per point: ~1 s each
+    "sweep_points": (10_000, "operating points of a sweep or an optimiser grid"),
+    "n_grid": (1_000, "optimiser grid points per variable"),
 }
 
 
@@ -147,11 +150,24 @@ def integer(value: Any, field: str, *, ge: int | None = None, le: int | None = N
 
 
 def limit(value: float, field: str, name: str | None = None) -> None:
-    """Reject ``value`` above the named resource limit :data:`LIMITS` ``[name]``."""
-    cap, what = LIMITS[name or field.rsplit(".", 1)[-1]]
+    """Reject ``value`` above the named resource limit :data:`LIMITS` ``[name]``.
+
+    The environment variable ``MSMILL_LIMIT_<NAME>`` (e.g. ``MSMILL_LIMIT_SWEEP_POINTS=50000``) raises a
+    limit for a user who means it; the error names it.
+    """
+    import os
+
+    key = name or field.rsplit(".", 1)[-1]
+    cap, what = LIMITS[key]
+    env = f"MSMILL_LIMIT_{key.upper()}"
+    if os.environ.get(env, "").strip():
+        try:
+            cap = int(float(os.environ[env]))
+        except ValueError:
+            raise MsmillInputError(env, os.environ[env], "an integer limit") from None
     if value > cap:
         raise MsmillInputError(field, value, f"at most {cap:,} ({what}; resource limit "
-                               f"msmill.validate.LIMITS[{(name or field.rsplit('.', 1)[-1])!r}])")
+                               f"msmill.validate.LIMITS[{key!r}], raised by {env}=N)")
 
 
 def one_of(value: Any, field: str, allowed: tuple[Any, ...]) -> Any:

@@ -43,6 +43,23 @@ def _parse_range(text: str, field: str, with_count: bool) -> tuple[str, list[flo
                                + " with numbers (LOW <= HIGH)") from None
 
 
+def _unique(pairs, field: str = "--var") -> dict[str, list[float]]:
+    """``{name: values}``, refusing a variable given twice (the second would silently replace the first)."""
+    out: dict[str, list[float]] = {}
+    for name, values in pairs:
+        if name in out:
+            raise MsmillInputError(field, name, "each variable once")
+        out[name] = values
+    return out
+
+
+def _grid_size(counts: list[int], field: str) -> None:
+    """Refuse grids above the stated limit (:data:`msmill.validate.LIMITS` ``sweep_points``)."""
+    from msmill.validate import limit
+
+    limit(int(np.prod(counts)) if counts else 0, field, "sweep_points")
+
+
 ENVELOPE_HELP = "DEM envelope (JSON) whose capacity constrains the points, instead of the shipped one."
 CHECK_HELP = "Points above the envelope's capacity are infeasible (flagged in the table, excluded by the optimiser)."
 
@@ -75,7 +92,8 @@ def sweep(
     from msmill.plots.validation import sweep_plot
 
     t0 = time.perf_counter()
-    axes = dict(_parse_range(v, "--var", True) for v in var)
+    axes = _unique(_parse_range(v, "--var", True) for v in var)
+    _grid_size([len(v) for v in axes.values()], "--var")
     rf, mill, feed, op = _build(run_file, list(axes), envelope, capacity_check)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # off-point warnings: see inside_design_space
@@ -127,13 +145,23 @@ def optimize(
     from msmill.plots.validation import pareto_plot
 
     t0 = time.perf_counter()
-    bounds = {k: (v[0], v[1]) for k, v in (_parse_range(b, "--bound", False) for b in bound)}
+    from msmill.validate import integer, limit, number
+
+    bounds = {k: (v[0], v[1]) for k, v in _unique((_parse_range(b, "--bound", False) for b in bound),
+                                                   "--bound").items()}
+    integer(n_grid, "--n-grid", ge=1)
+    limit(n_grid, "--n-grid", "n_grid")
+    _grid_size([n_grid] * len(bounds), "--n-grid")
+    if target_p80_mm is not None:
+        number(target_p80_mm, "--target-p80-mm", unit="mm", gt=0)
     tp = None
     if target_passing is not None:
         try:
             a, b = (float(x) for x in target_passing.split(":"))
         except ValueError:
             raise MsmillInputError("--target-passing", target_passing, "SIZE_MM:PCT, e.g. 2:60") from None
+        number(a, "--target-passing (size)", unit="mm", gt=0)
+        number(b, "--target-passing (percent)", unit="%", gt=0, le=100)
         tp = (a, b)
     rf, mill, feed, op = _build(run_file, list(bounds), envelope, capacity_check)
     opts = dict(goal=goal, target_p80_mm=target_p80_mm, target_passing=tp, n_grid=n_grid, no_load_kw=no_load_kw)
