@@ -152,3 +152,14 @@ def test_a_warmed_service_answers_its_first_request_from_the_built_mill(monkeypa
     req = default_request()
     req["feed"]["rate_tph"] = 45.0  # another operating point: the mill (provider, ore, grid) is reused
     assert svc.predict(req)["summary"]["feed_tph"] == 45.0
+
+
+def test_docs_are_served_from_the_install(client: TestClient) -> None:
+    import re
+
+    page = client.get("/docs")
+    assert page.status_code == 200
+    refs = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+    assert refs and all(r.startswith("/") for r in refs), refs  # nothing from a CDN
+    for r in refs:
+        assert client.get(r).status_code == 200, r

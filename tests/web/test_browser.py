@@ -82,3 +82,24 @@ def test_page_what_if(server: str, tmp_path: Path) -> None:
     assert img.shape[0] > 500 and img.std() > 10  # not blank
     plot = img[150:450, 380:1000]  # the PSD plot area holds drawn lines, not only background
     assert (plot < 200).mean() > 0.01
+
+
+def test_api_docs_render_with_the_network_off(server: str) -> None:
+    # every request that leaves this machine is refused: Swagger UI must come from msmill's own server
+    outside: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page()
+
+        def route(r):
+            if r.request.url.startswith(server):
+                return r.continue_()
+            outside.append(r.request.url)
+            return r.abort()
+
+        page.route("**/*", route)
+        page.goto(server + "docs")
+        expect(page.locator(".swagger-ui .info .title")).to_contain_text("msmill", timeout=15_000)
+        expect(page.locator(".opblock-summary-path", has_text="/predict")).to_be_visible()
+        browser.close()
+    assert outside == []

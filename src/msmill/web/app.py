@@ -43,11 +43,31 @@ def _error(exc: MsmillInputError) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=422)
 
 
+def _local_docs(app: FastAPI) -> None:
+    """Swagger UI at ``/docs`` from files shipped with the install (``fastapi-offline``'s copy of Swagger UI,
+    which reads OpenAPI 3.1), not from a CDN: the page renders with the network off."""
+    from importlib import resources
+
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.staticfiles import StaticFiles
+
+    assets = str(resources.files("fastapi_offline") / "static")
+    app.mount("/docs-assets", StaticFiles(directory=assets), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> Any:
+        return get_swagger_ui_html(openapi_url=app.openapi_url or "/openapi.json", title="msmill API",
+                                   swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+                                   swagger_css_url="/docs-assets/swagger-ui.css",
+                                   swagger_favicon_url="/docs-assets/favicon.png")
+
+
 def create_app(service: PredictionService | None = None, max_request_bytes: int = MAX_REQUEST_BYTES) -> FastAPI:
     """The FastAPI application (one :class:`PredictionService` with its mill cache)."""
     svc = service or PredictionService()
-    app = FastAPI(title="msmill", version=__version__, max_body_size=max_request_bytes,
-                  description="What-if predictions of a multi-shaft vertical impact mill.")
+    app = FastAPI(title="msmill", version=__version__, max_body_size=max_request_bytes, docs_url=None,
+                  redoc_url=None, description="What-if predictions of a multi-shaft vertical impact mill.")
+    _local_docs(app)
 
     @app.exception_handler(MsmillInputError)
     async def _bad_input(request: Request, exc: MsmillInputError) -> JSONResponse:
