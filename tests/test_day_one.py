@@ -77,3 +77,21 @@ def test_a_resource_limit_is_raised_by_its_environment_variable(monkeypatch):
         limit(20_000, "--var", "sweep_points")
     monkeypatch.setenv("MSMILL_LIMIT_SWEEP_POINTS", "50000")
     limit(20_000, "--var", "sweep_points")
+
+
+def test_the_psd_plot_shades_what_rests_on_extrapolated_statistics():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from msmill.machine import OperatingPoint
+    from msmill.model import Mill
+    from msmill.plots.model import plot_psds
+
+    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5], [2, 6, 18, 58, 100])
+    res = Mill("UG2", "default", band_samples=0).run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40),
+                                                     timeseries=False)
+    mask = res.extrapolated_classes
+    assert mask is not None and mask.any() and not mask.all()
+    assert res.extrapolated_product_pct == pytest.approx(100 * res.product_psd.fractions[mask].sum())
+    labels = plot_psds(res).get_legend_handles_labels()[1]
+    assert labels.count("stage statistics extrapolated in size") == 1

@@ -537,6 +537,7 @@ def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
             mask = np.asarray(mask, dtype=bool)
             out[f"{key}_feed_pct"] = 100.0 * float(res.feed_psd.fractions[mask].sum())
             out[f"{key}_product_pct"] = 100.0 * float(res.product_psd.fractions[mask].sum())
+            out[f"{key}_classes"] = mask.copy()
     return dataclasses.replace(res, **out) if out else res
 
 

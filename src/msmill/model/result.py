@@ -113,6 +113,9 @@ class MillResult:
     extrapolated_product_pct: float = float("nan")
     thin_data_feed_pct: float = float("nan")
     thin_data_product_pct: float = float("nan")
+    #: per model size class: stage statistics extrapolated in size / from thin data (None: not known)
+    extrapolated_classes: np.ndarray | None = None
+    thin_data_classes: np.ndarray | None = None
     p80_band_mm: tuple[float, float] | None = None
     psd_band: pd.DataFrame | None = None
     band_samples: int = 0

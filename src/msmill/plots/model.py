@@ -33,6 +33,18 @@ def style_psd_axes(ax: Any, title: str) -> None:
     ax.set_title(title, parse_math=False)  # no mathtext: a '$' in a title is text
 
 
+def _shade_classes(ax: Any, edges_mm: np.ndarray, mask: np.ndarray | None, label: str, color: str) -> None:
+    """Shade the size classes flagged in ``mask`` (contiguous runs as one span, one legend entry)."""
+    if mask is None or not np.any(mask):
+        return
+    m = np.asarray(mask, dtype=bool)
+    starts = np.flatnonzero(m & ~np.r_[False, m[:-1]])
+    ends = np.flatnonzero(m & ~np.r_[m[1:], False])
+    for k, (i, j) in enumerate(zip(starts, ends, strict=True)):
+        ax.axvspan(edges_mm[i], edges_mm[j + 1], color=color, alpha=0.5, lw=0, zorder=0,
+                   label=label if k == 0 else None)
+
+
 def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
     """Feed and product cumulative % passing against size (log axis).
 
@@ -56,6 +68,10 @@ def plot_psds(result: Any, ax: Any = None, title: str = "") -> Any:
         x = np.concatenate([[psd.grid.edges_mm[0]], psd.sizes_mm])
         y = np.concatenate([[0.0], psd.passing_pct])
         ax.plot(x, y, style, marker=".", label=label)
+    _shade_classes(ax, result.product_psd.grid.edges_mm, getattr(result, "extrapolated_classes", None),
+                   "stage statistics extrapolated in size", "0.85")
+    _shade_classes(ax, result.product_psd.grid.edges_mm, getattr(result, "thin_data_classes", None),
+                   "stage statistics from thin data", "#f4d9a6")
     band = getattr(result, "psd_band", None)
     if band is not None:
         lo, hi = result.p80_band_mm
