@@ -306,15 +306,7 @@ def resume_mill(checkpoint_dir: str | Path, progress: Callable[[float, int, str]
         Another checkpoint interval (s of wall time) for the rest of the run.
     """
     clock = _PartClock()
-    head = read_header(checkpoint_dir)
-    if head.get("kind") != CHECKPOINT_KIND:
-        raise MsmillInputError("checkpoint", str(checkpoint_dir), "a checkpoint of a mill run (msmill dem run)")
-    digest = code_digest()
-    if head.get("code_digest") != digest:
-        raise MsmillInputError("checkpoint", str(checkpoint_dir),
-                               f"a checkpoint of this code (DEM code {digest}; it was written by "
-                               f"{head.get('code_digest')}, msmill {head.get('msmill_version')}, commit "
-                               f"{str(head.get('git_commit'))[:12]}): start the run afresh")
+    _check_code(checkpoint_dir, read_header(checkpoint_dir))
     head, state = read_checkpoint(checkpoint_dir)
     rs: RunSettings = state["settings"]
     if checkpoint_every_s is not None:
@@ -329,14 +321,22 @@ def check_checkpoint(checkpoint_dir: str | Path, inputs: dict[str, Any]) -> None
     ``inputs``: :func:`run_inputs` of the run that would continue from it.
     """
     head = read_header(checkpoint_dir)
-    digest = code_digest()
-    if head.get("code_digest") != digest:
-        raise MsmillInputError("checkpoint", str(checkpoint_dir),
-                               f"a checkpoint of this code (DEM code {digest}, the checkpoint's "
-                               f"{head.get('code_digest')})")
+    _check_code(checkpoint_dir, head)
     diff = first_difference(json.loads(json.dumps(inputs, default=str)), head.get("inputs", {}))
     if diff is not None:
         raise MsmillInputError("checkpoint", str(checkpoint_dir), f"a checkpoint of this run's settings ({diff})")
+
+
+def _check_code(checkpoint_dir: str | Path, head: dict[str, Any]) -> None:
+    """One line unless the checkpoint is a mill run's written by this code (:func:`code_digest`)."""
+    if head.get("kind") != CHECKPOINT_KIND:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir), "a checkpoint of a mill run (msmill dem run)")
+    digest = code_digest()
+    if head.get("code_digest") != digest:
+        raise MsmillInputError("checkpoint", str(checkpoint_dir),
+                               f"a checkpoint of this code (DEM code {digest}; it was written by "
+                               f"{head.get('code_digest')}, msmill {head.get('msmill_version')}, commit "
+                               f"{str(head.get('git_commit'))[:12]}): start the run afresh")
 
 
 def run_inputs(machine: Machine, op: OperatingPoint, size_mm: float | None, feed_psd: tuple[Any, Any] | None,
