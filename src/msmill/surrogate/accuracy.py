@@ -36,6 +36,7 @@ from msmill.surrogate.targets import (
     count_from_summary,
     decode_stage,
     encode_run,
+    normal_pdf,
 )
 
 GRID_POINTS = 4001
@@ -48,8 +49,8 @@ def mixture_kl(p: tuple, q: tuple, n_grid: int = GRID_POINTS) -> float:
     lo = min(np.min(mp - 8 * sp), np.min(mq - 8 * sq))
     hi = max(np.max(mp + 8 * sp), np.max(mq + 8 * sq))
     v = np.linspace(lo, hi, n_grid)
-    fp = np.sum(wp * stats.norm.pdf((v[:, None] - mp) / sp) / sp, axis=1)
-    fq = np.sum(wq * stats.norm.pdf((v[:, None] - mq) / sq) / sq, axis=1)
+    fp = np.sum(wp * normal_pdf((v[:, None] - mp) / sp) / sp, axis=1)
+    fq = np.sum(wq * normal_pdf((v[:, None] - mq) / sq) / sq, axis=1)
     m = fp > 1e-300
     integrand = np.where(m, fp * np.log(np.where(m, fp, 1.0) / np.maximum(fq, 1e-300)), 0.0)
     return float(max(np.trapezoid(integrand, v), 0.0))

@@ -332,15 +332,14 @@ class SurrogateGP:
         -------
         mean, var : ndarray (R, T)
         """
-        R = self.X_train_.shape[0]
-        mean, var = np.empty((R, self.n_targets)), np.empty((R, self.n_targets))
-        for j, e in enumerate(self.estimators_):
-            kinv = cho_solve((e.L_, True), np.eye(R))
-            d = np.diag(kinv)
-            y = e.y_train_
-            mean[:, j] = (y - (kinv @ y) / d) * self.y_std_[j] + self.y_mean_[j]
-            var[:, j] = self.y_std_[j] ** 2 / d
-        return mean, var
+        st = self._stacked()  # every target at once, from the stored factors (no scikit-learn refit)
+        with single_threaded():
+            kinv = np.swapaxes(st.L_inv, 1, 2) @ st.L_inv  # K^-1 = L^-T L^-1, (T, R, R)
+            d = np.einsum("tii->ti", kinv)
+            y = ((self.Y_train_ - self.y_mean_) / self.y_std_).T  # the standardised targets the GPs were fitted to
+            mean = (y - np.einsum("tij,tj->ti", kinv, y) / d) * st.y_std[:, None] + st.y_mean[:, None]
+            var = st.y_std[:, None] ** 2 / d
+        return mean.T, var.T
 
 
 def sqrt_factor(cov: np.ndarray) -> np.ndarray:

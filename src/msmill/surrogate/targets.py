@@ -119,7 +119,7 @@ def _spacing(q: np.ndarray) -> np.ndarray:
     return h
 
 
-def _norm_pdf(x: np.ndarray) -> np.ndarray:
+def normal_pdf(x: np.ndarray) -> np.ndarray:
     """The standard normal density, as ``scipy.stats.norm.pdf`` computes it (without importing scipy.stats,
     about a second of every command's start; ``norm.cdf`` and ``norm.ppf`` are ``special.ndtr`` and
     ``special.ndtri``)."""
@@ -136,10 +136,10 @@ def sigma_factor() -> float:
     q = special.ndtri(LEVELS)
     h = _spacing(q)
     v = np.linspace(-8, 8, 4001)
-    p = _norm_pdf(v)
+    p = normal_pdf(v)
 
     def kl(c: float) -> float:
-        r = np.mean(_norm_pdf((v[:, None] - q) / (c * h)) / (c * h), axis=1)
+        r = np.mean(normal_pdf((v[:, None] - q) / (c * h)) / (c * h), axis=1)
         return float(np.trapezoid(p * np.log(p / np.maximum(r, 1e-300)), v))
 
     return float(optimize.minimize_scalar(kl, bounds=(0.2, 2.0), method="bounded").x)
