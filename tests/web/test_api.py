@@ -163,3 +163,32 @@ def test_docs_are_served_from_the_install(client: TestClient) -> None:
     assert refs and all(r.startswith("/") for r in refs), refs  # nothing from a CDN
     for r in refs:
         assert client.get(r).status_code == 200, r
+
+
+def test_openapi_describes_the_request_and_the_error_body_returned(client: TestClient) -> None:
+    from msmill.web.app import ErrorBody
+
+    doc = client.get("/openapi.json").json()
+    post = doc["paths"]["/predict"]["post"]
+    props = post["requestBody"]["content"]["application/json"]["schema"]["properties"]
+    assert {"ore", "feed", "operating", "attachments"} <= set(props)  # not an empty object
+    assert post["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+    refs: set[str] = set()
+
+    def walk(x):
+        if isinstance(x, dict):
+            refs.update(v for k, v in x.items() if k == "$ref")
+            for k, v in x.items():
+                if k != "$ref":
+                    walk(v)
+        elif isinstance(x, list):
+            for v in x:
+                walk(v)
+
+    walk(doc)
+    assert refs and all(r.split("/")[-1] in doc["components"]["schemas"] for r in refs)
+    bad = _example()
+    bad["operating"]["gate_deg"] = 120
+    r = client.post("/predict", json=bad)
+    assert r.status_code == 422
+    assert ErrorBody.model_validate(r.json()).detail.field.endswith("operating.gate_deg")  # the body the schema names

@@ -29,6 +29,7 @@ from typing import Annotated, Any
 from fastapi import Body, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
+from pydantic import BaseModel
 
 from msmill._version import __version__
 from msmill.errors import MsmillInputError
@@ -36,6 +37,40 @@ from msmill.web.service import PredictionService, default_request
 
 MAX_REQUEST_BYTES = 1_000_000
 STATIC = Path(__file__).with_name("static")
+
+
+class ErrorDetail(BaseModel):
+    """One bad input: the field, the value given and what is allowed (``msmill.errors.MsmillInputError``)."""
+
+    field: str
+    value: str
+    allowed: str
+    message: str
+
+
+class ErrorBody(BaseModel):
+    """The body of every 422 answer of the API."""
+
+    detail: ErrorDetail
+
+
+_ERRORS = {422: {"model": ErrorBody, "description": "Bad input: the field, the value given and what is allowed"}}
+
+
+def _request_schema() -> tuple[dict[str, Any], dict[str, Any]]:
+    """JSON schema of a ``POST /predict`` body (a run file's fields plus ``attachments``) and its definitions."""
+    from msmill.model.runfile import RunFile
+
+    sch = RunFile.model_json_schema(ref_template="#/components/schemas/{model}")
+    defs = sch.pop("$defs", {})
+    props = {k: v for k, v in sch.get("properties", {}).items() if k not in ("base_dir", "name")}
+    props["attachments"] = {
+        "type": "object", "description": "file contents by kind: feed_csv (size_mm, passing_pct), ore_toml, "
+        "stage_parameters_json, machine_toml (the run file's sections then point at them)",
+        "additionalProperties": {"type": "string"}}
+    body = {"type": "object", "title": "PredictRequest", "properties": props, "required": sch.get("required", []),
+            "description": "A run file (msmill.model.runfile) as JSON, with optional attachments."}
+    return body, defs
 
 
 def _error(exc: MsmillInputError) -> JSONResponse:
@@ -109,10 +144,24 @@ def create_app(service: PredictionService | None = None, max_request_bytes: int 
         """The shipped UG2 example as a request body."""
         return default_request()
 
-    @app.post("/predict")
+    body_schema, defs = _request_schema()
+
+    @app.post("/predict", responses=_ERRORS, openapi_extra={"requestBody": {
+        "required": True, "content": {"application/json": {"schema": body_schema}}}})
     def predict(request: Annotated[dict[str, Any], Body(description="run-file fields (msmill.model.runfile) "
                                                                     "plus optional attachments")]) -> dict[str, Any]:
         """Predict the product of a run file given as JSON."""
         return svc.predict(request)
 
+    plain_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's document plus the run file's definitions the request schema refers to."""
+        if app.openapi_schema is None:
+            doc = plain_openapi()
+            doc.setdefault("components", {}).setdefault("schemas", {}).update(defs)
+            app.openapi_schema = doc
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app
