@@ -59,6 +59,9 @@ def test_report_is_self_contained(report_file):
     for heading in ("Headline", "Approach to steady state", "Per stage", "Power and wear", "Provenance"):
         assert heading in doc
     assert "flinger" in doc and "no-load" in doc
+    # the README example rests half on statistics extrapolated in size: a warning, not only a note
+    warnings_part = doc.split("<h2>Warnings</h2>", 1)[1].split("<h2>", 1)[0]
+    assert "rests on stage statistics extrapolated" in warnings_part
 
 
 @pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium not installed (.ci/run installs it)")

@@ -39,6 +39,10 @@ class OutOfDomainWarning(UserWarning):
     """An input lies outside the range a model or surrogate was built on."""
 
 
+class ExtrapolationWarning(OutOfDomainWarning):
+    """Much of the product rests on stage statistics extrapolated beyond the sizes the DEM ran."""
+
+
 class ThinDataWarning(OutOfDomainWarning):
     """Inside the trained range, but far from every training run: the prediction rests on thin data."""
 

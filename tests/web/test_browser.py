@@ -49,6 +49,8 @@ def test_page_what_if(server: str, tmp_path: Path) -> None:
         page = browser.new_page(viewport={"width": 1100, "height": 1300})
         page.goto(server)
         p80 = _changes(page, "#p80", "-")
+        # the README example rests half on statistics extrapolated in size: the page says so among its warnings
+        expect(page.locator("#warnings")).to_contain_text("rests on stage statistics extrapolated")
         product = page.locator("#product_line").get_attribute("d")
         holdup = page.locator("#holdup").inner_text()
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from msmill.errors import MsmillInputError, SummaryNote
+from msmill.errors import ExtrapolationWarning, MsmillInputError, SummaryNote
 from msmill.model import submodels as sm
 from msmill.model.expected_value import LinearMill, assemble, steady_products
 from msmill.model.montecarlo import MonteCarloSolver
@@ -359,6 +359,7 @@ class Mill:
         else:
             res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
         res = _with_extrapolated_share(res, params)
+        _warn_extrapolated_share(res)
         if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
             key = (grid.edges_mm.tobytes(), feed_m.fractions.tobytes(), tuple(op.stage_speeds(self.provider.n_stages)),
                    float(op.feed_tph), float(op.gate_deg))
@@ -525,6 +526,25 @@ class Mill:
             mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
             solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
         )
+
+
+#: Product mass % on stage statistics extrapolated in size above which a prediction warns (not only notes):
+#: above it the product's P20 and every passing figure below the trained sizes (75 um and the like) are
+#: predictions from extrapolated statistics; below it only the finest tail is (docs/model.md, "What a
+#: prediction rests on").
+EXTRAPOLATED_WARN_PCT = 20.0
+
+
+def _warn_extrapolated_share(res: MillResult) -> None:
+    """An :class:`ExtrapolationWarning` when more than :data:`EXTRAPOLATED_WARN_PCT` of the product rests on
+    stage statistics extrapolated in size."""
+    pct = res.extrapolated_product_pct
+    if pct == pct and pct > EXTRAPOLATED_WARN_PCT:  # not NaN
+        mask = res.extrapolated_classes
+        n = "" if mask is None else f" ({int(np.sum(mask))} of {mask.size} size classes)"
+        warnings.warn(f"{pct:.0f} % of the product mass{n} rests on stage statistics extrapolated beyond the "
+                      f"rock sizes the DEM ran (feed {res.extrapolated_feed_pct:.0f} %): the passing fractions "
+                      "there are extrapolations", ExtrapolationWarning, stacklevel=3)
 
 
 def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:
