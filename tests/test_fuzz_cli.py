@@ -225,3 +225,125 @@ def test_fuzz_contract_can_fail():
         (Path(tmp) / "res").mkdir()
         (Path(tmp) / "res" / "half.csv").write_text("x")
         check_output(Path(tmp) / "res", 2)
+
+
+# ---------------------------------------------------------------- issue 40: store, campaign, sweep, web API
+class _Reached(Exception):
+    """The command got past its checks to the (stubbed) computation."""
+
+
+STORE_WORDS = ["", "sqlite:///", "sqlite:////nonexistent/x.sqlite", "postgresql://u:p@127.0.0.1:1/x", "foo://bar",
+               "/", ".", "x.sqlite", "a b", "\x00", ":memory:", "sqlite:///:memory:", "mysql://x"]
+
+
+@FUZZ
+@given(db=st.one_of(st.sampled_from(STORE_WORDS), st.text(max_size=20)),
+       cmd=st.sampled_from([["db", "info"], ["db", "list"], ["db", "show", "1"], ["campaign", "status", "c"]]),
+       size=st.one_of(st.none(), st.sampled_from(["40:20", "20:40", "x", ":", "1e400:2", "nan:1"])))
+def test_store_urls_and_ranges(db, cmd, size):
+    with tempfile.TemporaryDirectory() as tmp:
+        db_arg = db.replace("x.sqlite", str(Path(tmp) / "x.sqlite"))
+        extra = ["--size-mm", size] if size is not None and cmd[1] == "list" else []
+        code, out, err = cli([*cmd, "--db", db_arg, *extra])
+        check(code, out, err)
+        assert not any(Path(tmp).iterdir())  # a read never creates a store
+
+
+@FUZZ
+@given(name=st.one_of(st.sampled_from(WORDS), st.text(max_size=12)),
+       ore=st.one_of(st.none(), st.sampled_from(WORDS)),
+       sets=st.lists(st.tuples(st.sampled_from(["max_time_s", "measure_s", "seed", "start", "adaptive", "chunk_s",
+                                                "checkpoint_every_s", "nonsense"]),
+                               st.one_of(st.sampled_from(["-5", "0", "nan", "inf", "1e9", "true", "table", "x"]),
+                                         st.integers(-5, 10).map(str))), max_size=2))
+def test_campaign_create_arguments(name, ore, sets):
+    with tempfile.TemporaryDirectory() as tmp:
+        args = ["campaign", "create", name, "--db", str(Path(tmp) / "s.sqlite"),
+                "--checkpoint-dir", str(Path(tmp) / "ck")]
+        args += ["--ore", ore] if ore is not None else []
+        for k, v in sets:
+            args += ["--set", f"{k}={v}"]
+        check(*cli(args))
+
+
+@FUZZ
+@given(cmd=st.sampled_from(["sweep", "optimize"]),
+       var=st.lists(st.one_of(st.sampled_from(["speed_rpm=1200:1900:8", "speed_rpm=1900:1200", "feed_tph=10:60:0",
+                                               "gate_deg=40,60", "x=1:2", "speed_rpm=", "feed_tph=1e9:1e10:1000000",
+                                               "feed_scale=0.5:2:3"]), st.text(max_size=10)),
+                    min_size=1, max_size=3),
+       n_grid=st.one_of(st.none(), st.sampled_from(["0", "-1", "1000000", "x", "3"])),
+       target=st.one_of(st.none(), st.sampled_from(["--target-p80-mm=-3", "--target-p80-mm=nan",
+                                                   "--target-passing=2:150", "--target-passing=x",
+                                                   "--target-p80-mm=16"])))
+def test_sweep_and_optimize_arguments(cmd, var, n_grid, target, monkeypatch):
+    from msmill.model import operating
+
+    def stub(*a, **k):
+        raise _Reached
+
+    monkeypatch.setattr(operating, "sweep", stub)
+    monkeypatch.setattr(operating, "optimize", stub)
+    flag = "--var" if cmd == "sweep" else "--bound"
+    args = [cmd, str(Path(__file__).parents[1] / "examples" / "ug2.toml"), "--out", "unused"]
+    for v in var:
+        args += [flag, v]
+    if cmd == "optimize":
+        args += [] if n_grid is None else ["--n-grid", n_grid]
+        args += [] if target is None else [target]
+    try:
+        code, out, err = cli(args)
+    except _Reached:
+        return  # every check passed: the computation was reached
+    check(code, out, err)
+
+
+@pytest.fixture(scope="module")
+def web_client():
+    import warnings
+
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+
+    from msmill.web.app import create_app
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return TestClient(create_app(max_request_bytes=200_000))
+
+
+WEB_BASE = {"title": "fuzz", "ore": {"name": "UG2"},
+            "feed": {"rate_tph": 30.0, "size_mm": [4.0, 8.0, 16.0, 32.0], "passing_pct": [10.0, 30.0, 70.0, 100.0]},
+            "operating": {"speed_rpm": 1500.0, "gate_deg": 40.0}, "output": {"plots": False},
+            "model": {"damage_classes": 2, "quadrature_nodes": 4}, "grid": {"min_mm": 0.5, "ratio": 2.0},
+            "stage_parameters": {"file": "table"}}
+WEB_FIELDS = [("ore", "name"), ("feed", "rate_tph"), ("feed", "size_mm"), ("feed", "passing_pct"),
+              ("operating", "speed_rpm"), ("operating", "gate_deg"), ("model", "solver"), ("grid", "ratio"),
+              ("attachments", "feed_csv"), ("attachments", "ore_toml"), ("attachments", "secret"),
+              ("stage_parameters", "file"), ("machine", "file"), ("extra",)]
+
+
+@FUZZ
+@given(edits=st.lists(st.tuples(st.sampled_from(WEB_FIELDS), st.one_of(values, st.sampled_from(
+    ["size_mm,passing_pct\n1,5\n8,45\n16,100\n", "\x00\x01", "[ore]\nname = 'x'", "../../etc/passwd"]))),
+    min_size=1, max_size=3),
+    raw=st.one_of(st.none(), st.binary(max_size=60)))
+def test_web_api_bodies(web_client, edits, raw):
+    import json
+
+    if raw is not None:
+        r = web_client.post("/predict", content=raw, headers={"content-type": "application/json"})
+    else:
+        doc = json.loads(json.dumps(WEB_BASE))
+        for path, value in edits:
+            _set(doc, path, value)
+        try:
+            body = json.dumps(doc, allow_nan=True)
+        except (TypeError, ValueError):
+            return
+        r = web_client.post("/predict", content=body.encode(), headers={"content-type": "application/json"})
+    assert r.status_code in (200, 413, 422), (r.status_code, r.text[:300])
+    if r.status_code == 422:
+        d = r.json()["detail"]
+        assert set(d) == {"field", "value", "allowed", "message"} and "\n" not in d["message"]
+        assert "Traceback" not in r.text and "internal error" not in r.text

@@ -30,6 +30,7 @@ from fastapi import Body, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from msmill._version import __version__
 from msmill.errors import MsmillInputError
@@ -107,6 +108,12 @@ def create_app(service: PredictionService | None = None, max_request_bytes: int 
     @app.exception_handler(MsmillInputError)
     async def _bad_input(request: Request, exc: MsmillInputError) -> JSONResponse:
         return _error(exc)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:  # a body that cannot be parsed at all (not UTF-8): the API's own error body
+            return _error(MsmillInputError("request", "an unreadable body", "a JSON object in UTF-8"))
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=exc.headers)
 
     @app.exception_handler(RequestValidationError)
     async def _bad_json(request: Request, exc: RequestValidationError) -> JSONResponse:
