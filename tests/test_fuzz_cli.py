@@ -228,6 +228,9 @@ def test_fuzz_contract_can_fail():
 
 
 # ---------------------------------------------------------------- issue 40: store, campaign, sweep, web API
+#: 40 + 40 + 35 + 40 = 155 cases of the issue's new classes
+FUZZ40 = settings(FUZZ, max_examples=40)
+FUZZ35 = settings(FUZZ, max_examples=35)
 class _Reached(Exception):
     """The command got past its checks to the (stubbed) computation."""
 
@@ -236,7 +239,7 @@ STORE_WORDS = ["", "sqlite:///", "sqlite:////nonexistent/x.sqlite", "postgresql:
                "/", ".", "x.sqlite", "a b", "\x00", ":memory:", "sqlite:///:memory:", "mysql://x"]
 
 
-@FUZZ
+@FUZZ40
 @given(db=st.one_of(st.sampled_from(STORE_WORDS), st.text(max_size=20)),
        cmd=st.sampled_from([["db", "info"], ["db", "list"], ["db", "show", "1"], ["campaign", "status", "c"]]),
        size=st.one_of(st.none(), st.sampled_from(["40:20", "20:40", "x", ":", "1e400:2", "nan:1"])))
@@ -249,7 +252,7 @@ def test_store_urls_and_ranges(db, cmd, size):
         assert not any(Path(tmp).iterdir())  # a read never creates a store
 
 
-@FUZZ
+@FUZZ40
 @given(name=st.one_of(st.sampled_from(WORDS), st.text(max_size=12)),
        ore=st.one_of(st.none(), st.sampled_from(WORDS)),
        sets=st.lists(st.tuples(st.sampled_from(["max_time_s", "measure_s", "seed", "start", "adaptive", "chunk_s",
@@ -266,7 +269,7 @@ def test_campaign_create_arguments(name, ore, sets):
         check(*cli(args))
 
 
-@FUZZ
+@FUZZ35
 @given(cmd=st.sampled_from(["sweep", "optimize"]),
        var=st.lists(st.one_of(st.sampled_from(["speed_rpm=1200:1900:8", "speed_rpm=1900:1200", "feed_tph=10:60:0",
                                                "gate_deg=40,60", "x=1:2", "speed_rpm=", "feed_tph=1e9:1e10:1000000",
@@ -323,7 +326,7 @@ WEB_FIELDS = [("ore", "name"), ("feed", "rate_tph"), ("feed", "size_mm"), ("feed
               ("stage_parameters", "file"), ("machine", "file"), ("extra",)]
 
 
-@FUZZ
+@FUZZ40
 @given(edits=st.lists(st.tuples(st.sampled_from(WEB_FIELDS), st.one_of(values, st.sampled_from(
     ["size_mm,passing_pct\n1,5\n8,45\n16,100\n", "\x00\x01", "[ore]\nname = 'x'", "../../etc/passwd"]))),
     min_size=1, max_size=3),

@@ -85,6 +85,8 @@ def _normalise_url(url: str | None, create: bool = True) -> str:
     creates a store, nor folders for it).
     """
     url = url or default_url()
+    if "\x00" in url:
+        raise MsmillInputError("--db", url.replace("\x00", "\\x00"), "a SQLite file or a database URL without NUL characters")
     if "://" not in url:  # a plain path: a SQLite file
         url = f"sqlite:///{Path(url).expanduser().resolve()}"
     if url.startswith("postgresql://") or url.startswith("postgres://"):
