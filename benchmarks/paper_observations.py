@@ -11,7 +11,7 @@ Prints the effects and z-values (lines starting ``#``), then one line per config
 and last ``default=<name> agreeing=<k>/3`` (ties broken by the statements with the paper's sign, then
 by the sum of the signed z clipped to +-5)::
 
-    python benchmarks/paper_observations.py [--root benchmarks/data/rotation_sense] [--brief]
+    python benchmarks/paper_observations.py [--root benchmarks/data/rotation_sense] [--brief] [--table]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from msmill.dem.mill.observations import evaluate, read_study, report_lines
+from msmill.dem.mill.observations import evaluate, read_study, report_lines, stream_table_lines
 
 ROOT = Path(__file__).parent / "data" / "rotation_sense"
 
@@ -29,9 +29,12 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", type=Path, default=ROOT)
     ap.add_argument("--brief", action="store_true", help="only the key=value lines")
+    ap.add_argument("--table", action="store_true", help="first a Markdown table of the group means (streams per stage)")
     ap.add_argument("--include-not-steady", action="store_true", help="also use runs that did not reach steady state")
     args = ap.parse_args(argv)
     runs = read_study(args.root)
+    if args.table:
+        print("\n".join(stream_table_lines(runs)))
     if not args.brief:
         per = Counter((r.config, r.size_mm, r.speed_rpm) for r in runs)
         for (c, size, rpm), n in sorted(per.items()):

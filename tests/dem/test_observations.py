@@ -19,6 +19,7 @@ from msmill.dem.mill.observations import (
     report_lines,
     run_dir_name,
     stage_stream,
+    stream_table_lines,
     top_least_kickback,
 )
 from msmill.errors import MsmillInputError
@@ -137,3 +138,12 @@ def test_read_study_from_exports(tmp_path):
     assert report_lines(evaluate(runs))[-1] == "default=paper agreeing=3/3"
     with pytest.raises(MsmillInputError, match="root"):
         read_study(tmp_path / "missing")
+
+
+def test_stream_table_has_one_row_per_point():
+    lines = stream_table_lines(_study())
+    assert len(lines) == 2 + 2 * len(SIZES) * len(SPEEDS)
+    row = next(ln for ln in lines if ln.startswith("| paper | 10 | 1850 | 3 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[4:9] == ["0.05", "0.30", "0.28", "0.25", "0.20"]  # kickback per stage
+    assert cells[14] == "0.60"  # stage-1 refeed at 10 mm: 0.40 + 0.20

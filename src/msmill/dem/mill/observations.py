@@ -453,3 +453,25 @@ def report_lines(verdicts: dict[str, ConfigVerdict], details: bool = True) -> li
     best = pick_default(verdicts)
     lines.append(f"default={best.config} agreeing={best.agreeing}/{len(STATEMENTS)}")
     return lines
+
+
+def stream_table_lines(runs: Sequence[RunStreams]) -> list[str]:
+    """Markdown table of the group means: per configuration, size and speed the seeds, kickback and
+    pass-through per stage, stage-1 refeed (mass fractions, mean over seeds) and the mean wall time (s)."""
+    if not runs:
+        raise MsmillInputError("runs", "none", "at least one run")
+    n = _n_stages(runs)
+    head = (["config", "size (mm)", "speed (rpm)", "seeds"] + [f"kick {s}" for s in range(1, n + 1)]
+            + [f"pass {s}" for s in range(1, n + 1)] + ["refeed 1", "wall (s)"])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    key = {c: i for i, c in enumerate(CONFIGS)}
+    cells: dict[tuple[str, float, float], list[RunStreams]] = {}
+    for r in runs:
+        cells.setdefault((r.config, r.size_mm, r.speed_rpm), []).append(r)
+    for (c, size, rpm), rs in sorted(cells.items(), key=lambda kv: (key.get(kv[0][0], len(CONFIGS)), kv[0])):
+        m = np.mean([r.streams for r in rs], axis=0)
+        wall = np.nanmean([r.wall_s for r in rs]) if any(math.isfinite(r.wall_s) for r in rs) else math.nan
+        row = ([c, f"{size:g}", f"{rpm:g}", str(len(rs))] + [f"{v:.2f}" for v in m[:, 0]]
+               + [f"{v:.2f}" for v in m[:, 2]] + [f"{m[0, 1]:.2f}", f"{wall:.0f}"])
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
