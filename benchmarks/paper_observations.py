@@ -20,7 +20,13 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from msmill.dem.mill.observations import evaluate, read_study, report_lines, stream_table_lines
+from msmill.dem.mill.observations import (
+    evaluate,
+    leave_one_seed_out,
+    read_study,
+    report_lines,
+    stream_table_lines,
+)
 
 ROOT = Path(__file__).parent / "data" / "rotation_sense"
 
@@ -39,7 +45,11 @@ def main(argv: list[str] | None = None) -> None:
         per = Counter((r.config, r.size_mm, r.speed_rpm) for r in runs)
         for (c, size, rpm), n in sorted(per.items()):
             print(f"# runs {c} {size:g} mm {rpm:g} rpm: {n} seeds")
-    print("\n".join(report_lines(evaluate(runs, include_not_steady=args.include_not_steady), details=not args.brief)))
+    lines = report_lines(evaluate(runs, include_not_steady=args.include_not_steady), details=not args.brief)
+    if not args.brief:
+        for seed, (pick, k) in leave_one_seed_out(runs, args.include_not_steady).items():
+            print(f"# without seed {seed}: default={pick} agreeing={k}/3")
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":

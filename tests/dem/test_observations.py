@@ -13,6 +13,7 @@ from msmill.dem.mill.observations import (
     RunStreams,
     evaluate,
     group_mean,
+    leave_one_seed_out,
     pick_default,
     read_study,
     refeed_falls_with_size,
@@ -147,3 +148,7 @@ def test_stream_table_has_one_row_per_point():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[4:9] == ["0.05", "0.30", "0.28", "0.25", "0.20"]  # kickback per stage
     assert cells[14] == "0.60"  # stage-1 refeed at 10 mm: 0.40 + 0.20
+
+
+def test_leave_one_seed_out_keeps_the_pick():
+    assert leave_one_seed_out(_study()) == {0: ("paper", 3), 1: ("paper", 3), 2: ("paper", 3)}

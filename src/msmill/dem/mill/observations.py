@@ -475,3 +475,19 @@ def stream_table_lines(runs: Sequence[RunStreams]) -> list[str]:
                + [f"{v:.2f}" for v in m[:, 2]] + [f"{m[0, 1]:.2f}", f"{wall:.0f}"])
         lines.append("| " + " | ".join(row) + " |")
     return lines
+
+
+def leave_one_seed_out(runs: Sequence[RunStreams], include_not_steady: bool = False) -> dict[int, tuple[str, int]]:
+    """How sure the pick is: ``{seed: (pick, agreeing)}`` of :func:`pick_default` on the runs without that seed.
+
+    Only seeds whose removal leaves every configuration with runs are tried.
+    """
+    out: dict[int, tuple[str, int]] = {}
+    configs = {r.config for r in runs}
+    for seed in sorted({r.seed for r in runs}):
+        rest = [r for r in runs if r.seed != seed]
+        if {r.config for r in rest} != configs:
+            continue
+        best = pick_default(evaluate(rest, include_not_steady))
+        out[seed] = (best.config, best.agreeing)
+    return out
