@@ -8,8 +8,8 @@ Prints the effects and z-values (lines starting ``#``), then one line per config
 
     config=<name> top_least_kickback=<agree|disagree> pass_rises_with_speed=<agree|disagree> refeed_falls_with_size=<agree|disagree>
 
-and last ``default=<name> agreeing=<k>/3`` (ties broken by the statements with the paper's sign, then
-by the sum of the signed z clipped to +-5)::
+and last ``default=<name> agreeing=<k>/3`` (ties broken by the share of steady runs, then by the
+statements with the paper's sign, then by the sum of the signed z clipped to +-5)::
 
     python benchmarks/paper_observations.py [--root benchmarks/data/rotation_sense] [--brief] [--table]
 """

@@ -152,3 +152,15 @@ def test_stream_table_has_one_row_per_point():
 
 def test_leave_one_seed_out_keeps_the_pick():
     assert leave_one_seed_out(_study()) == {0: ("paper", 3), 1: ("paper", 3), 2: ("paper", 3)}
+
+
+def test_ties_go_to_the_configuration_whose_runs_stay_steady():
+    runs = _study()
+    same = [RunStreams("choking", r.size_mm, r.speed_rpm, r.seed, r.streams, r.sampling_se,
+                       outcome="choked" if (r.size_mm, r.seed) == (30.0, 2) else "steady")
+            for r in runs if r.config == "paper"]
+    verdicts = evaluate(runs + same)
+    assert verdicts["choking"].agreeing == verdicts["paper"].agreeing == 3
+    assert verdicts["choking"].n_excluded == 2
+    assert pick_default(verdicts).config == "paper"
+    assert pick_default({"choking": verdicts["choking"]}).config == "choking"

@@ -28,8 +28,10 @@ between-seed scatter carries the correlation between the stages of a run.
 **Agreement.** A statement *agrees* when its ``z`` has the paper's sign and ``|z| > Z_AGREE`` (2):
 ``z`` is the contrast over its error, compared in the paper's direction (positive: agrees).
 :func:`pick_default` ranks the configurations by the number of statements that agree, then by the
-number with the paper's sign, then by the sum of the signed ``z`` clipped to ``+-Z_CLIP`` (5), so
-one very strong statement cannot outweigh two weak ones.
+share of their runs that reached steady state (the paper's machine runs steady at its operating
+points; a run that chokes is left out of the statements), then by the number of statements with the
+paper's sign, then by the sum of the signed ``z`` clipped to ``+-Z_CLIP`` (5), so one very strong
+statement cannot outweigh two weak ones.
 """
 
 from __future__ import annotations
@@ -388,12 +390,20 @@ class ConfigVerdict:
         """Number of statements that agree."""
         return sum(s.agrees for s in self.statements.values())
 
-    def rank_key(self) -> tuple[int, int, float]:
-        """(agreeing, statements with the paper's sign, sum of signed z clipped to +-Z_CLIP): larger is better."""
+    @property
+    def steady_share(self) -> float:
+        """Share of the configuration's runs that reached steady state."""
+        total = self.n_runs + self.n_excluded
+        return self.n_runs / total if total else math.nan
+
+    def rank_key(self) -> tuple[int, float, int, float]:
+        """(agreeing, share of steady runs, statements with the paper's sign, sum of signed z clipped to
+        +-Z_CLIP): larger is better. The steady share comes first among the tie-breaks: the paper's machine
+        runs steady at its operating points, so a configuration whose runs choke there is the less likely."""
         zs = [s.signed_z for s in self.statements.values()]
         right = sum(1 for z in zs if z > 0)  # NaN compares false
         clipped = sum(float(np.clip(z, -Z_CLIP, Z_CLIP)) for z in zs if not math.isnan(z))
-        return self.agreeing, right, clipped
+        return self.agreeing, round(self.steady_share, 9), right, clipped
 
 
 def evaluate(runs: Sequence[RunStreams], include_not_steady: bool = False) -> dict[str, ConfigVerdict]:
