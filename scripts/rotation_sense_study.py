@@ -84,10 +84,20 @@ def _commit(repo: Path, paths: list[Path], message: str) -> None:
     print(f"commit failed ({ci.stderr.strip() or ci.stdout.strip()}); the exports stay uncommitted", flush=True)
 
 
-def run_one(config: str, size_mm: float, speed_rpm: float, seed: int, out: Path) -> dict[str, Any]:
+def study_machine(config: str, headroom_m: float | None = None) -> Machine:
+    """The configuration's machine file, optionally with another roof height above the stage-1 axes (m)."""
+    machine = Machine.from_toml(MACHINE_DIR / f"{config}.toml")
+    if headroom_m is None:
+        return machine
+    return Machine.from_dict({**machine.model_dump(), "headroom_m": headroom_m,
+                              "name": f"{config}_headroom{headroom_m:g}m"}, source="--headroom-m")
+
+
+def run_one(config: str, size_mm: float, speed_rpm: float, seed: int, out: Path,
+            headroom_m: float | None = None) -> dict[str, Any]:
     """One run, exported to ``out`` (written to a temporary folder first, renamed when complete)."""
     path = MACHINE_DIR / f"{config}.toml"
-    machine = Machine.from_toml(path)
+    machine = study_machine(config, headroom_m)
     op = OperatingPoint(feed_tph=FEED_TPH, speed_rpm=speed_rpm, gate_deg=GATE_DEG)
     settings = RunSettings(seed=seed, **CAMPAIGN_RUN_DEFAULTS)
     run = run_mill(machine, op, size_mm=size_mm, mode="slice", settings=settings)
@@ -102,6 +112,8 @@ def run_one(config: str, size_mm: float, speed_rpm: float, seed: int, out: Path)
         "machine_file": f"src/msmill/data/machines/{config}.toml",
         "machine_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
         "central_sweep": [list(p) for p in (machine.central_sweep or [])],
+        "headroom_m": machine.headroom_m,
+        "headroom_override_m": headroom_m,
         "inputs": {"size_mm": size_mm, "feed_tph": FEED_TPH, "speed_rpm": speed_rpm, "gate_deg": GATE_DEG,
                    "stage_speeds_rpm": op.stage_speeds(machine.n_stages), "mode": "slice", "seed": seed},
         "run_settings": asdict(settings),
@@ -135,19 +147,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--commit-every", type=int, default=0,
                     help="git-commit the exports after every N new runs (0: never); the repository of --out")
     ap.add_argument("--dry-run", action="store_true", help="print the plan and what is done, run nothing")
+    ap.add_argument("--headroom-m", type=float, default=None,
+                    help="pilot: the machine files with this roof height above the stage-1 axes (m); exports go "
+                         "to OUT/<config>_headroom<h>m/ (use another --out than the study's)")
     args = ap.parse_args(argv)
     for c in args.configs:
         if c not in CONFIGS:
             raise MsmillInputError("--configs", c, ", ".join(CONFIGS))
         if not (MACHINE_DIR / f"{c}.toml").is_file():
             raise MsmillInputError("--configs", c, f"a machine file {MACHINE_DIR}/<name>.toml")
+    if args.headroom_m is not None:
+        study_machine(args.configs[0], args.headroom_m)  # a bad roof height fails here, in one line
     runs = plan(args.configs, args.sizes_mm, args.speeds_rpm, args.seeds)
-    done = [r for r in runs if (args.out / r[0] / run_dir_name(*r[1:]) / "provenance.json").is_file()]
+    tag = "" if args.headroom_m is None else f"_headroom{args.headroom_m:g}m"
+    done = [r for r in runs if (args.out / (r[0] + tag) / run_dir_name(*r[1:]) / "provenance.json").is_file()]
     print(f"{len(runs)} runs planned, {len(done)} exported already", flush=True)
     new: list[Path] = []
     n_new = 0
     for config, size, rpm, seed in runs:
-        out = args.out / config / run_dir_name(size, rpm, seed)
+        out = args.out / (config + tag) / run_dir_name(size, rpm, seed)
         if (out / "provenance.json").is_file():
             continue
         if args.dry_run:
@@ -155,7 +173,7 @@ def main(argv: list[str] | None = None) -> None:
             continue
         t0 = time.perf_counter()
         try:
-            prov = run_one(config, size, rpm, seed, out)
+            prov = run_one(config, size, rpm, seed, out, args.headroom_m)
         except Exception as exc:  # one failed run must not end the study; it is retried on resume
             print(f"FAILED {config} {out.name}: {type(exc).__name__}: {exc}", flush=True)
             continue
