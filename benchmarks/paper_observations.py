@@ -25,6 +25,7 @@ from msmill.dem.mill.observations import (
     leave_one_seed_out,
     read_study,
     report_lines,
+    scatter_over_error,
     stream_table_lines,
 )
 
@@ -47,6 +48,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"# runs {c} {size:g} mm {rpm:g} rpm: {n} seeds")
     lines = report_lines(evaluate(runs, include_not_steady=args.include_not_steady), details=not args.brief)
     if not args.brief:
+        for stream, (ratio, n) in scatter_over_error(runs).items():
+            print(f"# between-seed sd / sampling error, {stream}: median {ratio:.2f} over {n} groups")
         for seed, (pick, k) in leave_one_seed_out(runs, args.include_not_steady).items():
             print(f"# without seed {seed}: default={pick} agreeing={k}/3")
     print("\n".join(lines))

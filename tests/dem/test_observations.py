@@ -19,6 +19,7 @@ from msmill.dem.mill.observations import (
     refeed_falls_with_size,
     report_lines,
     run_dir_name,
+    scatter_over_error,
     stage_stream,
     stream_table_lines,
     top_least_kickback,
@@ -164,3 +165,8 @@ def test_ties_go_to_the_configuration_whose_runs_stay_steady():
     assert verdicts["choking"].n_excluded == 2
     assert pick_default(verdicts).config == "paper"
     assert pick_default({"choking": verdicts["choking"]}).config == "choking"
+
+
+def test_scatter_over_error_is_the_seed_sd_over_the_reported_error():
+    ratio = scatter_over_error(_study())  # seed offsets -0.01, 0, 0.01 (sd 0.01) against errors 0.002
+    assert ratio["kickback"] == (pytest.approx(5.0), 2 * len(SIZES) * len(SPEEDS) * 5)

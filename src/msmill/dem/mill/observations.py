@@ -501,3 +501,27 @@ def leave_one_seed_out(runs: Sequence[RunStreams], include_not_steady: bool = Fa
         best = pick_default(evaluate(rest, include_not_steady))
         out[seed] = (best.config, best.agreeing)
     return out
+
+
+def scatter_over_error(runs: Sequence[RunStreams]) -> dict[str, tuple[float, int]]:
+    """Per stream, the median over (configuration, size, speed, stage) groups of two seeds or more of the
+    between-seed sd over the rms of the runs' sampling errors, and the number of groups.
+
+    About 1 when the runs' batch-means errors describe their scatter; above 1 they understate it
+    (then the between-seed term sets :func:`group_mean`'s error).
+    """
+    cells: dict[tuple[str, float, float], list[RunStreams]] = {}
+    for r in runs:
+        cells.setdefault((r.config, r.size_mm, r.speed_rpm), []).append(r)
+    out: dict[str, tuple[float, int]] = {}
+    for stream in STREAMS:
+        ratios = []
+        for rs in cells.values():
+            if len(rs) < 2:
+                continue
+            for s in range(1, rs[0].n_stages + 1):
+                g = group_mean(rs, stage_stream(stream, s))
+                if math.isfinite(g.sampling_rms) and g.sampling_rms > 0:
+                    ratios.append(g.between_sd / g.sampling_rms)
+        out[stream] = (float(np.median(ratios)) if ratios else math.nan, len(ratios))
+    return out
