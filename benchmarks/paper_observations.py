@@ -48,7 +48,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"# runs {c} {size:g} mm {rpm:g} rpm: {n} seeds")
     lines = report_lines(evaluate(runs, include_not_steady=args.include_not_steady), details=not args.brief)
     if not args.brief:
-        for stream, (ratio, n) in scatter_over_error(runs).items():
+        used = runs if args.include_not_steady else [r for r in runs if r.outcome == "steady"]
+        for stream, (ratio, n) in scatter_over_error(used).items():
             print(f"# between-seed sd / sampling error, {stream}: median {ratio:.2f} over {n} groups")
         for seed, (pick, k) in leave_one_seed_out(runs, args.include_not_steady).items():
             print(f"# without seed {seed}: default={pick} agreeing={k}/3")
