@@ -19,7 +19,9 @@ export exists is skipped. Each run writes a small text export (no raw events) to
     NUMBA_NUM_THREADS=1 python scripts/rotation_sense_study.py --out benchmarks/data/rotation_sense \
         [--configs down_down up_up] [--seeds 0] [--commit-every 3]
 
-The analysis is :mod:`msmill.dem.mill.observations` (``python benchmarks/paper_observations.py``).
+``--headroom-m H`` runs the machine files with the roof ``H`` above the stage-1 axes instead (a pilot;
+exports to ``OUT/<config>_headroom<H>m/``, so give it another ``--out``). The analysis is
+:mod:`msmill.dem.mill.observations` (``python benchmarks/paper_observations.py``).
 """
 
 from __future__ import annotations
