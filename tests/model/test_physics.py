@@ -9,10 +9,11 @@ import pytest
 from synthetic import synthetic_run, synthetic_table
 
 from msmill import breakage as bk
-from msmill.errors import OutOfDomainWarning
+from msmill.errors import ExtrapolationWarning, OutOfDomainWarning
 from msmill.machine import OperatingPoint
 from msmill.model import Mill, RunProvider, TableProvider
 from msmill.model.expected_value import assemble
+from msmill.model.mill import EXTRAPOLATED_WARN_PCT
 from msmill.model.submodels import BreakageParameters, resolve
 from msmill.psd import PSD, SizeGrid, ks_statistic
 
@@ -130,14 +131,18 @@ def test_higher_speed_never_coarsens(provider, feed):
 
 def test_out_of_range_sizes_reported_and_operating_point_warns(feed):
     prov = TableProvider(synthetic_table(sizes_mm=(2.0, 30.0)), source="SYNTHETIC")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", OutOfDomainWarning)  # extrapolated sizes are reported, not warned
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         res = Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0))
     mids = res.feed_psd.grid.mids_mm
     out = (mids < 2.0) | (mids > 30.0)
     assert res.extrapolated_feed_pct == pytest.approx(100 * feed.fractions[out].sum())
     assert res.extrapolated_product_pct == pytest.approx(100 * res.product_psd.fractions[out].sum())
     assert 0 < res.extrapolated_feed_pct < 100
+    # extrapolated sizes are reported, and warned only as a share above EXTRAPOLATED_WARN_PCT of the product
+    domain = [w for w in caught if issubclass(w.category, OutOfDomainWarning)]
+    share = [w for w in domain if issubclass(w.category, ExtrapolationWarning)]
+    assert len(domain) == len(share) == (1 if res.extrapolated_product_pct > EXTRAPOLATED_WARN_PCT else 0)
     with pytest.warns(OutOfDomainWarning, match="another operating point"):
         Mill("UG2", prov).run(feed, OperatingPoint(feed_tph=45.0, speed_rpm=1700.0, gate_deg=40.0))
     grid = SizeGrid.geometric(2.0, 30.0)
