@@ -31,6 +31,7 @@ small registered classes (:data:`ERROR_ESTIMATORS`) behind one method,
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -98,14 +99,14 @@ def _linearised(num: np.ndarray, den: np.ndarray) -> np.ndarray | None:
     return (num - r * den) / den.mean()
 
 
-class ErrorEstimator:
+class ErrorEstimator(ABC):
     """Standard error of a ratio estimator from per-slice numerator and denominator series."""
 
     name: ClassVar[str] = ""
 
+    @abstractmethod
     def standard_error(self, num: np.ndarray, den: np.ndarray) -> SamplingError:
         """The standard error of ``sum(num) / sum(den)`` and its degrees of freedom (NaN: no estimate)."""
-        raise NotImplementedError
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ from msmill.surrogate.store.hashing import file_sha256, outcome_of, read_statist
 from msmill.surrogate.store.queue import Claim, new_token
 
 __all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "checkpoint_base", "design_grid",
-           "execute_run", "run_campaign", "run_settings_dict"]
+           "execute_run", "run_campaign", "run_checkpoint_dir", "run_settings_dict"]
 
 #: heartbeat age after which a running run is taken to be lost (s)
 DEFAULT_STALE_S = 120.0
@@ -252,20 +252,26 @@ def checkpoint_base(store: Store, info: Any) -> Path | None:
     """
     import hashlib
 
+    from msmill.surrogate.store.core import data_home
+
     opt = info.options.get("checkpoint_dir")
     if opt == "none":
         return None
     if opt:
         return Path(opt)
-    base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "msmill" / "checkpoints"
-    return base / hashlib.sha256(store.url.encode()).hexdigest()[:12] / info.name
+    return data_home() / "checkpoints" / hashlib.sha256(store.url.encode()).hexdigest()[:12] / info.name
+
+
+def run_checkpoint_dir(base: Path, run_id: int) -> Path:
+    """A campaign run's own checkpoint folder under :func:`checkpoint_base`."""
+    return base / f"run{run_id:06d}"
 
 
 def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None) -> dict[str, Any]:
     return {"machine_toml": store_info.machine_toml, "design": claim.design.model_dump(), "mode": store_info.mode,
             "run_settings": dict(store_info.run_settings, seed=claim.seed), "options": store_info.options,
             "run_id": claim.run_id, "attempt": claim.attempt,
-            "checkpoint_dir": None if ckpt_base is None else str(ckpt_base / f"run{claim.run_id:06d}")}
+            "checkpoint_dir": None if ckpt_base is None else str(run_checkpoint_dir(ckpt_base, claim.run_id))}
 
 
 class _Driver:
@@ -317,7 +323,7 @@ class _Driver:
             if ok and self.ckpt_base is not None:  # recorded: the run's checkpoint has served
                 from msmill.dem.checkpoint import remove_checkpoint
 
-                remove_checkpoint(self.ckpt_base / f"run{c.run_id:06d}")
+                remove_checkpoint(run_checkpoint_dir(self.ckpt_base, c.run_id))
             return
         exc = fut.exception()
         text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)) if exc else fut.status

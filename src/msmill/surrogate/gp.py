@@ -121,9 +121,7 @@ class SurrogateGP:
         if not (np.all(np.isfinite(Y)) and np.all(np.isfinite(nv)) and np.all(nv >= 0)):
             raise MsmillInputError("targets", "non-finite or negative noise", "finite targets, noise >= 0")
         self.X_train_, self.Y_train_, self.noise_var_ = X.copy(), Y.copy(), np.array(nv, dtype=float)
-        self.y_mean_ = Y.mean(axis=0)
-        std = Y.std(axis=0)
-        self.y_std_ = np.where(std > 1e-12, std, 1.0)
+        self.y_mean_, self.y_std_ = _standardisation(Y)
         U = self.design_space.to_unit(X)
         starts = self.warm_start or [None] * Y.shape[1]
         self.estimators_ = []
@@ -192,17 +190,11 @@ class SurrogateGP:
         X, Y = np.asarray(X, dtype=float), np.atleast_2d(np.asarray(Y, dtype=float))
         gp.X_train_, gp.Y_train_ = X.copy(), Y.copy()
         gp.noise_var_ = np.array(np.broadcast_to(np.asarray(noise_var, float), Y.shape), dtype=float)
-        gp.y_mean_ = Y.mean(axis=0)  # as fit computes them
-        std = Y.std(axis=0)
-        gp.y_std_ = np.where(std > 1e-12, std, 1.0)
+        gp.y_mean_, gp.y_std_ = _standardisation(Y)
         gp.__dict__["_hyper"] = [dict(h) for h in hyperparameters]
         gp.__dict__["_estimators"] = None
         gp.white_ = np.array([float(h["white"]) for h in hyperparameters])
-        hp = gp._hyper
-        arrays = {"c32": np.array([h["c32"] for h in hp]), "c52": np.array([h["c52"] for h in hp]),
-                  "ls32": np.array([np.broadcast_to(h["ls32"], (4,)) for h in hp]),
-                  "ls52": np.array([np.broadcast_to(h["ls52"], (4,)) for h in hp]),
-                  "white": gp.white_, "alpha": np.asarray(factors["alpha"], dtype=float),
+        arrays = {**_kernel_arrays(gp._hyper), "white": gp.white_, "alpha": np.asarray(factors["alpha"], dtype=float),
                   "L_inv": np.asarray(factors["L_inv"], dtype=float), "y_mean": gp.y_mean_, "y_std": gp.y_std_}
         n_t, n_r = Y.shape[1], X.shape[0]
         if arrays["alpha"].shape != (n_t, n_r) or arrays["L_inv"].shape != (n_t, n_r, n_r):
@@ -369,6 +361,20 @@ def _matern(d: np.ndarray, nu: float) -> np.ndarray:
     return (1.0 + k + k**2 / 3.0) * np.exp(-k)
 
 
+def _standardisation(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation (1 where constant) that standardise every target column of ``Y``."""
+    std = Y.std(axis=0)
+    return Y.mean(axis=0), np.where(std > 1e-12, std, 1.0)
+
+
+def _kernel_arrays(hyperparameters: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """The kernel values of every target (:func:`kernel_params` dicts) as arrays over targets."""
+    hp = hyperparameters
+    return {"c32": np.array([h["c32"] for h in hp]), "c52": np.array([h["c52"] for h in hp]),
+            "ls32": np.array([np.broadcast_to(h["ls32"], (4,)) for h in hp]),
+            "ls52": np.array([np.broadcast_to(h["ls52"], (4,)) for h in hp])}
+
+
 class _Stacked:
     """Kernel hyperparameters and factors of every fitted GP as arrays over targets (first axis).
 
@@ -393,10 +399,7 @@ class _Stacked:
         ests = gp.estimators_
         eye = np.eye(ests[0].X_train_.shape[0])
         arrays = {
-            "c32": np.array([h["c32"] for h in hp]), "c52": np.array([h["c52"] for h in hp]),
-            "ls32": np.array([np.broadcast_to(h["ls32"], (4,)) for h in hp]),
-            "ls52": np.array([np.broadcast_to(h["ls52"], (4,)) for h in hp]),
-            "white": np.asarray(gp.white_, dtype=float), "alpha": np.array([e.alpha_ for e in ests]),
+            **_kernel_arrays(hp), "white": np.asarray(gp.white_, dtype=float), "alpha": np.array([e.alpha_ for e in ests]),
             "L_inv": np.array([solve_triangular(e.L_, eye, lower=True) for e in ests]),
             "y_mean": np.asarray(gp.y_mean_, dtype=float), "y_std": np.asarray(gp.y_std_, dtype=float)}
         return cls(ests, ests[0].X_train_, **arrays)

@@ -69,13 +69,17 @@ DESIGN_FILTERS = ("size_mm", "feed_tph", "speed_rpm", "gate_deg")
 _MIGRATIONS = Path(__file__).parent / "migrations"
 
 
+def data_home() -> Path:
+    """msmill's per-user data folder: ``$XDG_DATA_HOME/msmill`` (``~/.local/share/msmill`` by default)."""
+    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "msmill"
+
+
 def default_url() -> str:
     """The store URL used when none is given: ``MSMILL_DB`` or the per-user SQLite file."""
     env = os.environ.get(DEFAULT_DB_ENV)
     if env:
         return env
-    base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
-    return f"sqlite:///{base / 'msmill' / 'store.sqlite'}"
+    return f"sqlite:///{data_home() / 'store.sqlite'}"
 
 
 def _normalise_url(url: str | None, create: bool = True) -> str:
