@@ -51,8 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("/work/error_replicas"))
     ap.add_argument("--export", type=Path, default=ROOT / "benchmarks" / "data" / "error_replicas")
     ap.add_argument("--checkpoint-every-s", type=float, default=600.0)
+    ap.add_argument("--label", default="", help="appended to the point's folder name (replicas of one point with "
+                    "another window are another set), e.g. 'long'")
     a = ap.parse_args(argv)
-    point = point_name(a.size_mm, a.feed_tph, a.speed_rpm, a.gate_deg)
+    point = point_name(a.size_mm, a.feed_tph, a.speed_rpm, a.gate_deg) + (f"_{a.label}" if a.label else "")
     op = OperatingPoint(feed_tph=a.feed_tph, speed_rpm=a.speed_rpm, gate_deg=a.gate_deg)
     stats_settings = StatsSettings(series_slices=a.slices)
     for seed in a.seeds:
