@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -11,11 +12,18 @@ from hypothesis import strategies as st
 
 from msmill.errors import MsmillInputError
 from msmill.sampling import (
+    RUN_ERROR_ESTIMATOR,
     AutocorrelationTime,
     BatchMeans,
+    BetweenRunVariance,
     BlockBootstrap,
     OverlappingBatchMeans,
+    ReplicaSet,
+    SamplingError,
+    default_between_run,
     error_estimator,
+    fit_between_run,
+    replica_set_z_scores,
     replica_z_scores,
     slice_sums,
     t_quantile,
@@ -123,3 +131,62 @@ def test_replica_z_scores_are_unit_with_honest_errors_and_not_with_halved_ones()
     z_half = np.concatenate([replica_z_scores(xi, ei / 2) for xi, ei in zip(x, se, strict=True)])
     assert np.sqrt(np.mean(z_half**2)) == pytest.approx(2.0, abs=0.06)
     assert replica_z_scores(np.array([1.0, np.nan]), np.array([1.0, 1.0])).size == 0
+
+
+def _random_effect_sets(rng, a, beta, relative, n_sets=40, m=6):
+    """Replica sets ``x = mu + b + e`` with ``sd(b) = a (size / 20)^beta`` (times mu if relative)."""
+    sets = []
+    for k in range(n_sets):
+        size = (5.0, 10.0, 20.0, 30.0)[k % 4]
+        mu = 2.0 + k % 3
+        sb = a * (size / 20.0) ** beta * (mu if relative else 1.0)
+        se = rng.uniform(0.5, 1.5, m) * sb
+        x = mu + rng.standard_normal(m) * sb + rng.standard_normal(m) * se
+        sets.append(ReplicaSet("holdup" if relative else "streams", size, x, se, np.full(m, 50.0)))
+    return sets
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_between_run_fit_recovers_its_law_and_makes_z_unit(relative):
+    rng = np.random.default_rng(11)
+    a, beta = 0.02, 1.5
+    sets = _random_effect_sets(rng, a, beta, relative)
+    fit = fit_between_run(sets)
+    kind = sets[0].kind
+    la, b = fit.params[kind]
+    c = fit.cov[kind]
+    assert abs(la - np.log(a)) < 3 * np.sqrt(c[0][0]) + 0.05
+    assert abs(b - beta) < 3 * np.sqrt(c[1][1]) + 0.05
+    assert fit.size_range_mm == (5.0, 30.0)
+    # fresh sets scored with the fit: rms z near 1; with the within errors alone: well above
+    fresh = _random_effect_sets(np.random.default_rng(12), a, beta, relative, n_sets=200)
+    z = np.concatenate([replica_set_z_scores(r, fit) for r in fresh])
+    z0 = np.concatenate([replica_set_z_scores(r) for r in fresh])
+    assert np.sqrt(np.mean(z**2)) == pytest.approx(1.0, abs=0.08)
+    assert np.sqrt(np.mean(z0**2)) > 1.3
+
+
+def test_between_run_total_dof_and_round_trip(tmp_path):
+    fit = BetweenRunVariance({"streams": (np.log(0.01), 1.0), "holdup": (np.log(0.05), 2.0)},
+                             cov={"streams": ((0.01, 0.0), (0.0, 0.1))})
+    assert fit.sigma("streams", 40.0) == pytest.approx(0.02)
+    assert fit.sigma("holdup", 10.0, value=4.0) == pytest.approx(0.05 * 0.25 * 4.0)
+    assert fit.sigma("velocity", 10.0) == 0.0
+    w = SamplingError(0.01, 50.0)
+    t = fit.total("streams", 20.0, 0.3, w)
+    assert t.se == pytest.approx(np.hypot(0.01, 0.01))
+    assert t.dof == pytest.approx(4e-8 / (1e-8 / 50 + 1e-8 / 50))  # 1 / (2 * 0.01) = 50 dof for sigma_b^2
+    assert fit.total(None, 20.0, 0.3, w) == w
+    p = tmp_path / "b.json"
+    p.write_text(json.dumps(fit.to_dict()))
+    back = BetweenRunVariance.read(p)
+    assert back.sigma("holdup", 10.0, 4.0) == pytest.approx(fit.sigma("holdup", 10.0, 4.0))
+    with pytest.raises(MsmillInputError, match="kind"):
+        BetweenRunVariance.from_dict({"kind": "other"})
+
+
+def test_the_packaged_between_run_fit_is_read():
+    fit = default_between_run()
+    assert set(fit.params) == {"streams", "hit", "velocity", "count", "holdup"}
+    assert fit.provenance["within_estimator"] == RUN_ERROR_ESTIMATOR
+    assert all(len(v) == 2 for v in fit.params.values())

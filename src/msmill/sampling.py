@@ -26,21 +26,60 @@ The linearised series of a ratio is ``z_i = (num_i - R den_i) / mean(den)``:
 ``Var(R) = Var(mean(z))`` to first order (the delta method). Estimators are
 small registered classes (:data:`ERROR_ESTIMATORS`) behind one method,
 ``standard_error(num, den) -> SamplingError``.
+
+**Between runs.** Feed-seed replicas of one point differ by more than any
+within-window estimator allows, and the excess does not shrink with the
+window (30 mm: the rms z of the streams rises from 1.3 with 2 s windows to
+1.9 with 8 s ones): each run settles into its own state and keeps it for
+longer than a window. A single run cannot see that part, so it comes from
+replicas: :class:`BetweenRunVariance` is a standard deviation per kind of
+statistic (:data:`STATISTIC_KINDS`), ``sigma_b = a (size / 20 mm)^beta``
+(absolute for fractions, relative to the value for the rest), fitted by
+restricted maximum likelihood to replica sets (:func:`fit_between_run`), and
+a run's honest error is ``sqrt(se_within^2 + sigma_b^2)``
+(:meth:`BetweenRunVariance.total`). The packaged fit is
+``msmill/data/sampling/between_run.json`` (``scripts/calibrate_sampling_errors.py``).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import ClassVar
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 
 from msmill.errors import MsmillInputError
 
-__all__ = ["ERROR_ESTIMATORS", "AutocorrelationTime", "BatchMeans", "BlockBootstrap", "ErrorEstimator",
-           "OverlappingBatchMeans", "SamplingError", "error_estimator", "replica_z_scores", "slice_sums", "t_quantile"]
+__all__ = ["ERROR_ESTIMATORS", "RELATIVE_KINDS", "RUN_ERROR_ESTIMATOR", "STATISTIC_KINDS", "AutocorrelationTime",
+           "BatchMeans", "BetweenRunVariance", "BlockBootstrap", "ErrorEstimator", "OverlappingBatchMeans",
+           "ReplicaSet", "SamplingError", "default_between_run", "error_estimator", "fit_between_run", "fit_variance_law",
+           "legacy_factors",
+           "replica_set_z_scores", "replica_sets", "replica_z_scores", "slice_sums", "statistic_kind", "t_quantile"]
+
+#: statistic name (``StageStatistics.sampling_error`` key, or ``"holdup"``) -> kind of statistic
+STATISTIC_KINDS: dict[str, str] = {
+    "kickback": "streams", "refeed": "streams", "pass_through": "streams", "primary_hit_probability": "hit",
+    "primary_velocity_mean_m_s": "velocity", "secondary_velocity_mean_m_s": "velocity",
+    "secondary_lambda": "count", "holdup": "holdup"}
+#: kinds whose between-run deviation scales with the value (the others are fractions: absolute)
+RELATIVE_KINDS = frozenset({"velocity", "count", "holdup"})
+#: the within-run estimator the runs report (chosen against replicas: ``benchmarks/error_calibration.py``)
+RUN_ERROR_ESTIMATOR = "autocorrelation_time"
+#: rock size (mm) the between-run deviation is referred to
+REFERENCE_SIZE_MM = 20.0
+#: largest |beta| of the between-run size law (a sixteenfold change over 2-30 mm at 1)
+BETA_MAX = 4.0
+
+
+def statistic_kind(name: str) -> str | None:
+    """Kind of a statistic named ``name`` or ``"s<stage>.<name>"`` (None: not one with a between-run model)."""
+    return STATISTIC_KINDS.get(name.split(".", 1)[-1])
 
 
 @dataclass(frozen=True)
@@ -240,6 +279,240 @@ def replica_z_scores(values: np.ndarray, errors: np.ndarray) -> np.ndarray:
     others = (x.sum() - x) / (m - 1)
     var = e**2 + (np.sum(e**2) - e**2) / (m - 1) ** 2
     return (x - others) / np.sqrt(var)
+
+
+@dataclass(frozen=True)
+class ReplicaSet:
+    """Feed-seed replicas of one statistic at one point: values and their within-run errors."""
+
+    kind: str
+    size_mm: float
+    values: np.ndarray
+    se_within: np.ndarray
+    dof_within: np.ndarray
+
+
+@dataclass(frozen=True)
+class BetweenRunVariance:
+    """Between-run standard deviation per kind, ``sigma_b = a (size / 20 mm)^beta`` (times the value for
+    :data:`RELATIVE_KINDS`), and what it rests on.
+
+    ``params[kind] = (log_a, beta)``; ``cov[kind]`` their 2x2 covariance (REML curvature); ``n_sets`` the
+    replica sets behind each kind; ``size_range_mm`` the sizes they span.
+    """
+
+    params: Mapping[str, tuple[float, float]]
+    cov: Mapping[str, tuple[tuple[float, float], tuple[float, float]]] = field(default_factory=dict)
+    n_sets: Mapping[str, int] = field(default_factory=dict)
+    size_range_mm: tuple[float, float] = (math.nan, math.nan)
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+    #: per kind, ``sqrt(sum se_ac^2 / sum se_bm5^2)`` over the replicas: what turns a five-batch-means error
+    #: (runs before 2026-12-05, whose series were not kept) into the run estimator's on average
+    legacy_factor: Mapping[str, float] = field(default_factory=dict)
+    #: ``(log c, beta)``: the velocity-quantile targets' iid sampling variance times ``c (size / 20)^beta``
+    #: is what the replicas scatter by (:meth:`quantile_variance_factor`)
+    quantile_var_law: tuple[float, float] = (0.0, 0.0)
+
+    def quantile_variance_factor(self, size_mm: float) -> float:
+        """Factor on the iid sampling variance of a fitted velocity mixture's quantiles at ``size_mm``."""
+        log_c, beta = self.quantile_var_law
+        return math.exp(log_c) * (float(size_mm) / REFERENCE_SIZE_MM) ** beta
+
+    def legacy_total(self, kind: str | None, size_mm: float, value: float, se_batch_means: float) -> float:
+        """Honest error of a statistic from a five-batch-means error (runs without series)."""
+        f = self.legacy_factor.get(kind, 1.0) if kind else 1.0
+        return math.hypot(f * se_batch_means, self.sigma(kind, size_mm, value) if kind else 0.0)
+
+    def sigma(self, kind: str, size_mm: float, value: float = 1.0) -> float:
+        """Between-run standard deviation of a statistic of ``kind`` at ``size_mm`` (0 for an unknown kind)."""
+        if kind not in self.params:
+            return 0.0
+        log_a, beta = self.params[kind]
+        s = math.exp(log_a) * (float(size_mm) / REFERENCE_SIZE_MM) ** beta
+        return s * abs(float(value)) if kind in RELATIVE_KINDS else s
+
+    def dof(self, kind: str) -> float:
+        """Degrees of freedom of ``sigma_b^2`` (``2 / Var(log sigma_b^2)`` at the reference size; at least 1)."""
+        c = self.cov.get(kind)
+        if not c or not c[0][0] > 0:
+            return math.inf
+        return max(1.0 / (2.0 * c[0][0]), 1.0) if math.isfinite(c[0][0]) else 1.0
+
+    def total(self, kind: str | None, size_mm: float, value: float, within: SamplingError) -> SamplingError:
+        """``sqrt(se_within^2 + sigma_b^2)`` with Welch-Satterthwaite degrees of freedom."""
+        sb = self.sigma(kind, size_mm, value) if kind else 0.0
+        if not sb > 0 or not np.isfinite(within.se):
+            return within
+        v_w, v_b = within.se**2, sb**2
+        d_w = within.dof if within.dof > 0 else math.inf
+        denom = v_w**2 / d_w + v_b**2 / self.dof(kind)
+        return SamplingError(math.sqrt(v_w + v_b), (v_w + v_b) ** 2 / denom if denom > 0 else math.inf)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": "msmill_between_run_variance", "format_version": 1,
+                "reference_size_mm": REFERENCE_SIZE_MM, "relative_kinds": sorted(RELATIVE_KINDS),
+                "params": {k: list(v) for k, v in self.params.items()},
+                "cov": {k: [list(r) for r in v] for k, v in self.cov.items()}, "n_sets": dict(self.n_sets),
+                "size_range_mm": list(self.size_range_mm), "legacy_factor": dict(self.legacy_factor),
+                "quantile_var_law": list(self.quantile_var_law), "provenance": dict(self.provenance)}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> BetweenRunVariance:
+        if doc.get("kind") != "msmill_between_run_variance":
+            raise MsmillInputError("kind", doc.get("kind"), "msmill_between_run_variance")
+        return cls(params={k: (float(a), float(b)) for k, (a, b) in doc["params"].items()},
+                   cov={k: ((float(r[0][0]), float(r[0][1])), (float(r[1][0]), float(r[1][1])))
+                        for k, r in doc.get("cov", {}).items()},
+                   n_sets={k: int(v) for k, v in doc.get("n_sets", {}).items()},
+                   size_range_mm=tuple(map(float, doc.get("size_range_mm", (math.nan, math.nan)))),
+                   provenance=dict(doc.get("provenance", {})),
+                   legacy_factor={k: float(v) for k, v in doc.get("legacy_factor", {}).items()},
+                   quantile_var_law=tuple(map(float, doc.get("quantile_var_law", (0.0, 0.0)))))
+
+    @classmethod
+    def read(cls, path: str | Path) -> BetweenRunVariance:
+        return cls.from_dict(json.loads(Path(path).read_text(encoding="utf-8")))
+
+
+def replica_sets(docs: Sequence[Mapping[str, Any]], estimator: ErrorEstimator) -> list[ReplicaSet]:
+    """Replica sets of every statistic with a kind, from the replicas of one point.
+
+    ``docs``: replica exports of one point (``scripts/error_replicas.py``'s ``series.json``: ``size_mm`` and
+    ``series = {name: {"num": [...], "den": [...]}}``); the within-run errors are ``estimator``'s.
+    """
+    if not docs:
+        return []
+    size = float(docs[0]["size_mm"])
+    out = []
+    for key in docs[0]["series"]:
+        kind = statistic_kind(key)
+        if kind is None or not all(key in d["series"] for d in docs):
+            continue
+        vals, ses, dofs = [], [], []
+        for d in docs:
+            num, den = (np.asarray(d["series"][key][c], dtype=float) for c in ("num", "den"))
+            e = estimator.standard_error(num, den)
+            vals.append(num.sum() / den.sum() if den.sum() > 0 else np.nan)
+            ses.append(e.se)
+            dofs.append(e.dof)
+        out.append(ReplicaSet(kind, size, np.array(vals), np.array(ses), np.array(dofs)))
+    return out
+
+
+def replica_set_z_scores(r: ReplicaSet, between: BetweenRunVariance | None = None) -> np.ndarray:
+    """:func:`replica_z_scores` of one set, with the within-run errors or the totals of ``between``."""
+    if between is None:
+        return replica_z_scores(r.values, r.se_within)
+    v = np.nanmean(r.values)
+    tot = [between.total(r.kind, r.size_mm, v, SamplingError(float(se), float(d))).se
+           for se, d in zip(r.se_within, r.dof_within, strict=True)]
+    return replica_z_scores(r.values, np.array(tot))
+
+
+def legacy_factors(sets: Sequence[ReplicaSet], batch_sets: Sequence[ReplicaSet]) -> dict[str, float]:
+    """Per kind ``sqrt(sum se^2 / sum se_bm^2)``: ``sets`` with the run estimator's errors, ``batch_sets`` the
+    same statistics (same order) with five batch means'."""
+    num: dict[str, float] = {}
+    den: dict[str, float] = {}
+    for r, b in zip(sets, batch_sets, strict=True):
+        ok = np.isfinite(r.se_within) & np.isfinite(b.se_within)
+        num[r.kind] = num.get(r.kind, 0.0) + float(np.sum(r.se_within[ok] ** 2))
+        den[r.kind] = den.get(r.kind, 0.0) + float(np.sum(b.se_within[ok] ** 2))
+    return {k: math.sqrt(num[k] / den[k]) for k in num if den[k] > 0}
+
+
+def fit_variance_law(size_mm: Sequence[float], ratio: Sequence[float], weight: Sequence[float]) -> tuple[float, float]:
+    """``(log c, beta)`` of ``ratio = c (size / 20 mm)^beta`` by weighted least squares in logs (one size: beta 0)."""
+    x = np.log(np.asarray(size_mm, dtype=float) / REFERENCE_SIZE_MM)
+    y = np.log(np.asarray(ratio, dtype=float))
+    w = np.asarray(weight, dtype=float)
+    if np.unique(x).size < 2:
+        return float(np.sum(w * y) / np.sum(w)), 0.0
+    beta, log_c = np.polyfit(x, y, 1, w=np.sqrt(w))
+    return float(log_c), float(np.clip(beta, -BETA_MAX, BETA_MAX))
+
+
+def _reml(theta: np.ndarray, sets: Sequence[ReplicaSet], relative: bool) -> float:
+    """Negative restricted log likelihood of ``x_i = mu + b_i + e_i`` over replica sets."""
+    log_a, beta = theta
+    nll = 0.0
+    for r in sets:
+        scale = abs(float(np.mean(r.values))) if relative else 1.0
+        sb2 = (math.exp(log_a) * (r.size_mm / REFERENCE_SIZE_MM) ** beta * scale) ** 2
+        v = r.se_within**2 + sb2
+        w = 1.0 / v
+        mu = float(np.sum(w * r.values) / np.sum(w))
+        nll += 0.5 * float(np.sum(np.log(v)) + np.sum(w * (r.values - mu) ** 2) + math.log(np.sum(w)))
+    return nll
+
+
+def fit_between_run(sets: Sequence[ReplicaSet], kinds: Sequence[str] | None = None,
+                    provenance: Mapping[str, Any] | None = None) -> BetweenRunVariance:
+    """Restricted-maximum-likelihood fit of ``sigma_b = a (size / 20 mm)^beta`` per kind to replica sets.
+
+    Sets with fewer than three finite replicas are left out. With replicas at one size only, ``beta`` is
+    held at 0. The optimum is sought on a grid (``log a`` in -14..1, ``beta`` in +-:data:`BETA_MAX`) and
+    refined by Nelder-Mead (the likelihood is flat towards ``a -> 0`` and has several optima). The
+    covariance is the inverse of the REML curvature (numerical Hessian; ``inf`` where it is not positive).
+    """
+    from scipy.optimize import minimize
+
+    by_kind: dict[str, list[ReplicaSet]] = {}
+    for r in sets:
+        ok = np.isfinite(r.values) & np.isfinite(r.se_within) & (r.se_within > 0)
+        if ok.sum() >= 3 and (kinds is None or r.kind in kinds):
+            by_kind.setdefault(r.kind, []).append(ReplicaSet(r.kind, r.size_mm, r.values[ok], r.se_within[ok],
+                                                             r.dof_within[ok]))
+    params, cov, n_sets = {}, {}, {}
+    sizes = [r.size_mm for v in by_kind.values() for r in v]
+    for kind, ks in by_kind.items():
+        rel = kind in RELATIVE_KINDS
+        one_size = len({r.size_mm for r in ks}) < 2
+        f = (lambda t, ks=ks, rel=rel: _reml(np.array([t[0], 0.0]), ks, rel)) if one_size else \
+            (lambda t, ks=ks, rel=rel: _reml(t, ks, rel))
+        grid = [np.array([la] if one_size else [la, b]) for la in np.arange(-14.0, 1.01, 0.5)
+                for b in ([0.0] if one_size else np.arange(-BETA_MAX, BETA_MAX + 0.01, 0.5))]
+        x0 = min(grid, key=f)
+        lo, hi = np.array([-20.0, -BETA_MAX])[:x0.size], np.array([3.0, BETA_MAX])[:x0.size]
+        res = minimize(lambda t, f=f, lo=lo, hi=hi: f(np.clip(t, lo, hi)), x0, method="Nelder-Mead",
+                       options={"xatol": 1e-5, "fatol": 1e-9, "maxiter": 4000})
+        x = np.clip(res.x, lo, hi)
+        h = _hessian(f, x)
+        try:
+            c = np.linalg.inv(h) if np.all(np.linalg.eigvalsh(h) > 0) else np.full_like(h, np.inf)
+        except np.linalg.LinAlgError:
+            c = np.full_like(h, np.inf)
+        if one_size:
+            params[kind] = (float(x[0]), 0.0)
+            cov[kind] = ((float(c[0, 0]), 0.0), (0.0, 0.0))
+        else:
+            params[kind] = (float(x[0]), float(x[1]))
+            cov[kind] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        n_sets[kind] = len(ks)
+    rng = (float(min(sizes)), float(max(sizes))) if sizes else (math.nan, math.nan)
+    return BetweenRunVariance(params, cov, n_sets, rng, dict(provenance or {}))
+
+
+def _hessian(f: Any, x: np.ndarray, h: float = 1e-3) -> np.ndarray:
+    """Central-difference Hessian of ``f`` at ``x``."""
+    n = x.size
+    out = np.zeros((n, n))
+    e = np.eye(n) * h
+    for i in range(n):  # 1-2 parameters
+        for j in range(n):
+            out[i, j] = (f(x + e[i] + e[j]) - f(x + e[i] - e[j]) - f(x - e[i] + e[j]) + f(x - e[i] - e[j])) / (4 * h * h)
+    return out
+
+
+_DEFAULT: list[BetweenRunVariance] = []
+
+
+def default_between_run() -> BetweenRunVariance:
+    """The packaged between-run fit (``msmill/data/sampling/between_run.json``), read once."""
+    if not _DEFAULT:
+        text = resources.files("msmill").joinpath("data", "sampling", "between_run.json").read_text(encoding="utf-8")
+        _DEFAULT.append(BetweenRunVariance.from_dict(json.loads(text)))
+    return _DEFAULT[0]
 
 
 #: name -> estimator class

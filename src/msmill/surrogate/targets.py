@@ -400,6 +400,26 @@ def _mixture_targets(g: GaussianMixture, n: int) -> tuple[np.ndarray, np.ndarray
     return quantile_vector(q), quantile_noise_var(g.weights, g.means_m_s, g.sigmas_m_s, n)
 
 
+def quantile_scatter(runs: list[RunStatistics]) -> tuple[float, int]:
+    """Mean squared replica z-score of the velocity-quantile targets of feed-seed replicas of one point.
+
+    Each replica's targets (:func:`_mixture_targets`) with their iid sampling variance: the mean of
+    ``z^2`` (:func:`msmill.sampling.replica_z_scores`) is the factor by which the replicas actually scatter
+    over that variance (1: the iid formula is right). Returns the factor and the number of z-scores.
+    """
+    from msmill.sampling import replica_z_scores
+
+    z = []
+    for s in range(len(runs[0].stages)):
+        for grp, n_attr in (("primary_velocity", "n_primary_impacts"), ("secondary_velocity", "n_secondary_impacts")):
+            ys, vs = zip(*(_mixture_targets(getattr(r.stages[s], grp), getattr(r.stages[s], n_attr)) for r in runs),
+                         strict=True)
+            ys, vs = np.array(ys), np.array(vs)
+            z.extend(replica_z_scores(ys[:, j], np.sqrt(vs[:, j])) for j in range(ys.shape[1]))
+    zz = np.concatenate(z) if z else np.zeros(0)
+    return (float(np.mean(zz**2)) if zz.size else float("nan")), int(zz.size)
+
+
 def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np.ndarray]:
     """Target row and per-target sampling variance of one run.
 

@@ -78,7 +78,15 @@ from msmill.distributions import (
 )
 from msmill.errors import MsmillError, MsmillInputError
 from msmill.machine import Machine
-from msmill.sampling import slice_sums
+from msmill.sampling import (
+    ERROR_ESTIMATORS,
+    RUN_ERROR_ESTIMATOR,
+    SamplingError,
+    default_between_run,
+    error_estimator,
+    slice_sums,
+    statistic_kind,
+)
 from msmill.stageparams import (
     FILLING_BINS,
     FILLING_MIN_TAGS,
@@ -160,11 +168,24 @@ class StatsSettings:
     with_filling_transport: bool = True
     #: record each statistic's per-slice numerator and denominator over this many equal slices of the window
     #: (:attr:`MillStatistics.series`; 0: none), the input of every estimator of :mod:`msmill.sampling`
-    series_slices: int = 0
+    series_slices: int = 64
+    #: within-run estimator of the errors of the statistics with a series (a name of
+    #: :data:`msmill.sampling.ERROR_ESTIMATORS`; ``"batch_means"``: ``n_batches`` batch means, the errors
+    #: of runs before 2026-12-05). Issue 36: five batch means are too rough (4 dof) and miss what differs
+    #: between runs; the autocorrelation time (about 50 dof at 64 slices) is the choice
+    error_estimator: str = RUN_ERROR_ESTIMATOR
+    #: add the between-run deviation (:func:`msmill.sampling.default_between_run`) to those errors: the part
+    #: of the scatter between feed-seed replicas that no window shows (``benchmarks/error_calibration.py``)
+    between_run: bool = True
 
     def __post_init__(self) -> None:
         if self.velocity_fit not in ("ml", "binned_kl"):
             raise MsmillInputError("velocity_fit", self.velocity_fit, "ml or binned_kl")
+        if self.error_estimator not in ERROR_ESTIMATORS:
+            raise MsmillInputError("error_estimator", self.error_estimator, ", ".join(sorted(ERROR_ESTIMATORS)))
+        if self.error_estimator != "batch_means" and self.series_slices < 8:
+            raise MsmillInputError("series_slices", self.series_slices,
+                                   f"at least 8 with error_estimator {self.error_estimator} (or batch_means)")
 
 
 @dataclass
@@ -643,6 +664,12 @@ def compute_statistics(
     )
     series = (_slice_series(machine.n_stages, tr.pairs, hit_tags, prim, ev, counts, timeseries, (t0, t1), clock.tau_s,
                             s_.series_slices) if s_.series_slices > 0 else None)
+    if series is not None and s_.error_estimator != "batch_means":
+        stages, hold_rel_se, within = _series_errors(run.stages, series, design.size_mm, s_)
+        prov["stats"].update({"error_estimator": s_.error_estimator, "between_run": s_.between_run,
+                              "series_slices": s_.series_slices, "sampling_error_within": within,
+                              "holdup_rel_se": hold_rel_se if np.isfinite(hold_rel_se) else None})
+        run = run.model_copy(update={"stages": stages, "provenance": prov})
     return MillStatistics(run=run, samples=samples, fits=fits, streams_by_size=by_size, holdup_rel_se=hold_rel_se,
                           series=series)
 
@@ -684,6 +711,38 @@ def _slice_series(n_stages: int, pairs: pd.DataFrame, hit_tags: pd.DataFrame, pr
     if len(timeseries):
         out["holdup"] = pack(window_s, timeseries["time_s"].to_numpy(), timeseries["mass_kg"].to_numpy(), 1.0)
     return out
+
+
+def _series_errors(stages: list[StageStatistics], series: dict[str, dict[str, Any]], size_mm: float,
+                   s_: StatsSettings) -> tuple[list[StageStatistics], float, dict[str, list[float]]]:
+    """Errors of the statistics with a series: ``s_.error_estimator`` within the run, plus the between-run
+    deviation (``s_.between_run``); the stages with them, the hold-up's relative error and the within parts.
+
+    ``within[name] = [se, dof]`` (``name`` as in ``series``).
+    """
+    est = error_estimator(s_.error_estimator)
+    between = default_between_run() if s_.between_run else None
+    within: dict[str, list[float]] = {}
+    total: dict[str, SamplingError] = {}
+    for name, sr in series.items():
+        num, den = np.asarray(sr["num"], dtype=float), np.asarray(sr["den"], dtype=float)
+        if not den.sum() > 0:
+            continue
+        e = est.standard_error(num, den)
+        if not np.isfinite(e.se):
+            continue
+        within[name] = [e.se, e.dof]
+        total[name] = between.total(statistic_kind(name), size_mm, num.sum() / den.sum(), e) if between else e
+    out = []
+    for st in stages:
+        prefix = f"s{st.stage}."
+        se = dict(st.sampling_error)
+        se.update({k[len(prefix):]: v.se for k, v in total.items() if k.startswith(prefix)})
+        out.append(st.model_copy(update={"sampling_error": se}))
+    h = series.get("holdup")
+    rel = (total["holdup"].se / (float(np.sum(h["num"])) / float(np.sum(h["den"])))
+           if h is not None and "holdup" in total else float("nan"))
+    return out, rel, within
 
 
 @dataclass(frozen=True)
