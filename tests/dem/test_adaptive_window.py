@@ -112,3 +112,16 @@ def test_hold_up_target_alone_sets_the_window(target, length_s):
     want = np.std(means, ddof=1) / np.sqrt(5) / ts["mass_kg"].mean()
     assert run.stats.run.sampling_error_reached["holdup_rel"] == pytest.approx(want, rel=1e-9)
     assert run.stats.run.provenance["stats"]["holdup_rel_se"] == pytest.approx(want, rel=1e-9)
+
+
+def test_between_run_deviations_stay_below_the_adaptive_targets():
+    # a target below the between-run deviation could never be met by a longer window (issue 36)
+    from msmill.sampling import default_between_run
+
+    cal = default_between_run()
+    rs = RunSettings()
+    for size_mm in (2.0, 5.0, 10.0, 20.0, 30.0):
+        assert cal.sigma("streams", size_mm) < rs.target_streams_se
+        assert cal.sigma("hit", size_mm) < rs.target_hit_probability_se
+        assert cal.sigma("velocity", size_mm) < rs.target_velocity_rel_se
+        assert cal.sigma("count", size_mm) < rs.target_count_mean_rel_se

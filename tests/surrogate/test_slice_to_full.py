@@ -15,7 +15,7 @@ from msmill.errors import OutOfDomainWarning
 from msmill.surrogate import persist
 from msmill.surrogate.fidelity import SliceToFullBias, match_pairs
 from msmill.surrogate.provider import SurrogateProvider
-from msmill.surrogate.targets import TrainingSet
+from msmill.surrogate.targets import TrainingSet, honest_errors
 
 SPEEDS = [1500.0] * 4 + [3000.0]
 SIZES = np.array([6.0, 10.0, 20.0, 28.0])
@@ -29,6 +29,11 @@ def synthetic_full(run, lambda_factor: float, stream_shift: float = 0.0):
     return run.model_copy(update={"stages": stages, "mode": "full"})
 
 
+def s_rel(run, stage: int) -> float:
+    """Squared relative error of a stage's mean count as the targets carry it."""
+    return (honest_errors(run)[stage]["secondary_lambda"] / run.stages[stage - 1].secondary_lambda) ** 2
+
+
 @pytest.fixture(scope="module")
 def layout(table_runs):
     return TrainingSet.from_runs(table_runs).layout
@@ -36,11 +41,13 @@ def layout(table_runs):
 
 def test_one_pair_recovers_the_factor_with_its_own_size_as_uncertainty(table_runs, layout):
     run = table_runs[2]
-    bias = SliceToFullBias.fit(layout, [(run, synthetic_full(run, 1.3))])
+    full = synthetic_full(run, 1.3)
+    bias = SliceToFullBias.fit(layout, [(run, full)])
     for d, st in zip(bias.lambda_factors(layout), run.stages, strict=True):
         assert d["lambda_factor"] == pytest.approx(1.3, rel=1e-9)
-        # one pair: tau^2 = d^2 - s (the part noise does not explain), var = s + 2 tau^2
-        s = (st.sampling_error["secondary_lambda"] / st.secondary_lambda) ** 2 * (1 + 1.3 ** -2)
+        # one pair: tau^2 = d^2 - s (the part noise does not explain), var = s + 2 tau^2; s from the errors
+        # the targets carry (issue 36: msmill.surrogate.targets.honest_errors) of both runs
+        s = s_rel(run, st.stage) + s_rel(full, st.stage)
         assert (d["lambda_factor_sd"] / 1.3) ** 2 == pytest.approx(s + 2 * (np.log(1.3) ** 2 - s), rel=1e-6)
     streams = np.r_[[bias.offset[layout.slices(s)["streams"]] for s in range(1, 6)]]
     np.testing.assert_allclose(streams, 0.0, atol=1e-12)  # identical streams: no stream correction
@@ -57,8 +64,7 @@ def test_consistent_pairs_give_a_tight_correction_scattered_pairs_a_wide_one(tab
     # consistent pairs: only the sampling error of the mean (both runs' variances, over 3 pairs)
     # (the synthetic full run keeps the slice's standard error on a lambda f times larger)
     def s_mean(factors):
-        return np.mean([(r.stages[2].sampling_error["secondary_lambda"] / r.stages[2].secondary_lambda) ** 2
-                        * (1 + f ** -2) for r, f in zip(runs, factors, strict=True)])
+        return np.mean([s_rel(r, 3) + s_rel(synthetic_full(r, f), 3) for r, f in zip(runs, factors, strict=True)])
     s = s_mean([1.25] * 3)
     assert same.var[i] == pytest.approx(s / 3, rel=1e-6)
     # scattered pairs: plus the between-point scatter, counted for a new point (1 + 1/n)

@@ -51,6 +51,7 @@ import numpy as np
 from scipy import optimize, special
 
 from msmill.errors import MsmillInputError
+from msmill.sampling import default_between_run, statistic_kind
 from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics
 
 #: Number of quantile levels per velocity distribution.
@@ -409,7 +410,7 @@ def quantile_scatter(runs: list[RunStatistics]) -> tuple[float, int]:
     """
     from msmill.sampling import replica_z_scores
 
-    z = []
+    z: list[np.ndarray] = []
     for s in range(len(runs[0].stages)):
         for grp, n_attr in (("primary_velocity", "n_primary_impacts"), ("secondary_velocity", "n_secondary_impacts")):
             ys, vs = zip(*(_mixture_targets(getattr(r.stages[s], grp), getattr(r.stages[s], n_attr)) for r in runs),
@@ -418,6 +419,39 @@ def quantile_scatter(runs: list[RunStatistics]) -> tuple[float, int]:
             z.extend(replica_z_scores(ys[:, j], np.sqrt(vs[:, j])) for j in range(ys.shape[1]))
     zz = np.concatenate(z) if z else np.zeros(0)
     return (float(np.mean(zz**2)) if zz.size else float("nan")), int(zz.size)
+
+
+def honest_errors(run: RunStatistics) -> dict[int, dict[str, float]]:
+    """Per stage, the sampling errors of a run as the runs report them since issue 36.
+
+    A run whose statistics name their error estimator (``provenance.stats.error_estimator``) already has
+    them. An older run has five batch means only (its series were not kept): each error of a kind with a
+    between-run law becomes ``sqrt((f se)^2 + sigma_b^2)`` (:meth:`msmill.sampling.BetweenRunVariance.
+    legacy_total`: ``f`` the replicas' mean ratio of the two estimators, ``sigma_b`` the between-run
+    deviation at the run's rock size).
+    """
+    if "error_estimator" in ((run.provenance or {}).get("stats") or {}):
+        return {st.stage: dict(st.sampling_error) for st in run.stages}
+    cal = default_between_run()
+    size = run.design.size_mm
+    out = {}
+    for st in run.stages:
+        se = dict(st.sampling_error)
+        for k, v in st.sampling_error.items():
+            kind = statistic_kind(k)
+            if kind is not None and k in STAT_VALUE:
+                se[k] = cal.legacy_total(kind, size, STAT_VALUE[k](st), v)
+        out[st.stage] = se
+    return out
+
+
+#: statistic name -> its value in a stage (the scale of a relative between-run deviation)
+STAT_VALUE = {"kickback": lambda st: st.kickback, "refeed": lambda st: st.refeed,
+              "pass_through": lambda st: st.pass_through,
+              "primary_hit_probability": lambda st: st.primary_hit_probability,
+              "primary_velocity_mean_m_s": lambda st: st.primary_velocity.mean(),
+              "secondary_velocity_mean_m_s": lambda st: st.secondary_velocity.mean(),
+              "secondary_lambda": lambda st: st.secondary_lambda}
 
 
 def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np.ndarray]:
@@ -429,9 +463,11 @@ def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np
     """
     y = np.zeros(layout.n_targets)
     nv = np.zeros(layout.n_targets)
+    errors = honest_errors(run)
+    q_factor = default_between_run().quantile_variance_factor(run.design.size_mm)
     for st in run.stages:
         sl = layout.slices(st.stage)
-        se = st.sampling_error
+        se = errors[st.stage]
         parts = np.maximum(st.streams, ZERO_FRACTION)
         y[sl["streams"]] = alr(st.streams)
         rel = np.array([se.get(k, 0.0) for k in ("kickback", "refeed", "pass_through")]) / parts
@@ -441,6 +477,7 @@ def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np
         nv[sl["hit"]] = (se.get("primary_hit_probability", 0.0) / (p * (1 - p))) ** 2
         for grp, n in (("primary_velocity", st.n_primary_impacts), ("secondary_velocity", st.n_secondary_impacts)):
             y[sl[grp]], nv[sl[grp]] = _mixture_targets(getattr(st, grp), n)
+            nv[sl[grp]] *= q_factor
         lam = max(st.secondary_lambda, MIN_COUNT)
         c = sl["count"]
         y[c.start] = np.log(lam)
