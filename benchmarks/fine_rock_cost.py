@@ -51,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['rocks_in_slice_window_mean']:5.0f}  {r['dt_s'] * 1e6:5.2f}  "
               f"{'-' if onset is None else f'{onset:.2f}':>7}  {r['window_length_s']:8.2f}  "
               f"{r['step_kernels_share_of_wall']:7.2f}  {nck} ({ck:.1f})")
+    estimates = []  # (size, cpu_s estimated, rocks) of partial runs
     for p in partial:
         # CPU per simulated second after the first chunk (which holds the scene build and the table start)
         tr = p["trace"]
@@ -61,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"wall, {np.mean([x['rocks'] for x in tr]):.0f} rocks: {rate / 3600:.2f} h of CPU per simulated "
                   f"second; a run to {end:.2f} s (the measured runs' end) would take about {rate * end / 3600:.2f} h "
                   "of CPU (estimated, not measured)")
+            estimates.append((p["size_mm"], rate * end, float(np.mean([x["rocks"] for x in tr]))))
     if missing:
         print("no export yet for: " + ", ".join(f"{s:g} mm" for s in missing))
     if rows:
@@ -84,10 +86,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['size_mm']:g} mm: measured {r['wall_s'] / 3600:.3f} h; planner predicted {p1 / 3600:.3f} h "
                   f"({p1 / r['wall_s']:.2f}x); refitted {p2 / 3600:.3f} h ({p2 / r['wall_s']:.2f}x); rocks x "
                   f"steps from {ref['size_mm']:g} mm {phys / 3600:.3f} h ({phys / r['wall_s']:.2f}x)")
-    print("sizes_mm=" + ",".join(f"{r['size_mm']:g}" for r in rows)
-          + " wall_h=" + ",".join(f"{r['wall_s'] / 3600:.3f}" for r in rows)
-          + " cpu_h=" + ",".join(f"{r['cpu_s'] / 3600:.3f}" for r in rows)
-          + " rocks=" + ",".join(f"{r['rocks_in_slice_window_mean']:.0f}" for r in rows))
+    if rows and estimates:
+        for size, cpu, _ in estimates:
+            x = np.array([[size, rows[0]["feed_tph"], rows[0]["speed_rpm"], rows[0]["gate_deg"]]])
+            print(f"{size:g} mm: estimated {cpu / 3600:.2f} h of CPU; planner predicted {planner.predict_s(x)[0] / 3600:.3f} h "
+                  f"of wall ({planner.predict_s(x)[0] / cpu:.2f}x)")
+    # a partial run's wall time is not given (a whole run was not made); its CPU time is the estimate above
+    # and measured=0 says so
+    print("sizes_mm=" + ",".join([f"{r['size_mm']:g}" for r in rows] + [f"{e[0]:g}" for e in estimates])
+          + " wall_h=" + ",".join([f"{r['wall_s'] / 3600:.3f}" for r in rows] + ["nan"] * len(estimates))
+          + " cpu_h=" + ",".join([f"{r['cpu_s'] / 3600:.3f}" for r in rows] + [f"{e[1] / 3600:.2f}" for e in estimates])
+          + " rocks=" + ",".join([f"{r['rocks_in_slice_window_mean']:.0f}" for r in rows] + [f"{e[2]:.0f}" for e in estimates])
+          + " measured=" + ",".join(["1"] * len(rows) + ["0"] * len(estimates)))
     return 0
 
 
