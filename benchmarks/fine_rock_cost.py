@@ -83,14 +83,15 @@ def main(argv: list[str] | None = None) -> int:
             # rock-steps from the coarsest measured size: rocks x simulated time / dt
             phys = (ref["wall_s"] * (r["rocks_in_slice_window_mean"] / ref["rocks_in_slice_window_mean"])
                     * (r["window_s"][1] / ref["window_s"][1]) * (ref["dt_s"] / r["dt_s"]))
-            print(f"{r['size_mm']:g} mm: measured {r['wall_s'] / 3600:.3f} h; planner predicted {p1 / 3600:.3f} h "
-                  f"({p1 / r['wall_s']:.2f}x); refitted {p2 / 3600:.3f} h ({p2 / r['wall_s']:.2f}x); rocks x "
-                  f"steps from {ref['size_mm']:g} mm {phys / 3600:.3f} h ({phys / r['wall_s']:.2f}x)")
+            print(f"{r['size_mm']:g} mm: measured {r['wall_s'] / 3600:.3f} h wall, {r['cpu_s'] / 3600:.3f} h CPU; planner "
+                  f"predicted {p1 / 3600:.3f} h ({p1 / r['cpu_s']:.2f}x CPU); refitted {p2 / 3600:.3f} h "
+                  f"({p2 / r['cpu_s']:.2f}x CPU); rocks x steps from {ref['size_mm']:g} mm {phys / 3600:.3f} h "
+                  f"({phys / r['wall_s']:.2f}x wall)")
     if rows and estimates:
         for size, cpu, _ in estimates:
             x = np.array([[size, rows[0]["feed_tph"], rows[0]["speed_rpm"], rows[0]["gate_deg"]]])
             print(f"{size:g} mm: estimated {cpu / 3600:.2f} h of CPU; planner predicted {planner.predict_s(x)[0] / 3600:.3f} h "
-                  f"of wall ({planner.predict_s(x)[0] / cpu:.2f}x)")
+                  f"({planner.predict_s(x)[0] / cpu:.2f}x)")
     # a partial run's wall time is not given (a whole run was not made); its CPU time is the estimate above
     # and measured=0 says so
     print("sizes_mm=" + ",".join([f"{r['size_mm']:g}" for r in rows] + [f"{e[0]:g}" for e in estimates])

@@ -23,6 +23,7 @@ The update is the incremental (Cholesky / Gram-Schmidt) form: with
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -40,6 +41,14 @@ DEFAULT_N_INITIAL = 10
 #: Size exponent and feed exponent of the prior DEM cost ``~ feed / size^4``
 #: (particles ~ feed / size^3, time step ~ size).
 PRIOR_COST_EXPONENTS = (-4.0, 1.0)
+#: Fine-rock cost, ``t = exp(ln_k) (feed / 30 t/h) (size / 4 mm)^-exponent`` (s of one core): rocks x time
+#: steps dominate below the sizes the training runs timed. Measured with the campaign protocol at 30 t/h,
+#: 1500 rpm, gates 40 deg (``benchmarks/data/fine_rock_cost``: 4 mm 1089 s, 3 mm 4430 s of CPU, 2 mm about
+#: 29,000 s from a partial run's rate): ``ln_k = ln 1089``, exponent 4.75 (a log-log fit through 4 and 2 mm;
+#: 3 mm then 4170 s, 0.94x). Steeper than the 4 of rocks x steps alone: more rocks fit less in cache.
+FINE_COST = (math.log(1089.0), 4.75)
+#: Timings of runs below this size (mm) refit the fine-rock scale
+FINE_COST_SIZE_MM = 6.0
 
 
 def initial_design(n_points: int, design_space: DesignSpace | None = None, seed: int = 0,
@@ -73,19 +82,27 @@ def initial_design(n_points: int, design_space: DesignSpace | None = None, seed:
 
 @dataclass(frozen=True)
 class CostModel:
-    """Expected DEM wall time of a design point: ``ln t = c . [1, ln size, ln feed, speed_u, gate_u]``.
+    """Expected DEM time of a design point: the larger of ``exp(c . [1, ln size, ln feed, speed_u, gate_u])``
+    (fitted to timed runs) and the fine-rock term ``exp(ln_k) (feed / 30) (size / 4)^-exponent``.
+
+    The log-linear term, fitted where the runs were timed (6.4-30 mm: wall ~ size^-0.97), extrapolated to
+    2-4 mm predicts a twentieth of what such runs cost; below the timed sizes the rocks x time steps of
+    the fine-rock term take over (:data:`FINE_COST`).
 
     Attributes
     ----------
     coef : tuple of float
         Coefficients (``speed_u``, ``gate_u``: unit-cube coordinates).
     n_timings : int
-        Timings behind the fit (0: the prior ``~ feed / size^4`` in relative units).
+        Timings behind the fit (0: the prior ``~ feed / size^4`` in relative units, without the fine term).
+    fine : tuple of float or None
+        ``(ln_k, exponent)`` of the fine-rock term (s); None: none.
     """
 
     coef: tuple[float, ...] = (0.0, PRIOR_COST_EXPONENTS[0], PRIOR_COST_EXPONENTS[1], 0.0, 0.0)
     n_timings: int = 0
     design_space: DesignSpace = field(default_factory=DesignSpace)
+    fine: tuple[float, float] | None = None
 
     def _features(self, X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
@@ -93,8 +110,13 @@ class CostModel:
         return np.column_stack([np.ones(len(X)), np.log(X[:, 0]), np.log(X[:, 1]), u[:, 2], u[:, 3]])
 
     def predict_s(self, X: np.ndarray) -> np.ndarray:
-        """Expected wall time (s, or relative units for the prior) of design points (P, 4)."""
-        return np.exp(self._features(X) @ np.asarray(self.coef))
+        """Expected time (s of one core, or relative units for the prior) of design points (P, 4)."""
+        t = np.exp(self._features(X) @ np.asarray(self.coef))
+        if self.fine is None:
+            return t
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        ln_k, e = self.fine
+        return np.maximum(t, np.exp(ln_k) * (X[:, 1] / 30.0) * (X[:, 0] / 4.0) ** -e)
 
     @classmethod
     def from_timings(cls, X: np.ndarray, wall_s: Sequence[float],
@@ -103,7 +125,9 @@ class CostModel:
 
         With at least 6 timings all five coefficients are fitted by least
         squares (ridge-regularised towards the prior exponents); with fewer,
-        the prior exponents are kept and only the scale is fitted.
+        the prior exponents are kept and only the scale is fitted. The fine-rock
+        term is :data:`FINE_COST`, its scale refitted (geometric mean, exponent
+        kept) to the timings below :data:`FINE_COST_SIZE_MM` where there are any.
         """
         space = design_space or DesignSpace()
         X = np.atleast_2d(np.asarray(X, dtype=float))
@@ -115,13 +139,17 @@ class CostModel:
             return base
         F, y = base._features(X), np.log(t)
         prior = np.asarray(base.coef)
+        fine_rows = X[:, 0] < FINE_COST_SIZE_MM
+        ln_k, e = FINE_COST
+        if fine_rows.any():
+            ln_k = float(np.mean(y[fine_rows] - np.log(X[fine_rows, 1] / 30.0) + e * np.log(X[fine_rows, 0] / 4.0)))
         if t.size < 6:
             c0 = float(np.mean(y - F[:, 1:] @ prior[1:]))
-            return cls((c0, *prior[1:]), int(t.size), space)
+            return cls((c0, *prior[1:]), int(t.size), space, (ln_k, e))
         lam = 1e-2 * t.size
         A = F.T @ F + lam * np.diag([0.0, 1, 1, 1, 1])
         coef = np.linalg.solve(A, F.T @ y + lam * np.r_[0.0, prior[1:]])
-        return cls(tuple(float(c) for c in coef), int(t.size), space)
+        return cls(tuple(float(c) for c in coef), int(t.size), space, (ln_k, e))
 
     @classmethod
     def from_runs(cls, runs: Iterable, design_space: DesignSpace | None = None) -> CostModel:
