@@ -91,6 +91,13 @@ class RosinRammler(_Section):
     top_mm: float = Field(gt=0, description="top size (mm)")
 
 
+#: A Rosin-Rammler feed is cut at ``top_mm`` and the tail above it put in the top class;
+#: below this % passing at ``top_mm`` the cut changes the feed materially and warns
+#: (``top_mm = 5`` with ``size_63_mm = 20`` lumps 88 % of the feed; the shipped
+#: platreef example cuts a 7.6 % tail and does not warn).
+RR_MIN_PASSING_AT_TOP_PCT = 80.0
+
+
 class FeedSection(_Section):
     rate_tph: float = Field(gt=0)
     size_mm: list[float] | None = None
@@ -107,6 +114,34 @@ class FeedSection(_Section):
         return self
 
 
+    def psd(self, min_mm: float = 0.038, ratio: float = math.sqrt(2.0), name: str = "run"):
+        """The feed PSD (``msmill.psd.PSD``); a Rosin-Rammler spec on the ``min_mm`` / ``ratio`` series.
+
+        ``name`` prefixes the field of every error (``<name>.feed.size_mm``).
+        """
+        from msmill.psd import PSD, SizeGrid
+
+        try:
+            if self.rosin_rammler is not None:
+                rr = self.rosin_rammler
+                grid = SizeGrid.geometric(min_mm, rr.top_mm, ratio)
+                x = grid.edges_mm[1:]
+                with np.errstate(over="ignore", under="ignore"):  # a huge spread is a step: exp(-inf) = 0
+                    passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
+                z = min(rr.spread * math.log(rr.top_mm / rr.size_63_mm), 700.0)  # ln((top / x63)^n)
+                at_top = 100.0 * (1.0 - math.exp(-math.exp(z)))
+                if at_top < RR_MIN_PASSING_AT_TOP_PCT:
+                    warnings.warn(f"{name}.feed.rosin_rammler: only {at_top:.3g} % passes top_mm = "
+                                  f"{rr.top_mm:g} mm; the other {100 - at_top:.3g} % is put in the top class",
+                                  InputWarning, stacklevel=3)
+                passing[-1] = 100.0
+                return PSD.from_passing(x, passing, grid=grid)
+            return PSD.from_passing(self.size_mm, self.passing_pct, prefix=f"{name}.feed.")
+        except MsmillInputError as exc:
+            field = exc.field if exc.field.startswith(name) else f"{name}.feed.{exc.field}"
+            raise MsmillInputError(field, exc.value, exc.allowed) from None
+
+
 class OperatingSection(_Section):
     speed_rpm: float | None = Field(default=None, ge=0)
     stage_speeds_rpm: list[float] | None = None
@@ -114,11 +149,6 @@ class OperatingSection(_Section):
     gate_deg: float = Field(default=40.0, ge=0, le=90)
 
 
-#: A Rosin-Rammler feed is cut at ``top_mm`` and the tail above it put in the top class;
-#: below this % passing at ``top_mm`` the cut changes the feed materially and warns
-#: (``top_mm = 5`` with ``size_63_mm = 20`` lumps 88 % of the feed; the shipped
-#: platreef example cuts a 7.6 % tail and does not warn).
-RR_MIN_PASSING_AT_TOP_PCT = 80.0
 
 
 class MachineSection(_Section):
@@ -174,112 +204,33 @@ class OutputSection(_Section):
         return self
 
 
-class RunFile(_Section):
-    """A validated run file (see the module docstring)."""
+class MillSpec(_Section):
+    """The sections that describe one mill (ore, operating settings, machine, stage parameters, model).
 
-    title: str = ""
+    Shared by :class:`RunFile` (one mill and its feed) and the mill units of a circuit
+    (:mod:`msmill.model.circuit`), which get their feed from the circuit.
+    """
+
     ore: OreSection
-    feed: FeedSection
     operating: OperatingSection
     machine: MachineSection = Field(default_factory=MachineSection)
     stage_parameters: StageParametersSection = Field(default_factory=StageParametersSection)
     model: ModelSection = Field(default_factory=ModelSection)
-    grid: GridSection = Field(default_factory=GridSection)
-    output: OutputSection = Field(default_factory=OutputSection)
     base_dir: Path = Field(default=Path("."), exclude=True)
     name: str = Field(default="run", exclude=True)
-
-    @classmethod
-    def from_toml(cls, path: str | Path) -> RunFile:
-        """Read and validate a run file; errors are one line naming the field."""
-        data = read_toml(path, "run file", "TOML file")
-        p = Path(path).expanduser()
-        return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
-
-    @classmethod
-    def from_mapping(cls, data: dict[str, Any], name: str = "run", base_dir: str | Path = ".") -> RunFile:
-        """Validate run-file contents given as a mapping (e.g. a JSON request).
-
-        Parameters
-        ----------
-        data : dict
-            The run file's tables, as :func:`tomllib.loads` would return them.
-        name : str
-            Prefix of every error's field name (the file name, or ``"request"``).
-        base_dir : path
-            Folder that relative paths in ``data`` are relative to.
-        """
-        if not isinstance(data, dict):
-            raise MsmillInputError(name, type(data).__name__, "a table of run-file sections")
-        missing = [k for k in ("ore", "feed", "operating") if k not in data]
-        if missing:
-            raise MsmillInputError(f"{name}.{missing[0]}", None, f"a [{missing[0]}] section "
-                                   "(every run file needs [ore], [feed] and [operating])")
-        for key in ("base_dir", "name"):
-            if key in data:
-                raise MsmillInputError(f"{name}.{key}", data[key], "not a run-file key")
-        try:
-            return cls.model_validate({**data, "base_dir": Path(base_dir), "name": name})
-        except ValidationError as exc:
-            raise from_validation_error(exc, prefix=name) from None
 
     def path(self, value: str) -> Path:
         """A path from the run file, relative to its folder."""
         q = Path(value).expanduser()
         return q if q.is_absolute() else self.base_dir / q
 
-    # ------------------------------------------------------------------ builders
-    def feed_psd(self):
-        """The feed PSD (``msmill.psd.PSD``)."""
-        from msmill.psd import PSD, SizeGrid
-
-        f = self.feed
-        try:
-            if f.rosin_rammler is not None:
-                rr = f.rosin_rammler
-                grid = SizeGrid.geometric(self.grid.min_mm, rr.top_mm, self.grid.ratio)
-                x = grid.edges_mm[1:]
-                with np.errstate(over="ignore", under="ignore"):  # a huge spread is a step: exp(-inf) = 0
-                    passing = 100.0 * (1.0 - np.exp(-((x / rr.size_63_mm) ** rr.spread)))
-                z = min(rr.spread * math.log(rr.top_mm / rr.size_63_mm), 700.0)  # ln((top / x63)^n)
-                at_top = 100.0 * (1.0 - math.exp(-math.exp(z)))
-                if at_top < RR_MIN_PASSING_AT_TOP_PCT:
-                    warnings.warn(f"{self.name}.feed.rosin_rammler: only {at_top:.3g} % passes top_mm = "
-                                  f"{rr.top_mm:g} mm; the other {100 - at_top:.3g} % is put in the top class",
-                                  InputWarning, stacklevel=2)
-                passing[-1] = 100.0
-                return PSD.from_passing(x, passing, grid=grid)
-            return PSD.from_passing(f.size_mm, f.passing_pct, prefix=f"{self.name}.feed.")
-        except MsmillInputError as exc:
-            field = exc.field if exc.field.startswith(self.name) else f"{self.name}.feed.{exc.field}"
-            raise MsmillInputError(field, exc.value, exc.allowed) from None
-
-    def model_grid(self, feed):
-        """The model size grid (sqrt(2) series from ``grid.min_mm`` to the feed top by default)."""
-        from msmill.psd import SizeGrid
-
-        feed_top = float(feed.grid.edges_mm[-1])
-        top = self.grid.max_mm or feed_top
-        if top <= self.grid.min_mm:
-            if self.grid.max_mm is None:
-                raise MsmillInputError(f"{self.name}.grid.min_mm", self.grid.min_mm,
-                                       f"a size < the feed's top size ({feed_top:.4g} mm)")
-            raise MsmillInputError(f"{self.name}.grid.max_mm", top, f"a size > grid.min_mm ({self.grid.min_mm})")
-        if top < feed_top * (1 - 1e-9):
-            raise MsmillInputError(f"{self.name}.grid.max_mm", self.grid.max_mm,
-                                   f"a size >= the feed's top size ({feed_top:.4g} mm); a smaller grid "
-                                   "would lump the coarser feed into its top class")
-        n = math.ceil(math.log(top / self.grid.min_mm) / math.log(self.grid.ratio) - 1e-9)
-        limit(n, f"{self.name}.grid (min_mm, max_mm, ratio)", "grid_classes")
-        return SizeGrid.geometric(self.grid.min_mm, top, self.grid.ratio)
-
-    def operating_point(self):
-        """The :class:`msmill.machine.OperatingPoint`."""
+    def operating_point(self, feed_tph: float):
+        """The :class:`msmill.machine.OperatingPoint` at ``feed_tph`` (t/h)."""
         from msmill.machine import OperatingPoint
 
         try:
             return OperatingPoint.model_validate({**self.operating.model_dump(exclude_none=True),
-                                                  "feed_tph": self.feed.rate_tph})
+                                                  "feed_tph": feed_tph})
         except ValidationError as exc:
             raise from_validation_error(exc, prefix=f"{self.name}.operating") from None
 
@@ -323,24 +274,31 @@ class RunFile(_Section):
             ore = ore.with_l_ref(self.ore.l_ref_mm, source=f"run file {self.name}")
         return ore
 
-    def build(self) -> tuple[Any, Any, Any]:
-        """Validate everything and return ``(mill, feed_psd, operating_point)``; writes nothing."""
-        from msmill.model.mill import Mill
+    def build_mill(self, grid, passing_sizes_mm, band_samples: int | None = None, feed_tph: float | None = None):
+        """The :class:`msmill.model.Mill` on ``grid`` (validated; writes nothing).
 
-        feed = self.feed_psd()
-        op = self.operating_point()
-        machine = self.machine_obj()
+        ``feed_tph`` (t/h) only serves the check that the operating section gives a
+        speed for every stage (None: a mill whose feed is not known yet, e.g. in a
+        circuit; the feed rate's own checks are then left to the run); ``band_samples``
+        overrides the model section's.
+        """
+        from msmill.model.mill import Mill
         from msmill.model.providers import load_provider
 
+        with warnings.catch_warnings():
+            if feed_tph is None:
+                warnings.simplefilter("ignore")  # no feed rate yet: its design-space warning is the run's
+            op = self.operating_point(1.0 if feed_tph is None else feed_tph)
+        machine = self.machine_obj()
         provider = load_provider(self.stage_parameter_path())  # file errors name the file and field
         m = self.model
         try:
             mill = Mill(self.ore_obj(), provider, machine, transport=m.transport, impacts=m.impacts,
                         breakage=m.breakage, damage=m.damage, solver=m.solver, impacted=m.impacted,
-                        grid=self.model_grid(feed), damage_classes=m.damage_classes,
+                        grid=grid, damage_classes=m.damage_classes,
                         quadrature_nodes=m.quadrature_nodes, parcels_per_step=m.parcels_per_step,
-                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=self.output.passing_sizes_mm,
-                        band_samples=m.band_samples)
+                        mc_steps=m.mc_steps, seed=m.seed, passing_sizes_mm=passing_sizes_mm,
+                        band_samples=m.band_samples if band_samples is None else band_samples)
         except MsmillInputError as exc:
             field = exc.field
             model_fields = ("solver", "impacted", "damage_classes", "quadrature_nodes", "parcels_per_step")
@@ -356,6 +314,82 @@ class RunFile(_Section):
             op.stage_speeds(mill.provider.n_stages)
         except MsmillInputError as exc:
             raise MsmillInputError(f"{self.name}.operating.{exc.field}", exc.value, exc.allowed) from None
+        return mill
+
+
+class RunFile(MillSpec):
+    """A validated run file (see the module docstring)."""
+
+    title: str = ""
+    feed: FeedSection
+    grid: GridSection = Field(default_factory=GridSection)
+    output: OutputSection = Field(default_factory=OutputSection)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> RunFile:
+        """Read and validate a run file; errors are one line naming the field."""
+        data = read_toml(path, "run file", "TOML file")
+        p = Path(path).expanduser()
+        return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any], name: str = "run", base_dir: str | Path = ".") -> RunFile:
+        """Validate run-file contents given as a mapping (e.g. a JSON request).
+
+        Parameters
+        ----------
+        data : dict
+            The run file's tables, as :func:`tomllib.loads` would return them.
+        name : str
+            Prefix of every error's field name (the file name, or ``"request"``).
+        base_dir : path
+            Folder that relative paths in ``data`` are relative to.
+        """
+        if not isinstance(data, dict):
+            raise MsmillInputError(name, type(data).__name__, "a table of run-file sections")
+        missing = [k for k in ("ore", "feed", "operating") if k not in data]
+        if missing:
+            raise MsmillInputError(f"{name}.{missing[0]}", None, f"a [{missing[0]}] section "
+                                   "(every run file needs [ore], [feed] and [operating])")
+        for key in ("base_dir", "name"):
+            if key in data:
+                raise MsmillInputError(f"{name}.{key}", data[key], "not a run-file key")
+        try:
+            return cls.model_validate({**data, "base_dir": Path(base_dir), "name": name})
+        except ValidationError as exc:
+            raise from_validation_error(exc, prefix=name) from None
+
+    # ------------------------------------------------------------------ builders
+    def feed_psd(self):
+        """The feed PSD (``msmill.psd.PSD``)."""
+        return self.feed.psd(self.grid.min_mm, self.grid.ratio, self.name)
+
+    def model_grid(self, feed):
+        """The model size grid (sqrt(2) series from ``grid.min_mm`` to the feed top by default)."""
+        from msmill.psd import SizeGrid
+
+        feed_top = float(feed.grid.edges_mm[-1])
+        top = self.grid.max_mm or feed_top
+        if top <= self.grid.min_mm:
+            if self.grid.max_mm is None:
+                raise MsmillInputError(f"{self.name}.grid.min_mm", self.grid.min_mm,
+                                       f"a size < the feed's top size ({feed_top:.4g} mm)")
+            raise MsmillInputError(f"{self.name}.grid.max_mm", top, f"a size > grid.min_mm ({self.grid.min_mm})")
+        if top < feed_top * (1 - 1e-9):
+            raise MsmillInputError(f"{self.name}.grid.max_mm", self.grid.max_mm,
+                                   f"a size >= the feed's top size ({feed_top:.4g} mm); a smaller grid "
+                                   "would lump the coarser feed into its top class")
+        n = math.ceil(math.log(top / self.grid.min_mm) / math.log(self.grid.ratio) - 1e-9)
+        limit(n, f"{self.name}.grid (min_mm, max_mm, ratio)", "grid_classes")
+        return SizeGrid.geometric(self.grid.min_mm, top, self.grid.ratio)
+
+    def operating_point(self, feed_tph: float | None = None):
+        """The :class:`msmill.machine.OperatingPoint` at the feed's rate (or ``feed_tph``, t/h)."""
+        return super().operating_point(self.feed.rate_tph if feed_tph is None else feed_tph)
+
+    def build(self) -> tuple[Any, Any, Any]:
+        """Validate everything and return ``(mill, feed_psd, operating_point)``; writes nothing."""
+        feed = self.feed_psd()
+        op = self.operating_point()
+        mill = self.build_mill(self.model_grid(feed), self.output.passing_sizes_mm, feed_tph=self.feed.rate_tph)
         return mill, feed, op
-
-

@@ -1,0 +1,396 @@
+"""A circuit of units and streams, and its steady state by tear streams.
+
+The streams that close recycle loops are torn (the back edges of a depth-first
+walk from the fresh feeds); the units are then evaluated in a fixed order, one
+pass ``g`` mapping guessed tear-stream flows ``x`` (t/h per size class) to new
+ones. Steady state is the fixed point ``x = g(x)``, found by direct
+substitution (``x <- g(x)``) or by Wegstein's method (per element, the secant
+slope ``s`` of ``g`` between the last two iterates, ``q = s / (s - 1)`` bounded
+to [``WEGSTEIN_Q_MIN``, ``WEGSTEIN_Q_MAX``], ``x <- q x + (1 - q) g(x)``). The
+relative mass-balance error is ``sum |g(x) - x| / fresh feed``, the rock that a
+pass would accumulate in (or take out of) the loops per hour of fresh feed; the
+solve stops when it is at most ``tol`` (default 1e-10).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from msmill.errors import MsmillError, MsmillInputError
+from msmill.model.circuit.units import FINAL_RATE_TOL, FreshFeed, MillUnit, Product, Unit
+from msmill.psd import PSD, SizeGrid
+
+METHODS = ("wegstein", "direct")
+DEFAULT_TOL = 1e-10
+DEFAULT_MAX_ITERATIONS = 500
+#: Bounds of Wegstein's relaxation ``q`` (negative: acceleration; 0: direct substitution).
+WEGSTEIN_Q_MIN = -20.0
+WEGSTEIN_Q_MAX = 0.0
+
+
+class CircuitNotConverged(MsmillError):
+    """The tear-stream iteration did not reach its tolerance (one line: iterations, last residual)."""
+
+
+@dataclass(frozen=True)
+class Stream:
+    """A stream from ``source`` unit's outlet ``outlet`` to ``target`` unit's inlet."""
+
+    name: str
+    source: str
+    outlet: str
+    target: str
+    recycle: bool = False
+
+
+class Circuit:
+    """Units joined by streams, checked at construction.
+
+    Parameters
+    ----------
+    units : list of Unit
+    streams : list of Stream
+    grid : SizeGrid, optional
+        Size grid of every stream; default the sqrt(2) series from 0.038 mm up to the
+        coarsest fresh feed's top size.
+    title : str
+    prefix : str
+        Prefix of every error's field name (the circuit file's name).
+
+    Checks (one-line :class:`MsmillInputError`): unit and stream names unique; every
+    stream's ends exist; every outlet has exactly one stream (an outlet without one sends
+    rock nowhere) and every unit with an inlet at least one; at least one fresh feed and
+    one product; every recycle loop holds a unit that breaks rock (a mill).
+    """
+
+    def __init__(self, units: list[Unit], streams: list[Stream], grid: SizeGrid | None = None,
+                 title: str = "", prefix: str = "circuit") -> None:
+        self.title = title
+        self.prefix = prefix
+        self.units: dict[str, Unit] = {}
+        for i, u in enumerate(units):
+            if u.name in self.units:
+                raise MsmillInputError(f"{prefix}.units[{i}].name", u.name, "a name no other unit has")
+            self.units[u.name] = u
+        self.streams: dict[str, Stream] = {}
+        used: dict[tuple[str, str], str] = {}
+        for i, s in enumerate(streams):
+            where = f"{prefix}.streams[{i}]"
+            if s.name in self.streams:
+                raise MsmillInputError(f"{where}.name", s.name, "a name no other stream has")
+            if s.source not in self.units:
+                raise MsmillInputError(f"{where}.from", s.source, _one_of("a unit", self.units))
+            src = self.units[s.source]
+            if s.outlet not in src.outlets:
+                allowed = (f"one of its outlets: {', '.join(f'{s.source}.{o}' for o in src.outlets)}"
+                           if src.outlets else f"a unit with outlets ({s.source} is a product)")
+                raise MsmillInputError(f"{where}.from", f"{s.source}.{s.outlet}", allowed)
+            if (s.source, s.outlet) in used:
+                raise MsmillInputError(f"{where}.from", f"{s.source}.{s.outlet}",
+                                       f"an outlet no other stream leaves ({used[s.source, s.outlet]} does; "
+                                       "split a stream with a splitter)")
+            used[s.source, s.outlet] = s.name
+            if s.target not in self.units:
+                raise MsmillInputError(f"{where}.to", s.target, _one_of("a unit", self.units))
+            if not self.units[s.target].has_inlet:
+                raise MsmillInputError(f"{where}.to", s.target, "a unit with an inlet (a fresh feed has none)")
+            self.streams[s.name] = s
+        for u in self.units.values():
+            for o in u.outlets:
+                if (u.name, o) not in used:
+                    raise MsmillInputError(f"{prefix}.units.{u.name}", f"outlet {o}",
+                                           "every outlet joined to a stream (this one goes nowhere)")
+            if u.has_inlet and not any(s.target == u.name for s in self.streams.values()):
+                raise MsmillInputError(f"{prefix}.units.{u.name}", "no stream in",
+                                       "a stream into every unit but fresh feeds")
+        if not any(isinstance(u, FreshFeed) for u in self.units.values()):
+            raise MsmillInputError(f"{prefix}.units", "no fresh feed", "at least one unit of type feed")
+        if not any(isinstance(u, Product) for u in self.units.values()):
+            raise MsmillInputError(f"{prefix}.units", "no product", "at least one unit of type product")
+        self._check_loops()
+        self.tears, self.order = _tear_streams(list(self.units), list(self.streams.values()))
+        if grid is None:
+            top = max(u.top_mm for u in self.units.values() if isinstance(u, FreshFeed))
+            grid = SizeGrid.geometric(0.038, max(top, 0.076))
+        self.grid = grid
+        for u in self.units.values():
+            u.bind(grid)
+
+    def _check_loops(self) -> None:
+        """Every strongly connected group of units (a recycle loop) holds a unit that breaks rock."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        names = list(self.units)
+        idx = {n: i for i, n in enumerate(names)}
+        edges = [(idx[s.source], idx[s.target]) for s in self.streams.values()]
+        r, c = zip(*edges, strict=True) if edges else ((), ())
+        g = csr_matrix((np.ones(len(edges)), (r, c)), shape=(len(names), len(names)))
+        _, label = connected_components(g, directed=True, connection="strong")
+        for lab in np.unique(label):
+            members = [names[i] for i in np.flatnonzero(label == lab)]
+            looped = len(members) > 1 or any(s.source == s.target == members[0] for s in self.streams.values())
+            if looped and not any(self.units[m].breaks_rock for m in members):
+                raise MsmillInputError(f"{self.prefix}.streams", "a loop through " + " -> ".join(members),
+                                       "recycle loops that pass a mill (without one the loop only holds rock back)")
+
+    # ------------------------------------------------------------------ solving
+    @property
+    def fresh_tph(self) -> float:
+        """Total fresh feed (t/h)."""
+        return float(sum(u.rate_tph for u in self.units.values() if isinstance(u, FreshFeed)))
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """One pass through the units with tear-stream flows ``x`` (T, N) (t/h per class).
+
+        Returns the new tear flows ``g(x)`` (T, N), every stream's flow and every unit's feed.
+        """
+        n = self.grid.n_classes
+        flows: dict[str, np.ndarray] = {t: x[k] for k, t in enumerate(self.tears)}
+        new: dict[str, np.ndarray] = {}
+        feeds: dict[str, np.ndarray] = {}
+        into: dict[str, list[str]] = {u: [] for u in self.units}
+        for s in self.streams.values():
+            into[s.target].append(s.name)
+        out_of = {(s.source, s.outlet): s.name for s in self.streams.values()}
+        for name in self.order:
+            u = self.units[name]
+            feed = np.zeros(n)
+            for sname in into[name]:
+                feed = feed + flows[sname]
+            feeds[name] = feed
+            for outlet, q in u.apply(feed).items():
+                sname = out_of[name, outlet]
+                if sname in self.tears:
+                    new[sname] = q
+                else:
+                    flows[sname] = q
+        gx = np.array([new[t] for t in self.tears]).reshape(len(self.tears), n)
+        return gx, flows, feeds
+
+    def solve(self, method: str = "wegstein", tol: float = DEFAULT_TOL,
+              max_iterations: int = DEFAULT_MAX_ITERATIONS) -> CircuitResult:
+        """Steady state by tear streams (module docstring); raises :class:`CircuitNotConverged`."""
+        from msmill.validate import integer, number
+
+        if method not in METHODS:
+            raise MsmillInputError("method", method, " or ".join(METHODS))
+        tol = number(tol, "tol", gt=0, lt=1)
+        max_iterations = integer(max_iterations, "max_iterations", ge=1, le=100000)
+        fresh = self.fresh_tph
+        x = np.zeros((len(self.tears), self.grid.n_classes))
+        x_prev = g_prev = None
+        history: list[float] = []
+        for it in range(1, max_iterations + 1):
+            gx, flows, feeds = self.evaluate(x)
+            res = float(np.abs(gx - x).sum()) / fresh
+            history.append(res)
+            if res <= tol:
+                loose = [u for n, u in self.units.items() if isinstance(u, MillUnit)
+                         and u.rate_mismatch(float(feeds[n].sum())) > FINAL_RATE_TOL]
+                if not loose:
+                    return self._result(x, flows, feeds, method, it, res, history)
+                for u in loose:  # converged on operators built near the rate: finish on ones built at it
+                    u.active_rate_tol = FINAL_RATE_TOL
+                x_prev = g_prev = None
+                continue
+            if not np.all(np.isfinite(gx)):
+                break
+            if method == "wegstein" and x_prev is not None:
+                dx = x - x_prev
+                dg = gx - g_prev
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    s = np.where(np.abs(dx) > 1e-14 * (np.abs(x) + 1e-300), dg / dx, 0.0)
+                    q = np.where(np.abs(s - 1.0) > 1e-12, s / (s - 1.0), 0.0)
+                q = np.clip(np.nan_to_num(q), WEGSTEIN_Q_MIN, WEGSTEIN_Q_MAX)
+                x_new = np.maximum(q * x + (1.0 - q) * gx, 0.0)
+            else:
+                x_new = gx
+            x_prev, g_prev = x, gx
+            x = x_new
+        raise CircuitNotConverged(
+            f"{self.prefix}: the {method} tear-stream iteration did not converge in {len(history)} iterations: "
+            f"relative mass-balance error {history[-1]:.3g} (tolerance {tol:.3g}); raise max_iterations, try "
+            f"method={'direct' if method == 'wegstein' else 'wegstein'}, or check the recycle")
+
+    def _result(self, x, flows, feeds, method, iterations, residual, history) -> CircuitResult:
+        for k, t in enumerate(self.tears):
+            flows[t] = x[k]
+        flows = {s: flows[s] for s in self.streams}
+        product = sum(flows[s.name] for s in self.streams.values() if isinstance(self.units[s.target], Product))
+        fresh = self.fresh_tph
+        recycle = [s.name for s in self.streams.values() if s.recycle] or list(self.tears)
+        cl = 100.0 * sum(float(flows[r].sum()) for r in recycle) / fresh
+        return CircuitResult(circuit=self, method=method, iterations=iterations, residual=residual,
+                             residual_history=tuple(history), flows_tph=flows, unit_feeds_tph=feeds,
+                             product_tph_by_class=np.asarray(product, dtype=float),
+                             mass_balance_error=abs(fresh - float(np.sum(product))) / fresh,
+                             circulating_load_pct=cl, recycle_streams=tuple(recycle))
+
+
+def _one_of(what: str, names: Any) -> str:
+    return f"{what} of this circuit: " + ", ".join(names)
+
+
+def _tear_streams(units: list[str], streams: list[Stream]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Tear streams (back edges of a depth-first walk from the units in order, feeds first) and the
+    evaluation order of the units once they are torn (topological, stable in file order)."""
+    out: dict[str, list[Stream]] = {u: [] for u in units}
+    for s in streams:
+        out[s.source].append(s)
+    state = dict.fromkeys(units, 0)  # 0 new, 1 on the walk's stack, 2 done
+    tears: list[str] = []
+    for root in units:
+        if state[root]:
+            continue
+        stack = [(root, iter(out[root]))]
+        state[root] = 1
+        while stack:
+            node, it = stack[-1]
+            s = next(it, None)
+            if s is None:
+                state[node] = 2
+                stack.pop()
+            elif state[s.target] == 1:
+                tears.append(s.name)
+            elif state[s.target] == 0:
+                state[s.target] = 1
+                stack.append((s.target, iter(out[s.target])))
+    torn = set(tears)
+    indeg = dict.fromkeys(units, 0)
+    for s in streams:
+        if s.name not in torn:
+            indeg[s.target] += 1
+    order: list[str] = []
+    ready = [u for u in units if indeg[u] == 0]
+    while ready:
+        u = ready.pop(0)
+        order.append(u)
+        for s in out[u]:
+            if s.name not in torn:
+                indeg[s.target] -= 1
+                if indeg[s.target] == 0:
+                    ready.append(s.target)
+    return tuple(tears), tuple(order)
+
+
+@dataclass(frozen=True)
+class CircuitResult:
+    """Steady state of a circuit.
+
+    Attributes
+    ----------
+    method : str
+        ``"wegstein"`` or ``"direct"``.
+    iterations : int
+        Passes through the units until the tolerance was met.
+    residual : float
+        Relative mass-balance error of the last pass (``sum |g(x) - x| / fresh feed``).
+    flows_tph : dict
+        Flow of every stream (t/h per size class of ``circuit.grid``).
+    unit_feeds_tph : dict
+        Feed of every unit (t/h per size class).
+    product_tph_by_class : ndarray
+        All circuit products together (t/h per size class).
+    mass_balance_error : float
+        ``|fresh feed - products| / fresh feed``.
+    circulating_load_pct : float
+        Flow of the recycle streams (those marked ``recycle``, else the tear streams) over the
+        fresh feed (%).
+    """
+
+    circuit: Circuit
+    method: str
+    iterations: int
+    residual: float
+    residual_history: tuple[float, ...]
+    flows_tph: dict[str, np.ndarray]
+    unit_feeds_tph: dict[str, np.ndarray]
+    product_tph_by_class: np.ndarray
+    mass_balance_error: float
+    circulating_load_pct: float
+    recycle_streams: tuple[str, ...]
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def product_tph(self) -> float:
+        """Circuit product rate (t/h)."""
+        return float(self.product_tph_by_class.sum())
+
+    @property
+    def product_psd(self) -> PSD:
+        """PSD of all circuit products together."""
+        p = np.clip(self.product_tph_by_class, 0.0, None)
+        return PSD(self.circuit.grid, p / p.sum(), validate=False)
+
+    @property
+    def product_p80_mm(self) -> float:
+        return self.product_psd.p80_mm
+
+    def stream_psd(self, name: str) -> PSD | None:
+        """PSD of stream ``name`` (None when it carries nothing)."""
+        q = np.clip(self.flows_tph[name], 0.0, None)
+        return PSD(self.circuit.grid, q / q.sum(), validate=False) if q.sum() > 0 else None
+
+    def stream_table(self, name: str) -> pd.DataFrame:
+        """Size-by-size table of stream ``name``: t/h and % retained per sieve class, cumulative % passing.
+
+        The sieve series is the circuit grid (the sqrt(2) series by default); the finest row's
+        lower edge is 0 (the pan holds everything finer).
+        """
+        g = self.circuit.grid
+        q = np.asarray(self.flows_tph[name], dtype=float)
+        tot = q.sum()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ret = 100.0 * q / tot if tot > 0 else np.zeros_like(q)
+        lower = g.lower_mm.copy()
+        lower[0] = 0.0
+        df = pd.DataFrame({"lower_mm": lower, "upper_mm": g.upper_mm, "tph": q, "retained_pct": ret,
+                           "passing_pct": np.clip(np.cumsum(ret), 0.0, 100.0)})  # passing at the upper edge
+        return df.iloc[::-1].reset_index(drop=True)  # coarse first, as sieve tables are read
+
+    def streams_frame(self) -> pd.DataFrame:
+        """One row per stream: from, to, t/h, P80 (mm)."""
+        rows = []
+        for s in self.circuit.streams.values():
+            psd = self.stream_psd(s.name)
+            rows.append({"stream": s.name, "from": f"{s.source}.{s.outlet}", "to": s.target,
+                         "tph": float(self.flows_tph[s.name].sum()),
+                         "p80_mm": psd.p80_mm if psd is not None else math.nan,
+                         "recycle": s.name in self.recycle_streams})
+        return pd.DataFrame(rows)
+
+    def mill_summaries(self) -> dict[str, dict[str, Any]]:
+        """Per mill unit: its feed rate, the rate its operators were built at, impact energy and power,
+        and the capacity check of its total feed (fresh plus recycle)."""
+        from msmill.capacity import AboveCapacityWarning
+
+        out = {}
+        for name, u in self.circuit.units.items():
+            if not isinstance(u, MillUnit):
+                continue
+            q = self.unit_feeds_tph[name]
+            rate = float(q.sum())
+            feed = PSD(self.circuit.grid, q / rate, validate=False)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                res = u.mill.run(feed, u.operating_point(u.operator_rate_tph), timeseries=False)
+            chk = u.mill.check_capacity(feed, u.operating_point(rate))
+            for w in caught:
+                if not issubclass(w.category, AboveCapacityWarning):
+                    warnings.warn(w.message, w.category, stacklevel=2)
+            if chk is not None and chk.above:
+                warnings.warn(f"{name}: fresh feed plus recycle is {rate:.4g} t/h (circulating load "
+                              f"{self.circulating_load_pct:.3g} %): {chk.message()}", AboveCapacityWarning,
+                              stacklevel=2)
+            kwh_t = res.specific_impact_energy_kwh_t
+            out[name] = {"feed_tph": rate, "operator_rate_tph": u.operator_rate_tph,
+                         "operator_rebuilds": u.rebuilds, "impact_energy_kwh_t_feed": kwh_t,
+                         "impact_kw": kwh_t * rate, "result": res, "capacity": chk}
+        return out
