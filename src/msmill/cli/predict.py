@@ -116,6 +116,10 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         *([("feed / product mass with stage statistics from thin data (%)",
             f"{result.thin_data_feed_pct:.3g} / {result.thin_data_product_pct:.3g}")]
           if result.thin_data_product_pct == result.thin_data_product_pct else []),  # not NaN
+        *([(f"P80 (mm) / passing 75 um (%) with statistics held below {result.held_below_mm:.3g} mm",
+            f"{result.held_below_p80_mm:.3g} / {result.held_below_passing_75um_pct:.3g} "
+            f"(here {result.p80_mm:.3g} / {float(result.product_psd.passing_at(0.075)):.3g})")]
+          if result.held_below_mm == result.held_below_mm else []),  # not NaN
     ]
     for r in rows:
         t.add_row(*r)

@@ -402,6 +402,12 @@ class TableProvider:
         """Number of stages of the table's runs."""
         return self.table.runs[0].n_stages
 
+    @property
+    def covered_sizes_mm(self) -> tuple[float, float]:
+        """Smallest and largest rock size (mm) of the table's runs."""
+        sizes = [r.design.size_mm for r in self.table.runs]
+        return float(min(sizes)), float(max(sizes))
+
     @classmethod
     def from_file(cls, path: str | Path) -> TableProvider:
         """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
@@ -542,6 +548,72 @@ class WithFillingCurves:
 
     def __repr__(self) -> str:
         return f"WithFillingCurves({self.provider!r}, filling={self.filling!r})"
+
+
+class HeldBelow:
+    """A provider whose stage parameters below the smallest size it covers are those of that size.
+
+    The other bounding rule for rock finer than any DEM run (issue 38): the provider's own rule (the
+    surrogate's Gaussian process, the table's ln-size trend) continues the statistics' trends past the
+    data; this one holds them at the smallest size the statistics cover (the smallest size class not
+    flagged ``extrapolated``). :meth:`msmill.model.Mill.run` solves the mill with both and reports how far
+    the product moves (``MillResult.held_below_p80_mm`` ...). It gives no posterior samples.
+
+    Parameters
+    ----------
+    provider : StageParameterProvider
+        The provider whose parameters are held.
+    """
+
+    def __init__(self, provider: Any) -> None:
+        self.provider = provider
+
+    @property
+    def source(self) -> str:
+        return f"{self.provider.source}; held below its smallest size"
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages (the provider's)."""
+        return self.provider.n_stages
+
+    @property
+    def velocities_at_requested_speeds(self) -> bool:
+        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """The provider's parameters at ``max(sizes_mm, smallest covered size)``, at the requested sizes."""
+        sizes = np.asarray(sizes_mm, dtype=float)
+        own = self.provider.stage_parameters(sizes, stage_speeds_rpm, feed_tph, gate_deg)
+        lo = smallest_covered_mm(own, self.provider)
+        if lo is None or not np.any(sizes < lo):
+            return own
+        held = self.provider.stage_parameters(np.maximum(sizes, lo), stage_speeds_rpm, feed_tph, gate_deg)
+        return dataclasses.replace(held, sizes_mm=sizes.copy(), extrapolated=own.extrapolated,
+                                   source=f"{held.source}; held below {lo:.3g} mm")
+
+    def __repr__(self) -> str:
+        return f"HeldBelow({self.provider!r})"
+
+
+def smallest_covered_mm(params: StageParameters, provider: Any = None) -> float | None:
+    """Smallest rock size (mm) the stage statistics cover, when some size class of ``params`` lies below it.
+
+    The provider's ``covered_sizes_mm`` (an optional extension: the smallest DEM run's size) where it has
+    one, else the smallest size class not flagged ``extrapolated``; None when no class lies below it.
+    """
+    sizes = np.asarray(params.sizes_mm, dtype=float)
+    covered = getattr(provider, "covered_sizes_mm", None)
+    if covered is not None:
+        lo = float(covered[0])
+    else:
+        if params.extrapolated is None:
+            return None
+        inside = sizes[~np.asarray(params.extrapolated, dtype=bool)]
+        if not inside.size:
+            return None
+        lo = float(inside.min())
+    return lo if np.any(sizes < lo * (1 - 1e-9)) else None
 
 
 def default_surrogate_path() -> Path | None:

@@ -239,7 +239,7 @@ def validate(experiments: Any, stage_parameters: Any = "default", ores: dict[str
             mills[e.ore] = Mill(ore, provider, grid=grid, **{"band_samples": 0, **mill_options})  # K-S of the mean
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = mills[e.ore].run(e.feed_psd, e.operating_point(), timeseries=False)
+            res = mills[e.ore].run(e.feed_psd, e.operating_point(), timeseries=False, held_below=False)
         ks = measured_ks(e.product_psd, res.product_psd)
         pw = power_estimate(res)
         op = e.operating_point
