@@ -359,6 +359,7 @@ class Mill:
                           f"({grid.edges_mm[-1]:.4g} mm) and is lumped into its top class",
                           InputWarning, stacklevel=3)
         feed_m = feed.rebin(grid) if feed.grid != grid else feed
+        _warn_implausible_feed(feed, self.machine)
         params, streams, stats, lm, caught = self.prepare(grid, op)
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
@@ -580,6 +581,20 @@ def _warn_extrapolated_share(res: MillResult) -> None:
         warnings.warn(f"{pct:.0f} % of the product mass{n} rests on stage statistics extrapolated beyond the "
                       f"rock sizes the DEM ran (feed {res.extrapolated_feed_pct:.0f} %): the passing fractions "
                       "there are extrapolations", ExtrapolationWarning, stacklevel=3)
+
+
+def _warn_implausible_feed(feed: PSD, machine: Any) -> None:
+    """Warn when the feed holds rock wider than the mill's feed chute (sieves in the wrong unit, typically)."""
+    from msmill.machine import Machine
+
+    chute_m = machine.chute_width_m if machine is not None else Machine.model_fields["chute_width_m"].default
+    nonzero = np.flatnonzero(feed.fractions > 1e-12)
+    if not nonzero.size:
+        return
+    top_mm = float(feed.grid.edges_mm[nonzero[-1] + 1])
+    if top_mm > 1000.0 * chute_m:
+        warnings.warn(f"feed: rock up to {top_mm:.4g} mm is wider than the mill's feed chute "
+                      f"({1000.0 * chute_m:g} mm): check the sieve sizes (mm)", InputWarning, stacklevel=4)
 
 
 def held_below_note(res: MillResult, held: MillResult, lo_mm: float) -> str:
