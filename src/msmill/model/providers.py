@@ -480,7 +480,22 @@ def default_table_path(field: str = "stage_parameters") -> Path:
 TABLE_NAME = "table"
 
 
-class WithFillingCurves:
+class _Wrapper:
+    """A provider that passes another's stage parameters on, changed (its ``provider``)."""
+
+    provider: Any
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages (the provider's)."""
+        return self.provider.n_stages
+
+    @property
+    def velocities_at_requested_speeds(self) -> bool:
+        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
+
+
+class WithFillingCurves(_Wrapper):
     """A provider whose stage parameters take their filling curves from another provider (a table's).
 
     The filling curves (``StageParameters.filling_*``, the ``dem_matrix_fill``
@@ -507,15 +522,6 @@ class WithFillingCurves:
     @property
     def source(self) -> str:
         return f"{self.provider.source}; filling curves from {self.filling.source}"
-
-    @property
-    def n_stages(self) -> int:
-        """Number of stages (the provider's)."""
-        return self.provider.n_stages
-
-    @property
-    def velocities_at_requested_speeds(self) -> bool:
-        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
 
     def __getattr__(self, name: str) -> Any:  # anything else is the provider's (e.g. the surrogate itself)
         if name in ("provider", "filling", "_cache"):
@@ -550,7 +556,7 @@ class WithFillingCurves:
         return f"WithFillingCurves({self.provider!r}, filling={self.filling!r})"
 
 
-class HeldBelow:
+class HeldBelow(_Wrapper):
     """A provider whose stage parameters below the smallest size it covers are those of that size.
 
     The other bounding rule for rock finer than any DEM run (issue 38): the provider's own rule (the
@@ -571,15 +577,6 @@ class HeldBelow:
     @property
     def source(self) -> str:
         return f"{self.provider.source}; held below its smallest size"
-
-    @property
-    def n_stages(self) -> int:
-        """Number of stages (the provider's)."""
-        return self.provider.n_stages
-
-    @property
-    def velocities_at_requested_speeds(self) -> bool:
-        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
 
     def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
         """The provider's parameters at ``max(sizes_mm, smallest covered size)``, at the requested sizes."""
