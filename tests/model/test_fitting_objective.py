@@ -120,3 +120,14 @@ def test_bounds_scale_with_particle_size_and_energy(scale):
         np.testing.assert_allclose(impact_bounds("vogel_swebrec", other, bp)["k_t_kwh"], np.divide(k0, scale),
                                    rtol=1e-9)
     assert b0[0] < 20.0 < b0[1]
+
+
+def test_bad_bounds_are_one_line():
+    from msmill.errors import MsmillInputError
+
+    bp = ore_with(20.0)
+    tests = impact_tests(build_breakage("ab_t10", bp, {}), COARSE_FEED, COARSE_SIEVES, (15.0, 45.0))
+    for bad in ({"l_ref_mm": (30.0, 3.0)}, {"l_ref_mm": (0.0, 3.0)}, {"k_t_kwh": (1.0, 2.0)}):
+        with pytest.raises(MsmillInputError, match=r"^bounds\.") as exc:
+            fit_impact_tests(tests, bp, "ab_t10", bounds=bad)
+        assert "\n" not in str(exc.value)

@@ -226,9 +226,10 @@ class ImpactFit:
     on_bound : tuple of str
         Fitted parameters that sit on a bound (their value is the bound's, not the data's).
     start_spread : dict[str, float]
-        Per fitted parameter, the spread ``max - min`` of ``ln(value)`` (``value`` for a
-        parameter whose lower bound is 0) over the starts whose objective came within
-        :data:`NEAR_OPTIMUM_REL` of the best: 0.01 is about 1 %.
+        Per fitted parameter, the spread ``max - min`` of ``ln(value)`` over the starts whose
+        objective came within :data:`NEAR_OPTIMUM_REL` of the best: 0.01 is about 1 %. A
+        parameter whose lower bound is 0 (``e_min_kwh_t``): ``(max - min) / |best|``, or over
+        1 % of the bound range when the best is nearer 0 than that.
     identified : bool
         Every fitted parameter off its bounds, with a multi-start spread below
         :data:`IDENTIFIED_SPREAD` and a finite standard error.
@@ -323,7 +324,12 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
     bp = breakage_parameters(ore)
     values = current_values(build_breakage(submodel, bp, {}))
     values.update(start or {})
-    bnd = {**impact_bounds(submodel, tests, bp), **(bounds or {})}
+    bnd = impact_bounds(submodel, tests, bp)
+    for k, (a, b) in (bounds or {}).items():
+        if k not in bnd or not (0.0 <= a < b) or (bnd[k][0] > 0 and a <= 0):
+            raise MsmillInputError(f"bounds.{k}", (a, b), f"LOW < HIGH for one of {', '.join(bnd)} "
+                                   "(LOW > 0 except for e_min_kwh_t)")
+        bnd[k] = (float(a), float(b))
     pbounds = [bnd[f] for f in fit]
     grid = impact_grid(tests)
     data = _impact_data(tests, grid)
@@ -346,7 +352,11 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
     sol = sols[int(np.argmin(costs))]
     near = np.array([s.x for s, c in zip(sols, costs, strict=True)
                      if c <= sol.cost * (1.0 + NEAR_OPTIMUM_REL) + 1e-14])
-    spread = {f: float(np.ptp(near[:, i])) for i, f in enumerate(fit)}
+    # log coordinates: the spread of ln(value) is relative; linear ones (lower bound 0) relative to the best
+    # value, or to 1 % of the bound range when the best is near 0
+    scale = np.array([1.0 if b[0] > 0 else max(abs(sol.x[i]), 0.01 * (hi[i] - lo[i]))
+                      for i, b in enumerate(pbounds)])
+    spread = {f: float(np.ptp(near[:, i]) / scale[i]) for i, f in enumerate(fit)}
     brk = model_for(sol.x)
     r = sol.fun
     dof = max(r.size - len(fit), 1)
