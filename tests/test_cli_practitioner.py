@@ -101,17 +101,7 @@ def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):
     assert not pd.read_csv(tmp_path / "s2" / "sweep.csv")["above_capacity"].any()
 
 
-def _own_ore(folder: Path, name: str) -> Path:
-    """A user's ore file: the packaged UG2 file under another name (HAND-MADE)."""
-    from importlib.resources import files
-
-    text = (files("msmill.data") / "ores" / "ug2.toml").read_text(encoding="utf-8")
-    p = folder / f"{name}.toml"
-    p.write_text(text.replace('name = "UG2"', f'name = "{name}"'), encoding="utf-8")
-    return p
-
-
-def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys):
+def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys, own_ore_file):
     from msmill.model.fitting import FITTABLE
 
     data = tmp_path / "data"
@@ -119,7 +109,7 @@ def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys):
     for p in sorted(EXAMPLES.glob("ug2-lab-*-[13]5ms.toml")):  # 4 tests: two feeds at 15 and 35 m/s
         (data / p.name).write_text(p.read_text(encoding="utf-8").replace('ore = "UG2"', 'ore = "MyRock"'),
                                    encoding="utf-8")
-    ore = _own_ore(data, "MyRock")  # kept in the experiments folder: not read as an experiment
+    ore = own_ore_file("MyRock", folder=data)  # kept in the experiments folder: not read as an experiment
     assert run(["calibrate", str(data)]) == 2  # the experiments name an ore msmill does not know
     assert "MyRock" in capsys.readouterr().err
     out = tmp_path / "out"
@@ -141,9 +131,10 @@ def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys):
     assert len(held) == 4 * len(FITTABLE)
 
 
+@pytest.mark.parametrize("command", ["calibrate", "predict"])
 @pytest.mark.parametrize("text,expect", [(None, "error: path"), ("name = ", "valid TOML"),
-                                         ('name = "X"\n', "error: ")])
-def test_calibrate_bad_ore_file_is_one_line(tmp_path, capsys, text, expect):
+                                         ('name = "X"\ndescription = "d"\n', "error: ")])
+def test_bad_ore_file_is_one_line(tmp_path, capsys, command, text, expect):
     data = tmp_path / "data"
     data.mkdir()
     for p in sorted(EXAMPLES.glob("ug2-lab-13x16-[13]5ms.toml")):
@@ -151,7 +142,9 @@ def test_calibrate_bad_ore_file_is_one_line(tmp_path, capsys, text, expect):
     ore = tmp_path / "ore.toml"
     if text is not None:
         ore.write_text(text, encoding="utf-8")
-    assert run(["calibrate", str(data), "--ore-file", str(ore)]) == 2
+    target = data if command == "calibrate" else ROOT / "examples" / "ug2.toml"
+    out = tmp_path / "out"
+    assert run([command, str(target), "--ore-file", str(ore), "--out", str(out)]) == 2
     err = [e for e in capsys.readouterr().err.strip().splitlines() if e]
     assert len(err) == 1 and err[0].startswith("error:") and expect in err[0], err
-    assert not (data / "calibration").exists()
+    assert not out.exists()
