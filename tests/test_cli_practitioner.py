@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 from msmill.cli.main import run
 from msmill.ore import Ore
@@ -98,3 +99,52 @@ def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):
                 "--out", str(tmp_path / "s2")]) == 0
     assert "no DEM envelope" in capsys.readouterr().out
     assert not pd.read_csv(tmp_path / "s2" / "sweep.csv")["above_capacity"].any()
+
+
+def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys, own_ore_file):
+    from msmill.model.fitting import FITTABLE
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in sorted(EXAMPLES.glob("ug2-lab-*-[13]5ms.toml")):  # 4 tests: two feeds at 15 and 35 m/s
+        (data / p.name).write_text(p.read_text(encoding="utf-8").replace('ore = "UG2"', 'ore = "MyRock"'),
+                                   encoding="utf-8")
+    ore = own_ore_file("MyRock", folder=data)  # kept in the experiments folder: not read as an experiment
+    assert run(["calibrate", str(data)]) == 2  # the experiments name an ore msmill does not know
+    assert "MyRock" in capsys.readouterr().err
+    out = tmp_path / "out"
+    assert run(["calibrate", str(data), "--out", str(out), "--ore-file", str(ore)]) == 0
+    text = capsys.readouterr().out
+    assert "leave-one-test-out" in text and "identified" in text and "on a bound" in text
+    t = pd.read_csv(out / "impact_fits.csv")
+    assert set(t["submodel"]) == set(FITTABLE) and set(t["ore"]) == {"MyRock"}
+    for _, r in t.iterrows():
+        for k in FITTABLE[r["submodel"]]:
+            assert r[f"lo_{k}"] <= r[k] <= r[f"hi_{k}"]
+            assert r[f"se_jackknife_{k}"] > 0
+    assert (t["ks_held_out_mean"] >= t["ks_fit_mean"] - 1e-9).all()
+    # the SYNTHETIC truth (examples/experiments/PROVENANCE.json: ab_t10, A 71.8 %, L_ref 20 mm)
+    ab = t.set_index("submodel").loc["ab_t10"]
+    assert abs(ab["l_ref_mm"] - 20.0) < 3 * ab["se_jackknife_l_ref_mm"]
+    assert abs(ab["A_pct"] - 71.8) < 3 * ab["se_jackknife_A_pct"]
+    held = pd.read_csv(out / "MyRock_impact_heldout.csv")
+    assert len(held) == 4 * len(FITTABLE)
+
+
+@pytest.mark.parametrize("command", ["calibrate", "predict"])
+@pytest.mark.parametrize("text,expect", [(None, "error: path"), ("name = ", "valid TOML"),
+                                         ('name = "X"\ndescription = "d"\n', "error: ")])
+def test_bad_ore_file_is_one_line(tmp_path, capsys, command, text, expect):
+    data = tmp_path / "data"
+    data.mkdir()
+    for p in sorted(EXAMPLES.glob("ug2-lab-13x16-[13]5ms.toml")):
+        shutil.copy(p, data / p.name)
+    ore = tmp_path / "ore.toml"
+    if text is not None:
+        ore.write_text(text, encoding="utf-8")
+    target = data if command == "calibrate" else ROOT / "examples" / "ug2.toml"
+    out = tmp_path / "out"
+    assert run([command, str(target), "--ore-file", str(ore), "--out", str(out)]) == 2
+    err = [e for e in capsys.readouterr().err.strip().splitlines() if e]
+    assert len(err) == 1 and err[0].startswith("error:") and expect in err[0], err
+    assert not out.exists()

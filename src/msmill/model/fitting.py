@@ -5,19 +5,20 @@ Single-impact tests (:func:`fit_impact_tests`)
 One impact per rock at speed ``v`` (``E = v**2 / 2``) on fresh rock: a feed
 class ``j`` of mass ``f_j`` leaves ``f_j (1 - P_b,j)`` unbroken and
 ``f_j P_b,j`` as the breakage sub-model's fragments. The parameters are fitted
-by least squares to the *whole* product PSD: the residuals are
-``ln(m_pred + 0.001) - ln(m_meas + 0.001)`` of the % mass retained between
-consecutive sieves (pan and oversize included), i.e. relative errors of the
-sieve fractions, the usual error model of sieving, each test's residuals
-centred (a free scale per test: measured fractions are renormalised to 100 %,
-which shifts all of a test's log masses together). That separates ``P_b``
-(mass left in the feed class) from the fragment fineness (``t10 = A P_b``),
-which t10 values alone cannot. Standard errors from the Jacobian
-(``cov = s² (JᵀJ)⁻¹``), honest when sieve fractions have independent
-relative errors.
+by least squares to the *whole* product PSD: the residuals are the
+differences of the cumulative fraction passing at every measured sieve
+(``docs/breakage.md`` section 5.1: bounded residuals, so neither an empty
+sieve class nor the sieve at which a lab closes its curve at 100 % can
+dominate). The mass left in the feed class fixes ``P_b``, the fragments their
+fineness (``t10``), which t10 values alone cannot separate. Bounds of the
+size- and energy-dependent parameters scale with the tests
+(:func:`impact_bounds`); a fit reports the parameters that sit on a bound,
+Jacobian standard errors (``cov = s² (JᵀJ)⁻¹``, approximate: cumulative
+residuals are correlated) and whether it is identified (multi-start spread).
 
-:func:`compare_submodels` fits each sub-model on all speeds but one and
-predicts the held-out speed (leave-one-speed-out), reporting the held-out K-S.
+:func:`compare_submodels` fits each sub-model without some tests (one speed,
+or one test, at a time) and predicts them, reporting the held-out K-S;
+:func:`impact_report` adds the all-test fits (the ``msmill calibrate`` table).
 
 Mill surveys (:func:`calibrate_surveys`)
 ----------------------------------------
@@ -59,17 +60,70 @@ __all__ = [
     "calibrate_surveys",
     "compare_submodels",
     "fit_impact_tests",
+    "impact_bounds",
+    "impact_report",
     "single_impact_product",
 ]
 
-#: Fittable parameters of each breakage sub-model with their bounds (units in the names).
-FITTABLE: dict[str, dict[str, tuple[float, float]]] = {
-    "ab_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
-    "jk_t10": {"A_pct": (1.0, 100.0), "l_ref_mm": (0.5, 2000.0)},
-    "vogel_swebrec": {"A_pct": (1.0, 100.0), "k_t_kwh": (0.01, 100.0), "e_min_kwh_t": (0.0, 5.0),
-                      "swebrec_b": (0.3, 10.0)},
+#: Fittable parameters of each breakage sub-model (units in the names); their bounds come from
+#: :func:`impact_bounds` (scaled to the tests' sizes and energies, or dimensionless shape ranges).
+FITTABLE: dict[str, tuple[str, ...]] = {
+    "ab_t10": ("A_pct", "l_ref_mm"),
+    "jk_t10": ("A_pct", "l_ref_mm"),
+    "vogel_swebrec": ("A_pct", "k_t_kwh", "e_min_kwh_t", "swebrec_b"),
 }
+#: Bounds of the dimensionless (shape) parameters, the same for every material.
+SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0)}
+#: Range of the Eq. 11 exponent ``x = b E L / L_ref`` (``k L E / L_ref`` for ``vogel_swebrec``)
+#: that the scaled bounds allow: at one bound even the least energetic test (slowest, smallest
+#: rock) breaks with ``P_b = 1 - exp(-X_MAX)``, at the other even the most energetic one breaks
+#: with ``P_b = 1 - exp(-X_MIN)`` (about X_MIN): beyond them the tests cannot tell values apart.
+X_MIN = 1e-3
+X_MAX = 30.0
 OBJECTIVES = ("ks", "ssq")
+
+
+def _test_ranges(tests: Sequence[Any]) -> tuple[float, float, float, float]:
+    """``(L_min, L_max, E_min, E_max)``: the tests' feed sizes (mm, the feed's sieves with mass
+    between them) and specific impact energies (kWh/t)."""
+    lo, hi = [], []
+    for t in tests:
+        s, p = t.feed_psd.sizes_mm, t.feed_psd.passing_pct
+        inside = np.flatnonzero(np.diff(p) > 0)  # intervals that hold feed mass
+        lo.append(float(s[inside[0]]) if inside.size else float(s[0]))
+        hi.append(float(s[inside[-1] + 1]) if inside.size else float(s[-1]))
+    e = specific_energy_kwh_t(np.array([float(t.impact_speed_m_s) for t in tests]))
+    return min(lo), max(hi), float(e.min()), float(e.max())
+
+
+def impact_bounds(submodel: str, tests: Sequence[Any], ore: Any) -> dict[str, tuple[float, float]]:
+    """Bounds of ``submodel``'s fittable parameters for these tests (units in the names).
+
+    ``L_ref`` (``ab_t10``, ``jk_t10``; ``b`` held) spans the values at which the
+    Eq. 11 exponent ``b E L / L_ref`` lies between :data:`X_MIN` at the most
+    energetic test and :data:`X_MAX` at the least energetic one, so the range
+    follows the particle size and energy of the tests (0.17 mm particles at
+    60-300 m/s get about 0.1-50 mm, 13-32 mm rock at 15-45 m/s about
+    0.5-700 mm). ``k`` of ``vogel_swebrec`` spans the same exponent range at
+    the ore's ``L_ref``, and the threshold ``E_min`` (at ``L_ref``) from 0 to the
+    value at which the coarsest rock at the fastest test is just at threshold.
+    ``A`` and the Swebrec ``beta`` are shape parameters (:data:`SHAPE_BOUNDS`).
+    """
+    if submodel not in FITTABLE:
+        raise MsmillInputError("breakage", submodel, sm.did_you_mean(submodel, list(FITTABLE)))
+    bp = breakage_parameters(ore)
+    l_min, l_max, e_min, e_max = _test_ranges(tests)
+    if e_min <= 0:
+        raise MsmillInputError("impact_speed_m_s", 0.0, "speeds > 0 m/s in every single-impact test")
+    out = dict(SHAPE_BOUNDS)
+    if submodel == "vogel_swebrec":
+        lr = bp.l_ref_mm
+        out["k_t_kwh"] = (X_MIN * lr / (e_max * l_max), X_MAX * lr / (e_min * l_min))
+        out["e_min_kwh_t"] = (0.0, e_max * l_max / lr)
+    else:
+        b = bp.b_t_kwh
+        out["l_ref_mm"] = (b * e_max * l_max / X_MAX, b * e_min * l_min / X_MIN)
+    return {k: out[k] for k in FITTABLE[submodel]}
 
 
 def build_breakage(name: str, ore: sm.BreakageParameters, values: dict[str, float]) -> Any:
@@ -159,47 +213,81 @@ class ImpactFit:
     params : dict[str, float]
         All fittable parameters (fitted or held).
     std_errors : dict[str, float]
-        One-sigma Jacobian standard errors of the fitted ones.
-    rmse_log : float
-        RMS residual of ``ln(retained % + 0.001)`` over all sieve fractions and tests
-        (about the relative error of a retained mass).
+        One-sigma Jacobian standard errors of the fitted ones (approximate:
+        cumulative passing at neighbouring sieves is correlated).
+    rmse_pct : float
+        RMS residual of % passing at the measured sieves over all tests.
     ks : dict[str, float]
         In-sample K-S per test id.
     breakage : object
         The fitted sub-model.
+    bounds : dict[str, tuple[float, float]]
+        Bounds of the fitted parameters (:func:`impact_bounds`).
+    on_bound : tuple of str
+        Fitted parameters that sit on a bound (their value is the bound's, not the data's).
+    start_spread : dict[str, float]
+        Per fitted parameter, the spread ``max - min`` of ``ln(value)`` over the starts whose
+        objective came within :data:`NEAR_OPTIMUM_REL` of the best: 0.01 is about 1 %. A
+        parameter whose lower bound is 0 (``e_min_kwh_t``): ``(max - min) / |best|``, or over
+        1 % of the bound range when the best is nearer 0 than that.
+    identified : bool
+        Every fitted parameter off its bounds, with a multi-start spread below
+        :data:`IDENTIFIED_SPREAD` and a finite standard error.
+    n_starts : int
+        Starts of the optimiser (:func:`fit_impact_tests` ``n_starts``).
+    cost : float
+        Objective at the optimum: half the weighted sum of squared residuals (fractions passing).
     """
 
     submodel: str
     params: dict[str, float]
     std_errors: dict[str, float]
-    rmse_log: float
+    rmse_pct: float
     ks: dict[str, float]
     breakage: Any = field(repr=False)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    on_bound: tuple[str, ...] = ()
+    start_spread: dict[str, float] = field(default_factory=dict)
+    identified: bool = True
+    n_starts: int = 1
+    cost: float = float("nan")
 
 
-#: Mass floor (%) of the log retained-mass residuals of single-impact fits.
-MASS_FLOOR_PCT = 0.001
-
-
-def _retained(grid: SizeGrid, fractions: np.ndarray, sieves_mm: np.ndarray) -> np.ndarray:
-    """% mass between consecutive sieves (pan below the first, oversize above the last)."""
-    p = _passing_at(grid, fractions, sieves_mm)
-    return np.diff(np.concatenate([[0.0], p, [100.0]]))
+#: Starts within this relative objective of the best count as reaching the optimum.
+NEAR_OPTIMUM_REL = 0.01
+#: Largest multi-start spread (log units, about a relative spread) of an identified parameter.
+IDENTIFIED_SPREAD = 0.05
+#: Relative distance (in the optimiser's coordinates, of the bound range) at which a value is on its bound.
+ON_BOUND_REL = 1e-3
 
 
 def _impact_data(tests: Sequence[Any], grid: SizeGrid) -> list[tuple]:
-    out = []
-    for t in tests:
-        s = t.product_psd.sizes_mm
-        meas = np.diff(np.concatenate([[0.0], t.product_psd.passing_pct, [100.0]]))
-        out.append((t.feed_psd.rebin(grid).fractions, float(t.impact_speed_m_s), s,
-                    np.log(np.clip(meas, 0.0, None) + MASS_FLOOR_PCT), math.sqrt(t.weight)))
-    return out
+    """Per test: feed fractions on ``grid``, speed (m/s), sieves (mm), measured fraction passing, sqrt(weight)."""
+    return [(t.feed_psd.rebin(grid).fractions, float(t.impact_speed_m_s), t.product_psd.sizes_mm,
+             np.clip(t.product_psd.passing_pct, 0.0, 100.0) / 100.0, math.sqrt(t.weight)) for t in tests]
+
+
+def _start_points(x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, n_starts: int, seed: int) -> np.ndarray:
+    """``x0`` and ``n_starts - 1`` scrambled Halton points inside ``[lo, hi]`` (optimiser coordinates)."""
+    if n_starts <= 1:
+        return x0[None]
+    from scipy.stats import qmc
+
+    pts = qmc.scale(qmc.Halton(d=x0.size, scramble=True, seed=seed).random(n_starts - 1), lo, hi)
+    return np.vstack([x0, pts])
 
 
 def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
-                     fit: Sequence[str] | None = None, start: dict[str, float] | None = None) -> ImpactFit:
+                     fit: Sequence[str] | None = None, start: dict[str, float] | None = None,
+                     n_starts: int = 8, seed: int = 0,
+                     bounds: dict[str, tuple[float, float]] | None = None) -> ImpactFit:
     """Fit a breakage sub-model's parameters to single-impact tests' whole product PSDs.
+
+    Least squares on the cumulative fraction passing at every measured sieve
+    (``docs/breakage.md`` section 5.1 gives the reasons): bounded residuals, so
+    an empty or near-empty sieve class weighs what its mass weighs, and a curve
+    closed at 100 % one sieve higher or lower changes the objective by that
+    sieve's residual only.
 
     Parameters
     ----------
@@ -212,7 +300,15 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
     fit : sequence of str, optional
         Parameters to fit (default all of :data:`FITTABLE` ``[submodel]``).
     start : dict, optional
-        Start values overriding the ore-derived ones.
+        Start values overriding the ore-derived ones (the first start).
+    n_starts : int
+        Optimiser starts: the ore-derived one and ``n_starts - 1`` Halton points
+        inside the bounds; the spread of the near-optimal ones is
+        :attr:`ImpactFit.start_spread`.
+    seed : int
+        Seed of the Halton starts.
+    bounds : dict, optional
+        Bounds overriding :func:`impact_bounds`.
     """
     from scipy.optimize import least_squares
 
@@ -228,28 +324,42 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
     bp = breakage_parameters(ore)
     values = current_values(build_breakage(submodel, bp, {}))
     values.update(start or {})
-    bounds = [FITTABLE[submodel][f] for f in fit]
+    bnd = impact_bounds(submodel, tests, bp)
+    for k, (a, b) in (bounds or {}).items():
+        if k not in bnd or not (0.0 <= a < b) or (bnd[k][0] > 0 and a <= 0):
+            raise MsmillInputError(f"bounds.{k}", (a, b), f"LOW < HIGH for one of {', '.join(bnd)} "
+                                   "(LOW > 0 except for e_min_kwh_t)")
+        bnd[k] = (float(a), float(b))
+    pbounds = [bnd[f] for f in fit]
     grid = impact_grid(tests)
     data = _impact_data(tests, grid)
 
     def model_for(x: np.ndarray) -> Any:
-        return build_breakage(submodel, bp, {**values, **dict(zip(fit, _from_x(x, bounds), strict=True))})
+        return build_breakage(submodel, bp, {**values, **dict(zip(fit, _from_x(x, pbounds), strict=True))})
 
     def resid(x: np.ndarray) -> np.ndarray:
         brk = model_for(x)
-        out = []
-        for f, v, s, lm, w in data:
-            r = np.log(_retained(grid, single_impact_product(brk, grid, f, v), s) + MASS_FLOOR_PCT) - lm
-            out.append(w * (r - r.mean()))  # free per-test scale: sieve masses are renormalised
-        return np.concatenate(out)
+        return np.concatenate([w * (_passing_at(grid, single_impact_product(brk, grid, f, v), s) / 100.0 - p)
+                               for f, v, s, p, w in data])
 
-    x0 = np.clip(_to_x(np.array([values[f] for f in fit]), bounds), *_x_bounds(bounds))
-    lo, hi = _x_bounds(bounds)
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    sol = least_squares(resid, x0, bounds=(lo, hi), method="trf", x_scale="jac")
+    lo, hi = _x_bounds(pbounds)
+    inset = 1e-9 * (hi - lo)
+    x0 = np.clip(_to_x(np.maximum(np.array([values[f] for f in fit]), [b[0] for b in pbounds]), pbounds),
+                 lo + inset, hi - inset)
+    sols = [least_squares(resid, xs, bounds=(lo, hi), method="trf", x_scale="jac")
+            for xs in np.clip(_start_points(x0, lo, hi, n_starts, seed), lo + inset, hi - inset)]
+    costs = np.array([s.cost for s in sols])
+    sol = sols[int(np.argmin(costs))]
+    near = np.array([s.x for s, c in zip(sols, costs, strict=True)
+                     if c <= sol.cost * (1.0 + NEAR_OPTIMUM_REL) + 1e-14])
+    # log coordinates: the spread of ln(value) is relative; linear ones (lower bound 0) relative to the best
+    # value, or to 1 % of the bound range when the best is near 0
+    scale = np.array([1.0 if b[0] > 0 else max(abs(sol.x[i]), 0.01 * (hi[i] - lo[i]))
+                      for i, b in enumerate(pbounds)])
+    spread = {f: float(np.ptp(near[:, i]) / scale[i]) for i, f in enumerate(fit)}
     brk = model_for(sol.x)
     r = sol.fun
-    dof = max(r.size - len(fit) - len(data), 1)
+    dof = max(r.size - len(fit), 1)
     s2 = float(r @ r) / dof
     try:
         cov_x = np.linalg.inv(sol.jac.T @ sol.jac) * s2
@@ -257,43 +367,100 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
     except np.linalg.LinAlgError:
         se_x = np.full(len(fit), np.inf)
     params = current_values(brk)
-    vals = _from_x(sol.x, bounds)
-    se = {f: float(se_x[i] * (vals[i] if bounds[i][0] > 0 else 1.0)) for i, f in enumerate(fit)}
+    vals = _from_x(sol.x, pbounds)
+    se = {f: float(se_x[i] * (vals[i] if pbounds[i][0] > 0 else 1.0)) for i, f in enumerate(fit)}
+    tol = ON_BOUND_REL * (hi - lo)
+    on_bound = tuple(f for i, f in enumerate(fit) if sol.x[i] - lo[i] <= tol[i] or hi[i] - sol.x[i] <= tol[i])
+    identified = (not on_bound and all(v <= IDENTIFIED_SPREAD for v in spread.values())
+                  and all(math.isfinite(v) for v in se.values()))
     ks = {t.id: measured_ks(t.product_psd, PSD(grid, single_impact_product(brk, grid, d[0], d[1]),
                                                   validate=False)) for t, d in zip(tests, data, strict=True)}
-    return ImpactFit(submodel, params, se, math.sqrt(float(r @ r) / r.size), ks, brk)
+    return ImpactFit(submodel, params, se, 100.0 * math.sqrt(float(r @ r) / r.size), ks, brk,
+                     bounds={f: bnd[f] for f in fit}, on_bound=on_bound, start_spread=spread,
+                     identified=identified, n_starts=len(sols), cost=float(sol.cost))
 
 
-def compare_submodels(tests: Sequence[Any], ore: Any,
-                      submodels: Sequence[str] | None = None) -> pd.DataFrame:
-    """Held-out K-S of each sub-model: fit on all impact speeds but one, predict the held-out speed.
+#: How :func:`compare_submodels` holds tests out: one impact speed at a time, or one test at a time.
+HOLD_OUT = ("speed", "test")
+
+
+def compare_submodels(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | None = None,
+                      hold_out: str = "speed", n_starts: int = 8,
+                      starts: dict[str, dict[str, float]] | None = None) -> pd.DataFrame:
+    """Held-out K-S of each sub-model: fit without some tests, predict them.
 
     ``submodels``: default every fittable one (:data:`FITTABLE`), the mill's default ``jk_t10`` among them.
+    ``hold_out``: ``"speed"`` (fit on all impact speeds but one, predict the held-out
+    speed's tests) or ``"test"`` (leave one test out at a time). ``n_starts``: as
+    :func:`fit_impact_tests`; ``starts``: per sub-model, the first start's values
+    (e.g. the all-test fit, from which a held-out fit moves little).
 
     Returns
     -------
     pandas.DataFrame
         One row per (sub-model, held-out test): ``submodel, held_out_speed_m_s,
-        id, ks_held_out``. Needs tests at two or more speeds.
+        id, ks_held_out`` and ``fit_<p>``, the parameters fitted without it.
     """
+    if hold_out not in HOLD_OUT:
+        raise MsmillInputError("hold_out", hold_out, sm.did_you_mean(hold_out, list(HOLD_OUT)))
     submodels = tuple(FITTABLE) if submodels is None else tuple(submodels)
     tests = list(tests)
     speeds = sorted({float(t.impact_speed_m_s) for t in tests})
     if len(speeds) < 2:
         raise MsmillInputError("single-impact tests", f"{len(speeds)} speed(s)",
                                "tests at two or more impact speeds (fit on some, predict the others)")
+    groups = ([[t for t in tests if float(t.impact_speed_m_s) == v] for v in speeds] if hold_out == "speed"
+              else [[t] for t in tests])
+    grid = impact_grid(tests)
     rows = []
     for name in submodels:
-        for v in speeds:
-            train = [t for t in tests if float(t.impact_speed_m_s) != v]
-            held = [t for t in tests if float(t.impact_speed_m_s) == v]
-            f = fit_impact_tests(train, ore, name)
-            grid = impact_grid(tests)
+        for held in groups:
+            ids = {t.id for t in held}
+            f = fit_impact_tests([t for t in tests if t.id not in ids], ore, name, n_starts=n_starts,
+                                 start=(starts or {}).get(name))
             for t in held:
+                v = float(t.impact_speed_m_s)
                 pred = single_impact_product(f.breakage, grid, t.feed_psd.rebin(grid).fractions, v)
                 rows.append({"submodel": name, "held_out_speed_m_s": v, "id": t.id,
-                             "ks_held_out": measured_ks(t.product_psd, PSD(grid, pred, validate=False))})
+                             "ks_held_out": measured_ks(t.product_psd, PSD(grid, pred, validate=False)),
+                             **{f"fit_{k}": f.params[k] for k in FITTABLE[name]}})
     return pd.DataFrame(rows)
+
+
+def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | None = None,
+                  hold_out: str = "test", n_starts: int = 8) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Every sub-model fitted to all tests and held out: the table ``msmill calibrate`` prints.
+
+    Returns
+    -------
+    summary : pandas.DataFrame
+        One row per sub-model: ``submodel, ks_fit_mean, ks_held_out_mean,
+        rmse_pct, identified, on_bound`` (comma-separated names or ``""``), and
+        per fitted parameter ``<p>``, ``se_<p>`` (Jacobian), ``se_jackknife_<p>``
+        (``sqrt((n-1)/n sum (theta_i - mean)^2)`` over the leave-one-test-out fits;
+        NaN with ``hold_out="speed"``), ``spread_<p>`` (multi-start), ``lo_<p>``, ``hi_<p>`` (bounds).
+    held_out : pandas.DataFrame
+        :func:`compare_submodels` rows.
+    """
+    submodels = tuple(FITTABLE) if submodels is None else tuple(submodels)
+    fits = {name: fit_impact_tests(tests, ore, name, n_starts=n_starts) for name in submodels}
+    # held-out fits start from the all-test optimum (one start each: the multi-start is the all-test fit's)
+    held = compare_submodels(tests, ore, submodels, hold_out=hold_out, n_starts=1,
+                             starts={name: f.params for name, f in fits.items()})
+    rows = []
+    for name, f in fits.items():
+        row: dict[str, Any] = {"submodel": name, "ks_fit_mean": float(np.mean(list(f.ks.values()))),
+                               "ks_held_out_mean": float(held.loc[held["submodel"] == name, "ks_held_out"].mean()),
+                               "rmse_pct": f.rmse_pct, "identified": f.identified, "on_bound": ",".join(f.on_bound)}
+        mine = held[held["submodel"] == name]
+        for k in FITTABLE[name]:
+            th = mine[f"fit_{k}"].to_numpy(dtype=float)
+            jk = (math.sqrt((th.size - 1) / th.size * float(np.sum((th - th.mean()) ** 2)))
+                  if hold_out == "test" and th.size > 1 else float("nan"))
+            row.update({k: f.params[k], f"se_{k}": f.std_errors[k], f"se_jackknife_{k}": jk,
+                        f"spread_{k}": f.start_spread[k], f"lo_{k}": f.bounds[k][0], f"hi_{k}": f.bounds[k][1]})
+        rows.append(row)
+    return pd.DataFrame(rows), held
 
 
 # ---------------------------------------------------------------- mill surveys
