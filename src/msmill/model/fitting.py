@@ -70,10 +70,12 @@ __all__ = [
 FITTABLE: dict[str, tuple[str, ...]] = {
     "ab_t10": ("A_pct", "l_ref_mm"),
     "jk_t10": ("A_pct", "l_ref_mm"),
+    "energy_t10": ("A_pct", "l_ref_mm", "fineness_ratio"),
     "vogel_swebrec": ("A_pct", "k_t_kwh", "e_min_kwh_t", "swebrec_b"),
 }
 #: Bounds of the dimensionless (shape) parameters, the same for every material.
-SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0)}
+SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0),
+                                                 "fineness_ratio": (1e-3, 1e3)}
 #: Range of the Eq. 11 exponent ``x = b E L / L_ref`` (``k L E / L_ref`` for ``vogel_swebrec``)
 #: that the scaled bounds allow: at one bound even the least energetic test (slowest, smallest
 #: rock) breaks with ``P_b = 1 - exp(-X_MAX)``, at the other even the most energetic one breaks
@@ -107,7 +109,10 @@ def impact_bounds(submodel: str, tests: Sequence[Any], ore: Any) -> dict[str, tu
     0.5-700 mm). ``k`` of ``vogel_swebrec`` spans the same exponent range at
     the ore's ``L_ref``, and the threshold ``E_min`` (at ``L_ref``) from 0 to the
     value at which the coarsest rock at the fastest test is just at threshold.
-    ``A`` and the Swebrec ``beta`` are shape parameters (:data:`SHAPE_BOUNDS`).
+    ``A``, the Swebrec ``beta`` and the ``energy_t10`` fineness ratio ``c`` are
+    dimensionless shape parameters (:data:`SHAPE_BOUNDS`; ``c`` from 1e-3, fragments
+    that refine over a thousand times the energy that breaks most rock, to 1e3,
+    ``jk_t10``'s fragments).
     """
     if submodel not in FITTABLE:
         raise MsmillInputError("breakage", submodel, sm.did_you_mean(submodel, list(FITTABLE)))
@@ -132,6 +137,8 @@ def build_breakage(name: str, ore: sm.BreakageParameters, values: dict[str, floa
         return sm.AbT10Breakage(dataclasses.replace(ore, **values))
     if name == "jk_t10":
         return sm.JkT10Breakage(dataclasses.replace(ore, **values))
+    if name == "energy_t10":
+        return sm.EnergyT10Breakage(dataclasses.replace(ore, **values))
     if name == "vogel_swebrec":
         base = VogelSwebrecBreakage.from_ore(ore)
         return VogelSwebrecBreakage(dataclasses.replace(base.params, **values))
@@ -164,14 +171,15 @@ def single_impact_product(breakage: Any, grid: SizeGrid, feed_fractions: np.ndar
     """Product mass fractions of one impact at ``speed_m_s`` on fresh rock (no damage)."""
     e = float(specific_energy_kwh_t(speed_m_s))
     mids = grid.mids_mm
-    pb = np.asarray(breakage.probability(np.full(mids.size, e), mids, np.zeros(mids.size)))
-    cols = _direct_columns(breakage, grid, pb)  # (parent, class)
+    ef, d0 = np.full(mids.size, e), np.zeros(mids.size)
+    pb = np.asarray(breakage.probability(ef, mids, d0))
+    cols = _direct_columns(breakage, grid, sm.fragment_index(breakage, ef, mids, d0, pb))  # (parent, class)
     f = np.asarray(feed_fractions, dtype=float)
     return f * (1.0 - pb) + (f * pb) @ cols
 
 
 def _direct_columns(breakage: Any, grid: SizeGrid, pb: np.ndarray) -> np.ndarray:
-    """Appearance columns ``[parent, class]`` at one ``pb`` per parent, without the tabulation.
+    """Appearance columns ``[parent, class]`` at one ``pb`` (fragment index) per parent, without the tabulation.
 
     A fit changes ``A`` (or ``beta``) at every step, so the 1025-node tables
     the mill solvers use would be rebuilt each time; here the columns are
@@ -295,7 +303,7 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
         ``kind = "single_impact"`` experiments (one ore).
     ore : str or Ore or BreakageParameters
         Ore supplying held parameters and start values.
-    submodel : {"ab_t10", "jk_t10", "vogel_swebrec"}
+    submodel : {"ab_t10", "jk_t10", "energy_t10", "vogel_swebrec"}
         Breakage sub-model (:data:`FITTABLE`).
     fit : sequence of str, optional
         Parameters to fit (default all of :data:`FITTABLE` ``[submodel]``).
