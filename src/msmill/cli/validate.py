@@ -17,6 +17,10 @@ import typer
 from msmill.errors import MsmillInputError
 
 
+#: Most posterior samples of the stage parameters ``msmill calibrate`` refits with (each is a whole fit).
+MAX_STAGE_SAMPLES = 64
+
+
 def write_files(folder: Path, files: dict[str, bytes]) -> None:
     """Write ``files`` into ``folder`` as one atomic set with a manifest (``msmill.cli.output``)."""
     from msmill.cli.output import atomic_output
@@ -136,6 +140,8 @@ def calibrate(
         "name, it overrides a built-in ore of that name.")] = None,
     hold_out: Annotated[str, typer.Option(help="Single-impact tests held out one 'test' or one 'speed' at a "
                                           "time (the held-out K-S).")] = "test",
+    stage_samples: Annotated[int, typer.Option(help="Posterior samples of the stage parameters refitted with "
+                                               "(their spread enters the s.e.; a surrogate's only; 0: none).")] = 8,
 ) -> None:
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
@@ -150,6 +156,8 @@ def calibrate(
     check_writable(out if out is not None else folder / "calibration", "--out")  # before any work
     if hold_out not in HOLD_OUT:
         raise MsmillInputError("--hold-out", hold_out, "one of " + ", ".join(HOLD_OUT))
+    if stage_samples != 0 and not 2 <= stage_samples <= MAX_STAGE_SAMPLES:
+        raise MsmillInputError("--stage-samples", stage_samples, f"0 (none) or 2-{MAX_STAGE_SAMPLES}")
     t0 = time.perf_counter()
     ores = _ore_files(ore_file)
     es = read_experiments(folder, ores=ores, skip=ore_file or ())
@@ -162,10 +170,13 @@ def calibrate(
             t1 = time.perf_counter()
             ore = ores.get(ore_name) or get_ore(ore_name)
             model = SurveyModel(ore, surveys, stage_parameters, breakage=breakage, damage=damage)
-            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound))
+            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound),
+                                    stage_samples=stage_samples)
             new = calibrated_ore(ore, cal)
             files[f"{ore_name}_calibrated.toml"] = tomli_w.dumps(new.to_dict()).encode()
             files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
+            if cal.stage_samples:
+                files[f"{ore_name}_stage_samples.csv"] = cal.stage_params.to_csv(index_label="sample").encode()
             _print_calibration(con, cal, time.perf_counter() - t1)
         if impact_tests and es.impact_tests:
             files.update(_impact_outputs(con, es, ores, hold_out))
@@ -197,11 +208,17 @@ def _print_calibration(con, cal, seconds: float) -> None:
 
     t = Table(title=f"{cal.ore}: {len(cal.table)} surveys, {cal.n_points} operating points, "
                     f"objective {cal.objective} ({seconds:.1f} s)")
-    for col in ("parameter", "value", "s.e. (jackknife)", "s.e. (Jacobian)"):
+    for col in ("parameter", "value", "s.e.", "of it: surveys (jackknife)",
+                f"stage parameters ({cal.stage_samples} posterior samples)", "s.e. (Jacobian)"):
         t.add_column(col)
     for k in cal.fitted:
-        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jacobian_std_errors[k]:.2g}")
+        stage = f"{cal.stage_std_errors[k]:.2g}" if cal.stage_samples else "not drawn"
+        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jackknife_std_errors[k]:.2g}",
+                  stage, f"{cal.jacobian_std_errors[k]:.2g}")
     con.print(t)
+    if not cal.stage_samples:
+        con.print("  s.e. without the stage parameters' uncertainty (a table has no posterior samples, "
+                  "or --stage-samples 0): it is the surveys' scatter only")
     tb = cal.table
     con.print(f"  mean K-S: {tb['ks_before'].mean():.3f} with the start parameters, {tb['ks_fit'].mean():.3f} "
               f"fitted, {tb['ks_cv'].mean():.3f} leave-one-survey-out"

@@ -490,7 +490,14 @@ class SurveyCalibration:
     params : dict[str, float]
         Fitted values.
     std_errors : dict[str, float]
-        Jackknife (leave-one-survey-out) standard errors.
+        Total standard errors: ``sqrt(jackknife**2 + stage**2)`` (the jackknife alone when
+        no stage-parameter samples were drawn).
+    jackknife_std_errors : dict[str, float]
+        Jackknife (leave-one-survey-out) standard errors: the surveys' scatter.
+    stage_std_errors : dict[str, float]
+        Standard deviation of the parameters refitted with each of ``stage_samples``
+        posterior samples of the stage parameters (:class:`~msmill.model.providers.PosteriorSample`):
+        what the surrogate's uncertainty adds; NaN when none were drawn.
     jacobian_std_errors : dict[str, float]
         ``L_ref`` fits with ``objective="ssq"``: ``sqrt(s² / JᵀJ)`` from the
         sieve residuals (treats sieves as independent, so usually smaller); NaN otherwise.
@@ -507,6 +514,10 @@ class SurveyCalibration:
         Wall time of the calibration (s).
     n_points : int
         Distinct operating points.
+    stage_samples : int
+        Posterior samples of the stage parameters behind :attr:`stage_std_errors` (0: none).
+    stage_params : pandas.DataFrame
+        The parameters fitted with each posterior sample (one row per sample).
     """
 
     ore: str
@@ -519,11 +530,17 @@ class SurveyCalibration:
     interpolation_ks: float
     seconds: float
     n_points: int
+    jackknife_std_errors: dict[str, float] = field(default_factory=dict)
+    stage_std_errors: dict[str, float] = field(default_factory=dict)
+    stage_samples: int = 0
+    stage_params: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def provenance(self) -> str:
         """One-line provenance text for the calibrated ore file."""
         fit = ", ".join(f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g}" for k in self.fitted)
-        return (f"msmill calibrate: {fit} (jackknife s.e.), objective {self.objective}, "
+        how = ("jackknife s.e." if not self.stage_samples else
+               f"s.e. of the jackknife and of {self.stage_samples} stage-parameter posterior samples")
+        return (f"msmill calibrate: {fit} ({how}), objective {self.objective}, "
                 f"{len(self.table)} surveys, mean K-S {self.table['ks_fit'].mean():.3f} fitted, "
                 f"{self.table['ks_cv'].mean():.3f} leave-one-out")
 
@@ -575,9 +592,14 @@ def _fit_1d(obj: Callable[[float], float], lo: float, hi: float) -> float:
     return float(math.exp(res.x)) if res.fun <= vals[k] else float(grid[k])
 
 
+#: Posterior samples of the stage parameters :func:`calibrate_surveys` refits with by default.
+DEFAULT_STAGE_SAMPLES = 8
+
+
 def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective: str = "ssq",
                       n_nodes: int = 9, bounds: dict[str, tuple[float, float]] | None = None,
-                      cross_validate: bool = True) -> SurveyCalibration:
+                      cross_validate: bool = True, stage_samples: int = DEFAULT_STAGE_SAMPLES,
+                      seed: int = 0) -> SurveyCalibration:
     """Fit ore parameters to the surveys of a :class:`~msmill.model.validation.SurveyModel`.
 
     Parameters
@@ -596,6 +618,14 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
         Bounds overriding :data:`SURVEY_FITTABLE`.
     cross_validate : bool
         Leave-one-survey-out refits (K-S held out and jackknife standard errors).
+    stage_samples : int
+        Posterior samples of the stage parameters (a provider with
+        ``sample_stage_parameters``, e.g. the default surrogate; ignored for a
+        table): the fit is repeated with each, and the spread of the fitted
+        values is the stage-parameter part of the standard error
+        (:attr:`SurveyCalibration.stage_std_errors`). 0: none.
+    seed : int
+        Seed of the posterior samples.
     """
     t0 = time.perf_counter()
     fit = tuple(dict.fromkeys(fit))
@@ -648,8 +678,22 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
     jse = {f: float("nan") for f in fit}
     if fit == ("l_ref_mm",) and objective == "ssq":
         jse["l_ref_mm"] = _jacobian_se(model, predict, best["l_ref_mm"])
-    return SurveyCalibration(model.ore.name, fit, best, se, jse, objective, table, interp_ks,
-                             time.perf_counter() - t0, model.n_points)
+    stage_se = {f: float("nan") for f in fit}
+    draws = pd.DataFrame()
+    n_samples = int(stage_samples) if hasattr(model.provider, "sample_stage_parameters") else 0
+    if n_samples == 1 or n_samples < 0:
+        raise MsmillInputError("stage_samples", stage_samples, "0 (none) or 2 or more posterior samples")
+    if n_samples:
+        from msmill.model.providers import posterior_samples
+
+        draws = pd.DataFrame([calibrate_surveys(model.with_provider(member), fit, objective, n_nodes, bounds,
+                                                cross_validate=False, stage_samples=0).params
+                              for member in posterior_samples(model.provider, n_samples, seed)])
+        stage_se = {f: float(draws[f].std(ddof=1)) for f in fit}
+    total = {f: float(math.hypot(se[f], stage_se[f])) if n_samples else se[f] for f in fit}
+    return SurveyCalibration(model.ore.name, fit, best, total, jse, objective, table, interp_ks,
+                             time.perf_counter() - t0, model.n_points, jackknife_std_errors=se,
+                             stage_std_errors=stage_se, stage_samples=n_samples, stage_params=draws)
 
 
 def _jacobian_se(model: Any, predict: Callable, l_ref_mm: float, h: float = 1e-3) -> float:
