@@ -16,7 +16,6 @@ import typer
 
 from msmill.errors import MsmillInputError
 
-
 #: Most posterior samples of the stage parameters ``msmill calibrate`` refits with (each is a whole fit).
 MAX_STAGE_SAMPLES = 64
 
