@@ -162,6 +162,7 @@ def calibrate(
     es = read_experiments(folder, ores=ores, skip=ore_file or ())
     con = _console()
     files: dict[str, bytes] = {}
+    fitted_rows: list[dict] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         for ore_name in es.ores("survey"):
@@ -176,7 +177,15 @@ def calibrate(
             files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
             if cal.stage_samples:
                 files[f"{ore_name}_stage_samples.csv"] = cal.stage_params.to_csv(index_label="sample").encode()
+            fitted_rows += [{"ore": ore_name, "parameter": k, "value": cal.params[k], "se": cal.std_errors[k],
+                             "se_jackknife": cal.jackknife_std_errors[k], "se_stage": cal.stage_std_errors[k],
+                             "se_jacobian": cal.jacobian_std_errors[k], "stage_samples": cal.stage_samples}
+                            for k in cal.fitted]
             _print_calibration(con, cal, time.perf_counter() - t1)
+        if fitted_rows:
+            import pandas as pd
+
+            files["survey_fits.csv"] = pd.DataFrame(fitted_rows).to_csv(index=False).encode()
         if impact_tests and es.impact_tests:
             files.update(_impact_outputs(con, es, ores, hold_out))
     if not files:
@@ -246,16 +255,16 @@ def _impact_outputs(con, es, ores: dict, hold_out: str) -> dict[str, bytes]:
         for col in ("sub-model", "K-S fitted", f"K-S {how}", "parameters +- s.e.", "on a bound", "identified"):
             t.add_column(col)
         for _, r in summary.iterrows():
-            se = "se_jackknife_" if hold_out == "test" else "se_"
-            pars = ", ".join(f"{k} {r[k]:.4g} +- {r[se + k]:.2g}" for k in FITTABLE[r["submodel"]])
+            pars = ", ".join(f"{k} {r[k]:.4g} +- {r['se_bootstrap_' + k]:.2g}" for k in FITTABLE[r["submodel"]])
             spread = max(r[f"spread_{k}"] for k in FITTABLE[r["submodel"]])
+            why = "a parameter on a bound" if r["on_bound"] else f"multi-start spread {spread:.2g}"
             t.add_row(r["submodel"], f"{r['ks_fit_mean']:.3f}", f"{r['ks_held_out_mean']:.3f}", pars,
-                      r["on_bound"] or "none",
-                      "yes" if r["identified"] else f"NO (multi-start spread {spread:.2g})")
+                      r["on_bound"] or "none", "yes" if r["identified"] else f"NO ({why})")
         con.print(t)
-        con.print("  s.e.: " + ("jackknife over the leave-one-test-out fits" if hold_out == "test"
-                                else "Jacobian (approximate: cumulative passing is correlated)")
-                  + "; bounds scale with the tests' sizes and energies (impact_fits.csv lo_/hi_ columns)")
+        sig = ", ".join(f"{r['submodel']} {r['noise_sigma']:.3f}" for _, r in summary.iterrows())
+        con.print("  s.e.: parametric bootstrap (the fit's products re-sieved with each retained mass scattered "
+                  f"by the scatter the tests show about the fit, sigma: {sig}); jackknife and Jacobian "
+                  "errors in impact_fits.csv; bounds scale with the tests' sizes and energies (lo_/hi_ columns)")
         for _, r in summary[summary["on_bound"] != ""].iterrows():
             con.print(f"  {r['submodel']}: {r['on_bound']} on its bound: the value is the bound's, not the data's")
         best = summary.loc[summary["ks_held_out_mean"].idxmin()]

@@ -56,12 +56,14 @@ __all__ = [
     "FITTABLE",
     "ImpactFit",
     "SurveyCalibration",
+    "bootstrap_std_errors",
     "build_breakage",
     "calibrate_surveys",
     "compare_submodels",
     "fit_impact_tests",
     "impact_bounds",
     "impact_report",
+    "noise_sigma",
     "single_impact_product",
 ]
 
@@ -388,6 +390,89 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
                      identified=identified, n_starts=len(sols), cost=float(sol.cost))
 
 
+#: Retained mass (%) below which a sieve class is left out of :func:`noise_sigma` (a lab's 4-decimal
+#: rounding and empty classes carry no information on the scatter).
+NOISE_MASS_FLOOR_PCT = 1e-2
+#: Replicates of :func:`bootstrap_std_errors`.
+N_BOOTSTRAP = 32
+
+
+def _retained_pct(passing_pct: np.ndarray) -> np.ndarray:
+    return np.diff(np.concatenate([[0.0], passing_pct, [100.0]]))  # pan, sieve classes, oversize
+
+
+def _predicted_passing(fit: ImpactFit, grid: SizeGrid, test: Any) -> np.ndarray:
+    prod = single_impact_product(fit.breakage, grid, test.feed_psd.rebin(grid).fractions, float(test.impact_speed_m_s))
+    return _passing_at(grid, prod, test.product_psd.sizes_mm)
+
+
+def noise_sigma(tests: Sequence[Any], fit: ImpactFit) -> float:
+    """Scatter of the tests about a fit: ``sigma`` of ``m_meas = m_fit exp(sigma z)`` per retained mass.
+
+    The pooled standard deviation of ``ln(m_meas / m_fit)`` over the sieve classes
+    (pan and oversize included) that hold more than :data:`NOISE_MASS_FLOOR_PCT`
+    in both, each test's mean removed (a lab renormalises its masses to 100 %),
+    with the fitted parameters' degrees of freedom taken off. Multiplicative
+    scatter of each retained mass is the usual model of sieving and sampling
+    error (docs/breakage.md section 5.1).
+    """
+    grid = impact_grid(tests)
+    parts = []
+    for t in tests:
+        mm = _retained_pct(np.clip(t.product_psd.passing_pct, 0.0, 100.0))
+        mp = _retained_pct(_predicted_passing(fit, grid, t))
+        ok = (mm > NOISE_MASS_FLOOR_PCT) & (mp > NOISE_MASS_FLOOR_PCT)
+        if ok.sum() >= 2:
+            lr = np.log(mm[ok] / mp[ok])
+            parts.append(lr - lr.mean())
+    if not parts:
+        return 0.0
+    r = np.concatenate(parts)
+    return float(math.sqrt(float(r @ r) / max(r.size - len(parts) - len(fit.std_errors), 1)))
+
+
+def bootstrap_std_errors(tests: Sequence[Any], ore: Any, fit: ImpactFit, n_boot: int = N_BOOTSTRAP,
+                         seed: int = 0) -> tuple[dict[str, float], float]:
+    """Parametric-bootstrap standard errors of a single-impact fit, and the scatter ``sigma`` they assume.
+
+    ``n_boot`` replicate sets of the tests are made from the fitted sub-model's
+    products at each test's own sieves, every retained mass scattered by
+    :func:`noise_sigma`'s ``sigma`` (``msmill.model.synthetic.noisy_passing``),
+    and refitted (one start, at the fit). The standard deviation of the refitted
+    values is the standard error. Unlike the Jacobian error (sieves treated as
+    independent, while one test's cumulative residuals move together) and the
+    jackknife over a handful of tests (a few degrees of freedom), it follows how
+    a lab's scatter propagates into the parameters; it assumes the fitted
+    sub-model and multiplicative scatter (docs/breakage.md section 5.1).
+    """
+    from msmill.model.synthetic import noisy_passing
+
+    sigma = noise_sigma(tests, fit)
+    names = list(fit.std_errors)
+    if sigma <= 0 or n_boot < 2:
+        return {k: float("nan") for k in names}, sigma
+    grid = impact_grid(tests)
+    rng = np.random.default_rng(seed)
+    preds = []
+    for t in tests:
+        prod = single_impact_product(fit.breakage, grid, t.feed_psd.rebin(grid).fractions, float(t.impact_speed_m_s))
+        preds.append(PSD(grid, prod, validate=False))
+    draws = []
+    for _ in range(n_boot):
+        reps = []
+        for t, pred in zip(tests, preds, strict=True):
+            sizes = t.product_psd.sizes_mm
+            p = noisy_passing(pred, sizes, sigma, rng)
+            if t.product_psd.passing_pct[-1] >= 100.0:
+                p[-1] = 100.0  # the lab's curve closes where this one did
+            reps.append(dataclasses.replace(t, product_psd=PSD.from_passing(sizes[: p.size], p)))
+        f = fit_impact_tests(reps, ore, fit.submodel, fit=names, start=fit.params, n_starts=1,
+                             bounds=fit.bounds)
+        draws.append([f.params[k] for k in names])
+    sd = np.std(np.array(draws), axis=0, ddof=1)
+    return {k: float(v) for k, v in zip(names, sd, strict=True)}, sigma
+
+
 #: How :func:`compare_submodels` holds tests out: one impact speed at a time, or one test at a time.
 HOLD_OUT = ("speed", "test")
 
@@ -436,7 +521,8 @@ def compare_submodels(tests: Sequence[Any], ore: Any, submodels: Sequence[str] |
 
 
 def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | None = None,
-                  hold_out: str = "test", n_starts: int = 8) -> tuple[pd.DataFrame, pd.DataFrame]:
+                  hold_out: str = "test", n_starts: int = 8,
+                  n_boot: int = N_BOOTSTRAP) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Every sub-model fitted to all tests and held out: the table ``msmill calibrate`` prints.
 
     Returns
@@ -444,7 +530,9 @@ def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | Non
     summary : pandas.DataFrame
         One row per sub-model: ``submodel, ks_fit_mean, ks_held_out_mean,
         rmse_pct, identified, on_bound`` (comma-separated names or ``""``), and
-        per fitted parameter ``<p>``, ``se_<p>`` (Jacobian), ``se_jackknife_<p>``
+        ``noise_sigma`` (:func:`noise_sigma`) and per fitted parameter ``<p>``,
+        ``se_bootstrap_<p>`` (:func:`bootstrap_std_errors`: the standard error
+        ``msmill calibrate`` reports), ``se_<p>`` (Jacobian), ``se_jackknife_<p>``
         (``sqrt((n-1)/n sum (theta_i - mean)^2)`` over the leave-one-test-out fits;
         NaN with ``hold_out="speed"``), ``spread_<p>`` (multi-start), ``lo_<p>``, ``hi_<p>`` (bounds).
     held_out : pandas.DataFrame
@@ -461,11 +549,13 @@ def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | Non
                                "ks_held_out_mean": float(held.loc[held["submodel"] == name, "ks_held_out"].mean()),
                                "rmse_pct": f.rmse_pct, "identified": f.identified, "on_bound": ",".join(f.on_bound)}
         mine = held[held["submodel"] == name]
+        boot, row["noise_sigma"] = bootstrap_std_errors(tests, ore, f, n_boot=n_boot)
         for k in FITTABLE[name]:
             th = mine[f"fit_{k}"].to_numpy(dtype=float)
             jk = (math.sqrt((th.size - 1) / th.size * float(np.sum((th - th.mean()) ** 2)))
                   if hold_out == "test" and th.size > 1 else float("nan"))
-            row.update({k: f.params[k], f"se_{k}": f.std_errors[k], f"se_jackknife_{k}": jk,
+            row.update({k: f.params[k], f"se_bootstrap_{k}": boot[k], f"se_{k}": f.std_errors[k],
+                        f"se_jackknife_{k}": jk,
                         f"spread_{k}": f.start_spread[k], f"lo_{k}": f.bounds[k][0], f"hi_{k}": f.bounds[k][1]})
         rows.append(row)
     return pd.DataFrame(rows), held
