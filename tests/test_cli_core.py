@@ -120,6 +120,19 @@ def test_breakage_table_follows_the_default_submodels_convention(capsys):
     _bad(capsys, ["breakage", "table", "--breakage", "vogel_swebrec"], "--breakage")
 
 
+def test_breakage_table_energy_t10_uses_the_ores_fineness_ratio(capsys, own_ore_file):
+    # x = 1.67 * 0.2222 * 10 / 29 = 0.12797; t10 = 71.8 (1 - exp(-0.1 x)) = 0.91296 %
+    path = own_ore_file(fineness_ratio=0.1)
+    from msmill.ore import Ore
+
+    assert Ore.from_toml(path).fineness_ratio == 0.1 and Ore.from_toml(path).to_dict()["breakage"]["fineness_ratio"] == 0.1
+    rows = _rows(_ok(capsys, ["breakage", "table", "--ore", str(path), "--size-mm", "10", "--velocity", "40",
+                              "--breakage", "energy_t10"]))
+    assert rows["t10 = A (1 - exp(-c x)), c = 0.1 (energy_t10, broken rock)"] == "0.913 %"
+    out = _ok(capsys, ["breakage", "table", "--size-mm", "10", "--velocity", "40", "--breakage", "energy_t10"])
+    assert "fineness ratio of UG2 is the default 1" in " ".join(out.split())  # said where the user looks
+
+
 def test_breakage_table_caps_tn_at_100(capsys):
     """A hard impact: t10 = 71.8 % gives t2 = 19.6 t10^0.425 = 121 % and t4 = 3.75 t10^0.803 = 116 %.
 

@@ -131,3 +131,40 @@ def test_bad_bounds_are_one_line():
         with pytest.raises(MsmillInputError, match=r"^bounds\.") as exc:
             fit_impact_tests(tests, bp, "ab_t10", bounds=bad)
         assert "\n" not in str(exc.value)
+
+
+def test_bootstrap_standard_error_matches_the_scatter_between_noise_realisations():
+    # SYNTHETIC lab sets made alike but for the noise (sigma 0.05 on retained masses): the spread of the
+    # fitted values between sets is what a standard error should say; the Jacobian's (sieves taken as
+    # independent) is several times smaller, the bootstrap's matches it within a factor 2
+    from test_fitting_impacts import FEEDS
+
+    from msmill.model.fitting import bootstrap_std_errors, noise_sigma
+    from msmill.model.synthetic import SIEVES_MM, synthetic_impact_test
+
+    bp = breakage_parameters("UG2")
+    brk = build_breakage("ab_t10", dataclasses.replace(bp, l_ref_mm=20.0), {})
+    rng = np.random.default_rng(11)
+
+    def lab_set():
+        out = []
+        for fk, feed in FEEDS.items():
+            for v in (15.0, 25.0, 35.0, 45.0):
+                draft = experiment_from_dict({"kind": "single_impact", "id": "d", "ore": "UG2", "source": "d",
+                                              "impact_speed_m_s": v, "feed": feed,
+                                              "product": {"size_mm": list(SIEVES_MM),
+                                                          "passing_pct": list(np.linspace(0, 100, len(SIEVES_MM)))}})
+                grid = impact_grid([draft])
+                frac = single_impact_product(brk, grid, draft.feed_psd.rebin(grid).fractions, v)
+                out.append(synthetic_impact_test(f"{fk}-{v:g}", "UG2", feed, v, PSD(grid, frac, validate=False),
+                                                 0.05, rng, "SYNTHETIC test"))
+        return out
+
+    fits = [fit_impact_tests(lab_set(), "UG2", "ab_t10", n_starts=2) for _ in range(10)]
+    spread = np.std([f.params["l_ref_mm"] for f in fits], ddof=1)
+    tests = lab_set()
+    fit = fit_impact_tests(tests, "UG2", "ab_t10", n_starts=2)
+    boot, sigma = bootstrap_std_errors(tests, "UG2", fit)
+    assert sigma == pytest.approx(noise_sigma(tests, fit)) and 0.035 < sigma < 0.07  # made with 0.05
+    assert 0.5 * spread < boot["l_ref_mm"] < 2.0 * spread, (boot, spread, fit.std_errors)
+    assert fit.std_errors["l_ref_mm"] < 0.5 * spread  # why the Jacobian's is not the one reported

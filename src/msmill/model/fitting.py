@@ -56,12 +56,14 @@ __all__ = [
     "FITTABLE",
     "ImpactFit",
     "SurveyCalibration",
+    "bootstrap_std_errors",
     "build_breakage",
     "calibrate_surveys",
     "compare_submodels",
     "fit_impact_tests",
     "impact_bounds",
     "impact_report",
+    "noise_sigma",
     "single_impact_product",
 ]
 
@@ -70,10 +72,12 @@ __all__ = [
 FITTABLE: dict[str, tuple[str, ...]] = {
     "ab_t10": ("A_pct", "l_ref_mm"),
     "jk_t10": ("A_pct", "l_ref_mm"),
+    "energy_t10": ("A_pct", "l_ref_mm", "fineness_ratio"),
     "vogel_swebrec": ("A_pct", "k_t_kwh", "e_min_kwh_t", "swebrec_b"),
 }
 #: Bounds of the dimensionless (shape) parameters, the same for every material.
-SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0)}
+SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0),
+                                                 "fineness_ratio": (1e-3, 1e3)}
 #: Range of the Eq. 11 exponent ``x = b E L / L_ref`` (``k L E / L_ref`` for ``vogel_swebrec``)
 #: that the scaled bounds allow: at one bound even the least energetic test (slowest, smallest
 #: rock) breaks with ``P_b = 1 - exp(-X_MAX)``, at the other even the most energetic one breaks
@@ -107,7 +111,10 @@ def impact_bounds(submodel: str, tests: Sequence[Any], ore: Any) -> dict[str, tu
     0.5-700 mm). ``k`` of ``vogel_swebrec`` spans the same exponent range at
     the ore's ``L_ref``, and the threshold ``E_min`` (at ``L_ref``) from 0 to the
     value at which the coarsest rock at the fastest test is just at threshold.
-    ``A`` and the Swebrec ``beta`` are shape parameters (:data:`SHAPE_BOUNDS`).
+    ``A``, the Swebrec ``beta`` and the ``energy_t10`` fineness ratio ``c`` are
+    dimensionless shape parameters (:data:`SHAPE_BOUNDS`; ``c`` from 1e-3, fragments
+    that refine over a thousand times the energy that breaks most rock, to 1e3,
+    ``jk_t10``'s fragments).
     """
     if submodel not in FITTABLE:
         raise MsmillInputError("breakage", submodel, sm.did_you_mean(submodel, list(FITTABLE)))
@@ -132,6 +139,8 @@ def build_breakage(name: str, ore: sm.BreakageParameters, values: dict[str, floa
         return sm.AbT10Breakage(dataclasses.replace(ore, **values))
     if name == "jk_t10":
         return sm.JkT10Breakage(dataclasses.replace(ore, **values))
+    if name == "energy_t10":
+        return sm.EnergyT10Breakage(dataclasses.replace(ore, **values))
     if name == "vogel_swebrec":
         base = VogelSwebrecBreakage.from_ore(ore)
         return VogelSwebrecBreakage(dataclasses.replace(base.params, **values))
@@ -164,14 +173,15 @@ def single_impact_product(breakage: Any, grid: SizeGrid, feed_fractions: np.ndar
     """Product mass fractions of one impact at ``speed_m_s`` on fresh rock (no damage)."""
     e = float(specific_energy_kwh_t(speed_m_s))
     mids = grid.mids_mm
-    pb = np.asarray(breakage.probability(np.full(mids.size, e), mids, np.zeros(mids.size)))
-    cols = _direct_columns(breakage, grid, pb)  # (parent, class)
+    ef, d0 = np.full(mids.size, e), np.zeros(mids.size)
+    pb = np.asarray(breakage.probability(ef, mids, d0))
+    cols = _direct_columns(breakage, grid, sm.fragment_index(breakage, ef, mids, d0, pb))  # (parent, class)
     f = np.asarray(feed_fractions, dtype=float)
     return f * (1.0 - pb) + (f * pb) @ cols
 
 
 def _direct_columns(breakage: Any, grid: SizeGrid, pb: np.ndarray) -> np.ndarray:
-    """Appearance columns ``[parent, class]`` at one ``pb`` per parent, without the tabulation.
+    """Appearance columns ``[parent, class]`` at one ``pb`` (fragment index) per parent, without the tabulation.
 
     A fit changes ``A`` (or ``beta``) at every step, so the 1025-node tables
     the mill solvers use would be rebuilt each time; here the columns are
@@ -295,7 +305,7 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
         ``kind = "single_impact"`` experiments (one ore).
     ore : str or Ore or BreakageParameters
         Ore supplying held parameters and start values.
-    submodel : {"ab_t10", "jk_t10", "vogel_swebrec"}
+    submodel : {"ab_t10", "jk_t10", "energy_t10", "vogel_swebrec"}
         Breakage sub-model (:data:`FITTABLE`).
     fit : sequence of str, optional
         Parameters to fit (default all of :data:`FITTABLE` ``[submodel]``).
@@ -380,6 +390,89 @@ def fit_impact_tests(tests: Sequence[Any], ore: Any, submodel: str = "ab_t10",
                      identified=identified, n_starts=len(sols), cost=float(sol.cost))
 
 
+#: Retained mass (%) below which a sieve class is left out of :func:`noise_sigma` (a lab's 4-decimal
+#: rounding and empty classes carry no information on the scatter).
+NOISE_MASS_FLOOR_PCT = 1e-2
+#: Replicates of :func:`bootstrap_std_errors`.
+N_BOOTSTRAP = 32
+
+
+def _retained_pct(passing_pct: np.ndarray) -> np.ndarray:
+    return np.diff(np.concatenate([[0.0], passing_pct, [100.0]]))  # pan, sieve classes, oversize
+
+
+def _predicted_passing(fit: ImpactFit, grid: SizeGrid, test: Any) -> np.ndarray:
+    prod = single_impact_product(fit.breakage, grid, test.feed_psd.rebin(grid).fractions, float(test.impact_speed_m_s))
+    return _passing_at(grid, prod, test.product_psd.sizes_mm)
+
+
+def noise_sigma(tests: Sequence[Any], fit: ImpactFit) -> float:
+    """Scatter of the tests about a fit: ``sigma`` of ``m_meas = m_fit exp(sigma z)`` per retained mass.
+
+    The pooled standard deviation of ``ln(m_meas / m_fit)`` over the sieve classes
+    (pan and oversize included) that hold more than :data:`NOISE_MASS_FLOOR_PCT`
+    in both, each test's mean removed (a lab renormalises its masses to 100 %),
+    with the fitted parameters' degrees of freedom taken off. Multiplicative
+    scatter of each retained mass is the usual model of sieving and sampling
+    error (docs/breakage.md section 5.1).
+    """
+    grid = impact_grid(tests)
+    parts = []
+    for t in tests:
+        mm = _retained_pct(np.clip(t.product_psd.passing_pct, 0.0, 100.0))
+        mp = _retained_pct(_predicted_passing(fit, grid, t))
+        ok = (mm > NOISE_MASS_FLOOR_PCT) & (mp > NOISE_MASS_FLOOR_PCT)
+        if ok.sum() >= 2:
+            lr = np.log(mm[ok] / mp[ok])
+            parts.append(lr - lr.mean())
+    if not parts:
+        return 0.0
+    r = np.concatenate(parts)
+    return float(math.sqrt(float(r @ r) / max(r.size - len(parts) - len(fit.std_errors), 1)))
+
+
+def bootstrap_std_errors(tests: Sequence[Any], ore: Any, fit: ImpactFit, n_boot: int = N_BOOTSTRAP,
+                         seed: int = 0) -> tuple[dict[str, float], float]:
+    """Parametric-bootstrap standard errors of a single-impact fit, and the scatter ``sigma`` they assume.
+
+    ``n_boot`` replicate sets of the tests are made from the fitted sub-model's
+    products at each test's own sieves, every retained mass scattered by
+    :func:`noise_sigma`'s ``sigma`` (``msmill.model.synthetic.noisy_passing``),
+    and refitted (one start, at the fit). The standard deviation of the refitted
+    values is the standard error. Unlike the Jacobian error (sieves treated as
+    independent, while one test's cumulative residuals move together) and the
+    jackknife over a handful of tests (a few degrees of freedom), it follows how
+    a lab's scatter propagates into the parameters; it assumes the fitted
+    sub-model and multiplicative scatter (docs/breakage.md section 5.1).
+    """
+    from msmill.model.synthetic import noisy_passing
+
+    sigma = noise_sigma(tests, fit)
+    names = list(fit.std_errors)
+    if sigma <= 0 or n_boot < 2:
+        return {k: float("nan") for k in names}, sigma
+    grid = impact_grid(tests)
+    rng = np.random.default_rng(seed)
+    preds = []
+    for t in tests:
+        prod = single_impact_product(fit.breakage, grid, t.feed_psd.rebin(grid).fractions, float(t.impact_speed_m_s))
+        preds.append(PSD(grid, prod, validate=False))
+    draws = []
+    for _ in range(n_boot):
+        reps = []
+        for t, pred in zip(tests, preds, strict=True):
+            sizes = t.product_psd.sizes_mm
+            p = noisy_passing(pred, sizes, sigma, rng)
+            if t.product_psd.passing_pct[-1] >= 100.0:
+                p[-1] = 100.0  # the lab's curve closes where this one did
+            reps.append(dataclasses.replace(t, product_psd=PSD.from_passing(sizes[: p.size], p)))
+        f = fit_impact_tests(reps, ore, fit.submodel, fit=names, start=fit.params, n_starts=1,
+                             bounds=fit.bounds)
+        draws.append([f.params[k] for k in names])
+    sd = np.std(np.array(draws), axis=0, ddof=1)
+    return {k: float(v) for k, v in zip(names, sd, strict=True)}, sigma
+
+
 #: How :func:`compare_submodels` holds tests out: one impact speed at a time, or one test at a time.
 HOLD_OUT = ("speed", "test")
 
@@ -428,7 +521,8 @@ def compare_submodels(tests: Sequence[Any], ore: Any, submodels: Sequence[str] |
 
 
 def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | None = None,
-                  hold_out: str = "test", n_starts: int = 8) -> tuple[pd.DataFrame, pd.DataFrame]:
+                  hold_out: str = "test", n_starts: int = 8,
+                  n_boot: int = N_BOOTSTRAP) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Every sub-model fitted to all tests and held out: the table ``msmill calibrate`` prints.
 
     Returns
@@ -436,7 +530,9 @@ def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | Non
     summary : pandas.DataFrame
         One row per sub-model: ``submodel, ks_fit_mean, ks_held_out_mean,
         rmse_pct, identified, on_bound`` (comma-separated names or ``""``), and
-        per fitted parameter ``<p>``, ``se_<p>`` (Jacobian), ``se_jackknife_<p>``
+        ``noise_sigma`` (:func:`noise_sigma`) and per fitted parameter ``<p>``,
+        ``se_bootstrap_<p>`` (:func:`bootstrap_std_errors`: the standard error
+        ``msmill calibrate`` reports), ``se_<p>`` (Jacobian), ``se_jackknife_<p>``
         (``sqrt((n-1)/n sum (theta_i - mean)^2)`` over the leave-one-test-out fits;
         NaN with ``hold_out="speed"``), ``spread_<p>`` (multi-start), ``lo_<p>``, ``hi_<p>`` (bounds).
     held_out : pandas.DataFrame
@@ -453,11 +549,13 @@ def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | Non
                                "ks_held_out_mean": float(held.loc[held["submodel"] == name, "ks_held_out"].mean()),
                                "rmse_pct": f.rmse_pct, "identified": f.identified, "on_bound": ",".join(f.on_bound)}
         mine = held[held["submodel"] == name]
+        boot, row["noise_sigma"] = bootstrap_std_errors(tests, ore, f, n_boot=n_boot)
         for k in FITTABLE[name]:
             th = mine[f"fit_{k}"].to_numpy(dtype=float)
             jk = (math.sqrt((th.size - 1) / th.size * float(np.sum((th - th.mean()) ** 2)))
                   if hold_out == "test" and th.size > 1 else float("nan"))
-            row.update({k: f.params[k], f"se_{k}": f.std_errors[k], f"se_jackknife_{k}": jk,
+            row.update({k: f.params[k], f"se_bootstrap_{k}": boot[k], f"se_{k}": f.std_errors[k],
+                        f"se_jackknife_{k}": jk,
                         f"spread_{k}": f.start_spread[k], f"lo_{k}": f.bounds[k][0], f"hi_{k}": f.bounds[k][1]})
         rows.append(row)
     return pd.DataFrame(rows), held
@@ -482,7 +580,14 @@ class SurveyCalibration:
     params : dict[str, float]
         Fitted values.
     std_errors : dict[str, float]
-        Jackknife (leave-one-survey-out) standard errors.
+        Total standard errors: ``sqrt(jackknife**2 + stage**2)`` (the jackknife alone when
+        no stage-parameter samples were drawn).
+    jackknife_std_errors : dict[str, float]
+        Jackknife (leave-one-survey-out) standard errors: the surveys' scatter.
+    stage_std_errors : dict[str, float]
+        Standard deviation of the parameters refitted with each of ``stage_samples``
+        posterior samples of the stage parameters (:class:`~msmill.model.providers.PosteriorSample`):
+        what the surrogate's uncertainty adds; NaN when none were drawn.
     jacobian_std_errors : dict[str, float]
         ``L_ref`` fits with ``objective="ssq"``: ``sqrt(s² / JᵀJ)`` from the
         sieve residuals (treats sieves as independent, so usually smaller); NaN otherwise.
@@ -499,6 +604,10 @@ class SurveyCalibration:
         Wall time of the calibration (s).
     n_points : int
         Distinct operating points.
+    stage_samples : int
+        Posterior samples of the stage parameters behind :attr:`stage_std_errors` (0: none).
+    stage_params : pandas.DataFrame
+        The parameters fitted with each posterior sample (one row per sample).
     """
 
     ore: str
@@ -511,11 +620,17 @@ class SurveyCalibration:
     interpolation_ks: float
     seconds: float
     n_points: int
+    jackknife_std_errors: dict[str, float] = field(default_factory=dict)
+    stage_std_errors: dict[str, float] = field(default_factory=dict)
+    stage_samples: int = 0
+    stage_params: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def provenance(self) -> str:
         """One-line provenance text for the calibrated ore file."""
         fit = ", ".join(f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g}" for k in self.fitted)
-        return (f"msmill calibrate: {fit} (jackknife s.e.), objective {self.objective}, "
+        how = ("jackknife s.e." if not self.stage_samples else
+               f"s.e. of the jackknife and of {self.stage_samples} stage-parameter posterior samples")
+        return (f"msmill calibrate: {fit} ({how}), objective {self.objective}, "
                 f"{len(self.table)} surveys, mean K-S {self.table['ks_fit'].mean():.3f} fitted, "
                 f"{self.table['ks_cv'].mean():.3f} leave-one-out")
 
@@ -567,9 +682,14 @@ def _fit_1d(obj: Callable[[float], float], lo: float, hi: float) -> float:
     return float(math.exp(res.x)) if res.fun <= vals[k] else float(grid[k])
 
 
+#: Posterior samples of the stage parameters :func:`calibrate_surveys` refits with by default.
+DEFAULT_STAGE_SAMPLES = 8
+
+
 def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective: str = "ssq",
                       n_nodes: int = 9, bounds: dict[str, tuple[float, float]] | None = None,
-                      cross_validate: bool = True) -> SurveyCalibration:
+                      cross_validate: bool = True, stage_samples: int = DEFAULT_STAGE_SAMPLES,
+                      seed: int = 0) -> SurveyCalibration:
     """Fit ore parameters to the surveys of a :class:`~msmill.model.validation.SurveyModel`.
 
     Parameters
@@ -588,6 +708,14 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
         Bounds overriding :data:`SURVEY_FITTABLE`.
     cross_validate : bool
         Leave-one-survey-out refits (K-S held out and jackknife standard errors).
+    stage_samples : int
+        Posterior samples of the stage parameters (a provider with
+        ``sample_stage_parameters``, e.g. the default surrogate; ignored for a
+        table): the fit is repeated with each, and the spread of the fitted
+        values is the stage-parameter part of the standard error
+        (:attr:`SurveyCalibration.stage_std_errors`). 0: none.
+    seed : int
+        Seed of the posterior samples.
     """
     t0 = time.perf_counter()
     fit = tuple(dict.fromkeys(fit))
@@ -640,8 +768,22 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
     jse = {f: float("nan") for f in fit}
     if fit == ("l_ref_mm",) and objective == "ssq":
         jse["l_ref_mm"] = _jacobian_se(model, predict, best["l_ref_mm"])
-    return SurveyCalibration(model.ore.name, fit, best, se, jse, objective, table, interp_ks,
-                             time.perf_counter() - t0, model.n_points)
+    stage_se = {f: float("nan") for f in fit}
+    draws = pd.DataFrame()
+    n_samples = int(stage_samples) if hasattr(model.provider, "sample_stage_parameters") else 0
+    if n_samples == 1 or n_samples < 0:
+        raise MsmillInputError("stage_samples", stage_samples, "0 (none) or 2 or more posterior samples")
+    if n_samples:
+        from msmill.model.providers import posterior_samples
+
+        draws = pd.DataFrame([calibrate_surveys(model.with_provider(member), fit, objective, n_nodes, bounds,
+                                                cross_validate=False, stage_samples=0).params
+                              for member in posterior_samples(model.provider, n_samples, seed)])
+        stage_se = {f: float(draws[f].std(ddof=1)) for f in fit}
+    total = {f: float(math.hypot(se[f], stage_se[f])) if n_samples else se[f] for f in fit}
+    return SurveyCalibration(model.ore.name, fit, best, total, jse, objective, table, interp_ks,
+                             time.perf_counter() - t0, model.n_points, jackknife_std_errors=se,
+                             stage_std_errors=stage_se, stage_samples=n_samples, stage_params=draws)
 
 
 def _jacobian_se(model: Any, predict: Callable, l_ref_mm: float, h: float = 1e-3) -> float:

@@ -363,7 +363,8 @@ class Mill:
         params, streams, stats, lm, caught = self.prepare(grid, op)
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
-        notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        brk_notes = getattr(getattr(self.breakage, "ore", None), "notes", ())  # e.g. a sub-model's default
+        notes = [*dict.fromkeys([*self.ore.notes, *brk_notes]), f"stage parameters: {params.source}"]
         notes += [streams.note] if streams.note else []
         if self.solver != "expected_value" and getattr(streams, "filling", None) is not None:
             notes.append("transport: the Monte-Carlo solver moves rock by the steady matrix throughout "

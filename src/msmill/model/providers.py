@@ -613,6 +613,55 @@ def smallest_covered_mm(params: StageParameters, provider: Any = None) -> float 
     return lo if np.any(sizes < lo * (1 - 1e-9)) else None
 
 
+class PosteriorSample(_Wrapper):
+    """Posterior draw number ``index`` of a provider's stage parameters, wherever it is asked.
+
+    Each (sizes, operating point) asked draws ``n_samples`` samples once with
+    ``seed`` (:meth:`sample_stage_parameters` of ``provider``; cached in
+    ``cache``, which the members of one :func:`posterior_samples` set share)
+    and answers with draw ``index``. The draws are seeded alike at every
+    operating point, so a member is the same standard-normal deviation at each
+    point: a consistent perturbation, not a joint posterior draw over points
+    (the GP's correlation between operating points is not used).
+    """
+
+    def __init__(self, provider: Any, index: int, n_samples: int, seed: int = 0,
+                 cache: dict | None = None) -> None:
+        if not hasattr(provider, "sample_stage_parameters"):
+            raise MsmillInputError("stage_parameters", type(provider).__name__,
+                                   "a provider with posterior samples (a surrogate)")
+        self.provider, self.index, self.n_samples, self.seed = provider, int(index), int(n_samples), seed
+        self._draws = {} if cache is None else cache
+
+    @property
+    def source(self) -> str:
+        return f"posterior sample {self.index + 1} of {self.n_samples} of {self.provider.source}"
+
+    def __getattr__(self, name: str) -> Any:  # anything else is the provider's
+        if name in ("provider", "_draws", "index", "n_samples", "seed"):
+            raise AttributeError(name)
+        return getattr(self.provider, name)
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """Draw :attr:`index` of the posterior at ``sizes_mm`` and the operating point."""
+        sizes = np.asarray(sizes_mm, dtype=float)
+        key = (sizes.tobytes(), None if stage_speeds_rpm is None else tuple(map(float, stage_speeds_rpm)),
+               feed_tph, gate_deg)
+        if key not in self._draws:
+            self._draws[key] = self.provider.sample_stage_parameters(sizes, self.n_samples, stage_speeds_rpm,
+                                                                     feed_tph, gate_deg, seed=self.seed)
+        return self._draws[key][self.index]
+
+    def __repr__(self) -> str:
+        return f"PosteriorSample({self.index + 1}/{self.n_samples}, {self.provider!r})"
+
+
+def posterior_samples(provider: Any, n_samples: int, seed: int = 0) -> list[PosteriorSample]:
+    """``n_samples`` :class:`PosteriorSample` members of ``provider`` sharing one cache of draws."""
+    cache: dict = {}
+    return [PosteriorSample(provider, k, n_samples, seed, cache) for k in range(n_samples)]
+
+
 def default_surrogate_path() -> Path | None:
     """Path of the shipped default surrogate (``msmill/data/surrogates/default.json``), None when absent."""
     from importlib import resources

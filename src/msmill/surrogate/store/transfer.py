@@ -25,7 +25,12 @@ from typing import Any
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
 from msmill.surrogate.store.core import Store
-from msmill.surrogate.store.hashing import canonical_statistics, file_sha256, read_statistics, statistics_hash
+from msmill.surrogate.store.hashing import (
+    canonical_statistics,
+    file_sha256,
+    read_statistics,
+    statistics_hash,
+)
 
 __all__ = ["EXPORT_KIND", "IngestResult", "export_runs", "ingest_paths"]
 
