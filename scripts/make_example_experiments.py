@@ -11,7 +11,11 @@ known answer. Nothing here is measured; every file says SYNTHETIC.
 "True" values used (chosen to differ from the msmill defaults so calibration
 has something to find):
 
-* UG2 surveys: the model's default sub-models (``jk_t10`` breakage, ``dem_matrix``
+* Surveys: the default stage parameters (``"default"``: the shipped surrogate's
+  posterior mean, what ``msmill calibrate`` uses unless told otherwise; they were
+  made with the single-point table until issue 41, so calibrating them with the
+  default gave a biased ``L_ref``).
+* UG2 surveys: the model's default sub-models (``jk_t10`` breakage, ``dem_matrix_fill``
   transport), ``L_ref = 20 mm`` (default 29 mm), Tavares damage; UG2 lab tests:
   ``ab_t10`` breakage at ``L_ref = 20 mm``.
 * Platreef surveys: default sub-models, ``L_ref = 40 mm``; Platreef lab tests:
@@ -47,6 +51,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SIGMA = 0.05
 TRUE_L_REF_MM = {"UG2": 20.0, "Platreef": 40.0}
 NO_LOAD_KW = 12.0
+#: Stage parameters of the surveys: the default provider (``msmill calibrate``'s default).
+STAGE_PARAMETERS = "default"
 SWEBREC_TRUE = {"A_pct": 59.0, "k_t_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2}  # L_ref: ore default 29 mm
 
 # ILLUSTRATIVE feeds (plausible crusher products), not measured.
@@ -78,11 +84,12 @@ def surveys(rng: np.random.Generator) -> list:
             def power(e, res):
                 return power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
         how = (f"msmill {__version__} expected-value model, default sub-models (jk_t10 breakage) with L_ref = "
-               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, the packaged single-point DEM stage table (\"table\")"
+               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, the default stage parameters ({STAGE_PARAMETERS!r}: "
+               "the shipped surrogate's posterior mean)"
                + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
                   if power is not None else ""))
         out += model_surveys(ore_name, specs, {"l_ref_mm": TRUE_L_REF_MM[ore_name]}, SIGMA, rng, how=how,
-                             power=power, stage_parameters="table")
+                             power=power, stage_parameters=STAGE_PARAMETERS)
     return out
 
 
@@ -132,7 +139,8 @@ def main(argv: list[str] | None = None) -> None:
             "msmill_version": __version__, "git_commit": commit,
             "date_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "seed": args.seed,
             "noise_sigma": SIGMA, "true_l_ref_mm": TRUE_L_REF_MM, "synthetic_no_load_kw": NO_LOAD_KW,
-            "platreef_lab_vogel_swebrec_true": SWEBREC_TRUE, "stage_parameters": "table (the packaged single-point DEM stage table)",
+            "platreef_lab_vogel_swebrec_true": SWEBREC_TRUE, "ug2_lab_ab_t10_true": {"A_pct": 71.8, "l_ref_mm": 20.0},
+            "stage_parameters": f"{STAGE_PARAMETERS} (the shipped surrogate's posterior mean)",
             "files": sorted(f"{e.id}.toml" for e in exps)}
     tmp = args.out / "PROVENANCE.json.tmp"
     tmp.write_text(json.dumps(prov, indent=2) + "\n", encoding="utf-8")

@@ -68,3 +68,24 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.timeout(FAST_TIMEOUT_S * scale))
         elif scale != 1.0 and default_s > 0:
             item.add_marker(pytest.mark.timeout(default_s * scale))
+
+
+@pytest.fixture
+def own_ore_file(tmp_path):
+    """Factory of a user's ore file: the packaged UG2 file under another name (HAND-MADE test values)."""
+    from importlib.resources import files
+
+    def make(name: str = "MyRock", l_ref_mm: float | None = None, folder: Path | None = None,
+             fineness_ratio: float | None = None) -> Path:
+        text = (files("msmill.data") / "ores" / "ug2.toml").read_text(encoding="utf-8")
+        text = text.replace('name = "UG2"', f'name = "{name}"')
+        if fineness_ratio is not None:
+            text = text.replace("b_t_per_kwh = 1.67", f"b_t_per_kwh = 1.67\nfineness_ratio = {fineness_ratio}")
+        if l_ref_mm is not None:
+            text = text.replace("b_t_per_kwh = 1.67", f"b_t_per_kwh = 1.67\nl_ref_mm = {l_ref_mm}\n"
+                                'l_ref_source = "HAND-MADE test value"')
+        p = (folder or tmp_path) / f"{name}.toml"
+        p.write_text(text, encoding="utf-8")
+        return p
+
+    return make

@@ -87,11 +87,50 @@ def test_psd_stats_bad(capsys, tmp_path):
 
 
 def test_breakage_table(capsys):
-    out = _ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "10", "--velocity", "40"])
+    out = _ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "10", "--velocity", "40",
+                       "--breakage", "ab_t10"])
     # 40 m/s -> 800 J/kg = 0.2222 kWh/t; P_b = 1 - exp(-1.67*0.2222*10/29) = 0.1201; t10 = 8.625 %
     assert "800 J/kg" in out and "0.2222 kWh/t" in out
     assert "0.1201" in out and "8.625" in out
     assert "t75" in out and "fragment PSD" in out and "DEFAULT" in out
+
+
+def _rows(out):
+    rows = {}
+    for line in out.splitlines():
+        cells = [c.strip() for c in line.strip("│ ").split("│")]
+        if len(cells) == 2:
+            rows[cells[0]] = cells[1]
+    return rows
+
+
+def test_breakage_table_follows_the_default_submodels_convention(capsys):
+    # issue 41: the default model (jk_t10) breaks a rock into fragments of t10 = A; the table printed A P_b
+    from msmill.model.submodels import DEFAULTS
+
+    assert DEFAULTS["breakage"] == "jk_t10"
+    rows = _rows(_ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "10", "--velocity", "40"]))
+    assert rows["t10 = A (jk_t10, broken rock)"] == "71.8 %"
+    assert rows["t10 of the population (broken and unbroken)"] == "8.625 %"  # A P_b: the JK law
+    # the fragments printed are the model's own: jk_t10's column for this parent
+    paper = _rows(_ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "10", "--velocity", "40",
+                               "--breakage", "ab_t10"]))
+    p80 = lambda r: float(r["fragment P80 / P50"].split(" / ")[0])  # noqa: E731
+    assert p80(rows) < 0.5 * p80(paper)  # t10 = 71.8 % is a much finer fragment PSD than 8.6 %
+    _bad(capsys, ["breakage", "table", "--breakage", "vogel_swebrec"], "--breakage")
+
+
+def test_breakage_table_energy_t10_uses_the_ores_fineness_ratio(capsys, own_ore_file):
+    # x = 1.67 * 0.2222 * 10 / 29 = 0.12797; t10 = 71.8 (1 - exp(-0.1 x)) = 0.91296 %
+    path = own_ore_file(fineness_ratio=0.1)
+    from msmill.ore import Ore
+
+    assert Ore.from_toml(path).fineness_ratio == 0.1 and Ore.from_toml(path).to_dict()["breakage"]["fineness_ratio"] == 0.1
+    rows = _rows(_ok(capsys, ["breakage", "table", "--ore", str(path), "--size-mm", "10", "--velocity", "40",
+                              "--breakage", "energy_t10"]))
+    assert rows["t10 = A (1 - exp(-c x)), c = 0.1 (energy_t10, broken rock)"] == "0.913 %"
+    out = _ok(capsys, ["breakage", "table", "--size-mm", "10", "--velocity", "40", "--breakage", "energy_t10"])
+    assert "fineness ratio of UG2 is the default 1" in " ".join(out.split())  # said where the user looks
 
 
 def test_breakage_table_caps_tn_at_100(capsys):
@@ -101,12 +140,8 @@ def test_breakage_table_caps_tn_at_100(capsys):
     (200 m/s -> 20 kJ/kg = 5.556 kWh/t; P_b = 1 - exp(-1.67 x 5.556 x 40 / 29) = 1 - 3e-6.)
     """
     out = _ok(capsys, ["breakage", "table", "--ore", "UG2", "--size-mm", "40", "--velocity", "200"])
-    rows = {}
-    for line in out.splitlines():
-        cells = [c.strip() for c in line.strip("│ ").split("│")]
-        if len(cells) == 2:
-            rows[cells[0]] = cells[1]
-    assert rows["t10 = A P_b (Eq. 12)"] == "71.8 %"
+    rows = _rows(out)
+    assert rows["t10 = A (jk_t10, broken rock)"] == "71.8 %"
     assert 19.6 * 71.8**0.425 > 120 and 3.75 * 71.8**0.803 > 115
     assert rows["t2"] == "100 %" and rows["t4"] == "100 %"
     # the packaged fit's constants agree with the rounded (0.469, 1.027) to 5e-3

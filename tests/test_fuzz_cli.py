@@ -141,6 +141,23 @@ def test_run_file_raw_bytes(raw):
         check_output(Path(tmp) / "res", code)
 
 
+@FUZZ
+@given(raw=st.one_of(st.binary(max_size=300), st.text(max_size=300).map(str.encode)),
+       suffix=st.sampled_from([".json", ".toml", ".csv", ""]))
+def test_referenced_stage_parameter_file_raw_bytes(raw, suffix):
+    # issue 40: a run file naming a binary (or any garbage) stage-parameter file
+    doc = {k: dict(v) if isinstance(v, dict) else v for k, v in BASE.items()}
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / f"sp{suffix}").write_bytes(raw)
+        doc["stage_parameters"] = {"file": f"sp{suffix}"}
+        f = Path(tmp) / "run.toml"
+        f.write_text(_toml(doc), encoding="utf-8")
+        code, out, err = cli(["predict", str(f), "--out", str(Path(tmp) / "res")])
+        assert code == 2  # random bytes are never stage parameters
+        check(code, out, err)
+        check_output(Path(tmp) / "res", code)
+
+
 cells = st.one_of(numbers_.map(lambda v: repr(v) if isinstance(v, float) else str(v)),
                   st.sampled_from(["", "nan", "abc", "1e400", "-0", '"', "#x"]))
 

@@ -314,3 +314,17 @@ def test_dem_step_estimate_matches_the_engine():
     engine = min(rs.safety * scene.sim.contact_time_s(scene.max_impact_speed_m_s),
                  0.1 * 0.01 / scene.max_impact_speed_m_s)
     assert estimated_dt_s(scene, rs) == pytest.approx(engine, rel=1e-9)
+
+
+def test_binary_stage_parameter_file_and_sieves_in_the_wrong_unit(tmp_path, capsys):
+    # issue 40: a binary stage-parameter file was an internal error; a feed with a 31 500 mm top sieve
+    # predicted a finer product without a word
+    (tmp_path / "bin.json").write_bytes(b"\x00\xba\xff" * 50)
+    f = write_run(tmp_path, {"file": 'file = "bin.json"'})
+    assert "UTF-8" in one_error(capsys, ["predict", str(f), "--out", str(tmp_path / "o")], "stage_parameters")
+    assert not (tmp_path / "o").exists()
+    f = write_run(tmp_path, {"size_mm": "size_mm     = [2.0, 4.75, 9.5, 13.2, 19.0, 26.5, 31500]",
+                             "plots": "plots = false"})
+    assert run(["predict", str(f), "--out", str(tmp_path / "o2")]) == 0
+    err = capsys.readouterr().err
+    assert "wider than the mill's feed chute (160 mm): check the sieve sizes (mm)" in err

@@ -126,6 +126,9 @@ class Ore(InputModel):
         Tavares damage exponent ``γ`` (published ~3-5.4).
     damage_threshold : float
         Accumulated damage at which a rock breaks, in (0, 1].
+    fineness_ratio : float or None
+        ``energy_t10`` breakage only (``[breakage]`` section): the fragments' ``t10 = A (1 - exp(-c x))``
+        with ``x`` the Eq. 11 exponent, ``c`` this ratio (dimensionless, > 0); None: not measured.
     sources : dict[str, str]
         Provenance per parameter set: keys ``breakage``, ``l_ref``,
         ``physical``, ``elastic``, ``tn``, ``damage``.
@@ -145,6 +148,7 @@ class Ore(InputModel):
     tn: TnConstants = Field(default_factory=default_tn_constants)
     gamma: float = Field(ge=GAMMA_RANGE[0], le=GAMMA_RANGE[1])
     damage_threshold: float = Field(default=1.0, gt=0, le=1)
+    fineness_ratio: float | None = Field(default=None, gt=0)
     sources: dict[str, str] = Field(default_factory=dict)
 
     @model_validator(mode="before")
@@ -166,10 +170,10 @@ class Ore(InputModel):
                 data["tn"] = TnConstants.from_mapping(tn, source=src)
         return data
 
-    @field_validator("A_pct", "b_t_per_kwh", "density_kg_m3", "youngs_modulus_pa", "gamma")
+    @field_validator("A_pct", "b_t_per_kwh", "density_kg_m3", "youngs_modulus_pa", "gamma", "fineness_ratio")
     @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
+    def _finite(cls, v: float | None) -> float | None:
+        if v is not None and not math.isfinite(v):
             raise ValueError("a finite number")
         return v
 
@@ -244,6 +248,8 @@ class Ore(InputModel):
         if not self.l_ref_is_default:
             brk["l_ref_mm"] = self.l_ref_mm
             brk["l_ref_source"] = s.get("l_ref", "")
+        if self.fineness_ratio is not None:
+            brk["fineness_ratio"] = self.fineness_ratio
         brk["source"] = s.get("breakage", "")
         out["breakage"] = brk
         out["physical"] = {"density_kg_m3": self.density_kg_m3, "source": s.get("physical", "")}

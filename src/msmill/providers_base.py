@@ -189,7 +189,9 @@ class StageParameterProvider(Protocol):
     docstring) and ``sample_stage_parameters(sizes_mm, n_samples,
     stage_speeds_rpm, feed_tph, gate_deg, seed)`` returning a list of
     :class:`StageParameters` drawn from the provider's predictive distribution
-    (used for uncertainty bands).
+    (used for uncertainty bands); ``covered_sizes_mm`` (smallest and largest rock
+    size of the DEM statistics, mm: the size below which
+    :class:`msmill.model.providers.HeldBelow` holds them).
     """
 
     @property

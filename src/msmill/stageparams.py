@@ -812,9 +812,11 @@ class StageParameterTable(_JsonDocument):
     @classmethod
     def from_json(cls, path: str | Path) -> StageParameterTable:
         """Read and validate a table file; errors are one line naming the field."""
+        from msmill.validate import read_text
+
         p = Path(path)
         try:
-            data = json.loads(p.read_text(encoding="utf-8"))
+            data = json.loads(read_text(p, "stage_parameters", "JSON stage-parameter table"))
         except json.JSONDecodeError as exc:
             raise MsmillInputError(str(p), f"line {exc.lineno}", "valid JSON") from None
         if not isinstance(data, dict) or data.get("schema_version") not in READABLE_SCHEMA_VERSIONS:

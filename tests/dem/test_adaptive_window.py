@@ -100,16 +100,23 @@ def test_window_from_onset_reuses_the_steady_windows(target):
 @pytest.mark.parametrize("target,length_s", [(math.inf, 0.1), (1e-9, 0.25)])
 def test_hold_up_target_alone_sets_the_window(target, length_s):
     """Every other target met at once: the hold-up's error target alone decides when the window stops, and
-    the error reached is the batch-means error of the window's mass series over its mean."""
+    the error reached is that of the window's mass series as the runs report it (issue 36: the
+    autocorrelation-time error of its slices plus the between-run deviation), over its mean."""
     import numpy as np
+
+    from msmill.sampling import AutocorrelationTime, default_between_run
 
     run = _run(target_streams_se=math.inf, target_hit_probability_se=math.inf, target_velocity_rel_se=math.inf,
                target_count_mean_rel_se=math.inf, target_velocity_sampling_kl=math.inf, target_holdup_rel_se=target)
     t0, t1 = run.window_s
     assert t1 - t0 == pytest.approx(length_s, abs=0.011)
     ts = run.timeseries[(run.timeseries["time_s"] >= t0) & (run.timeseries["time_s"] <= t1)]
-    means = [b.mean() for b in np.array_split(ts["mass_kg"].to_numpy(), 5)]
-    want = np.std(means, ddof=1) / np.sqrt(5) / ts["mass_kg"].mean()
+    h = run.stats.series["holdup"]
+    num, den = np.asarray(h["num"]), np.asarray(h["den"])
+    mean = num.sum() / den.sum()
+    assert mean == pytest.approx(ts["mass_kg"].mean(), rel=1e-12)
+    within = AutocorrelationTime().standard_error(num, den)
+    want = default_between_run().total("holdup", run.stats.run.design.size_mm, mean, within).se / mean
     assert run.stats.run.sampling_error_reached["holdup_rel"] == pytest.approx(want, rel=1e-9)
     assert run.stats.run.provenance["stats"]["holdup_rel_se"] == pytest.approx(want, rel=1e-9)
 

@@ -174,3 +174,16 @@ def test_predict_with_an_envelope_of_steady_runs_only(folder, capsys):
     assert run(["predict", str(low), "--envelope", str(folder / "envelope.json")]) == 0
     cap = capsys.readouterr()
     assert "largest feed the DEM has shown" not in cap.err and ">= 20" in cap.out
+
+
+
+def test_predict_with_a_users_ore_file(folder, own_ore_file):
+    import pandas as pd
+
+    p = write(folder, GOOD)
+    assert run(["predict", str(p), "--out", str(folder / "a")]) == 0
+    # a much weaker rock (L_ref 5 mm against UG2's default): the --ore-file replaces the run file's [ore]
+    assert run(["predict", str(p), "--out", str(folder / "b"), "--ore-file", str(own_ore_file(l_ref_mm=5.0))]) == 0
+    a, b = (pd.read_csv(folder / d / "product.csv") for d in ("a", "b"))
+    fine = a["upper_mm"] <= 1.0
+    assert b.loc[fine, "product_mass_fraction"].sum() > 1.2 * a.loc[fine, "product_mass_fraction"].sum()

@@ -189,6 +189,34 @@ def test_export_then_ingest_gives_identical_statistics(store, tmp_path):
     other.close()
 
 
+def test_reexport_replaces_a_document_written_before_the_schema_grew(store, tmp_path):
+    """An export made before the statistics gained an optional field hashes differently today:
+    ingesting and exporting it again must leave the run once, under its new name."""
+    store.record_run(make_stats(20.0, seed=1), MACHINE, seed=1)
+    store.record_run(make_stats(25.0, seed=2), MACHINE, seed=2)
+    folder = tmp_path / "export"
+    first = export_runs(store, folder)
+    doc = json.loads(first[0].read_text())
+    del doc["statistics"]["mass_out_rate_kg_s"]          # an optional field the old schema lacked
+    old_hash = "0" * 64
+    doc["content_hash"] = old_hash
+    first[0].unlink()
+    (folder / f"run-{old_hash[:16]}.json").write_text(json.dumps(doc))
+    unrelated = folder / "run-ffffffffffffffff.json"     # another run, not in this store: kept
+    other_doc = json.loads(first[1].read_text())
+    other_doc["statistics"]["characteristic_time_s"] = 0.5
+    unrelated.write_text(json.dumps(other_doc))
+    fresh = Store(f"sqlite:///{tmp_path / 'fresh.sqlite'}")
+    fresh.record_run(make_stats(25.0, seed=2), MACHINE, seed=2)
+    ingest_paths(fresh, [folder / f"run-{old_hash[:16]}.json"])
+    written = export_runs(fresh, folder)
+    names = sorted(p.name for p in folder.glob("run-*.json"))
+    assert f"run-{old_hash[:16]}.json" not in names
+    assert unrelated.name in names and all(p.name in names for p in written)
+    assert len(names) == len(written) + 1
+    fresh.close()
+
+
 # --------------------------------------------------------------------------- campaign queue
 def _campaign(store, n_points: int, name: str = "c", max_attempts: int = 3):
     store.create_campaign(name, MACHINE, run_settings={"max_time_s": 0.5}, max_attempts=max_attempts)

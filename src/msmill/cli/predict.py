@@ -25,6 +25,8 @@ def predict(
     capacity_check: Annotated[bool, typer.Option(
         "--capacity-check/--no-capacity-check", help="Warn when the feed rate exceeds the envelope's capacity.")
     ] = True,
+    ore_file: Annotated[Path | None, typer.Option(
+        "--ore-file", help="Your own ore TOML (msmill ore show --help) instead of the run file's [ore].")] = None,
 ) -> None:
     """Predict the product PSD, hold-up and impact energy of a mill run file."""
     from msmill.cli.output import atomic_output, check_writable
@@ -34,6 +36,12 @@ def predict(
     if solver is not None:
         rf = RunFile.model_validate({**rf.model_dump(), "base_dir": rf.base_dir, "name": rf.name,
                                      "model": {**rf.model.model_dump(), "solver": solver}})
+    if ore_file is not None:
+        from msmill.ore import Ore
+
+        Ore.from_toml(ore_file)  # a bad file is a one-line error naming it, before any work
+        rf = RunFile.model_validate({**rf.model_dump(), "base_dir": rf.base_dir, "name": rf.name,
+                                     "ore": {"file": str(ore_file.resolve())}})
     folder = check_writable(out if out is not None else rf.path(rf.output.dir),
                             "--out" if out is not None else f"{rf.name}.output.dir")
     mill, feed, op = rf.build()
@@ -116,6 +124,10 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
         *([("feed / product mass with stage statistics from thin data (%)",
             f"{result.thin_data_feed_pct:.3g} / {result.thin_data_product_pct:.3g}")]
           if result.thin_data_product_pct == result.thin_data_product_pct else []),  # not NaN
+        *([(f"P80 (mm) / passing 75 um (%) with statistics held below {result.held_below_mm:.3g} mm",
+            f"{result.held_below_p80_mm:.3g} / {result.held_below_passing_75um_pct:.3g} "
+            f"(here {result.p80_mm:.3g} / {float(result.product_psd.passing_at(0.075)):.3g})")]
+          if result.held_below_mm == result.held_below_mm else []),  # not NaN
     ]
     for r in rows:
         t.add_row(*r)

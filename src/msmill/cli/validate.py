@@ -16,6 +16,9 @@ import typer
 
 from msmill.errors import MsmillInputError
 
+#: Most posterior samples of the stage parameters ``msmill calibrate`` refits with (each is a whole fit).
+MAX_STAGE_SAMPLES = 64
+
 
 def write_files(folder: Path, files: dict[str, bytes]) -> None:
     """Write ``files`` into ``folder`` as one atomic set with a manifest (``msmill.cli.output``)."""
@@ -51,8 +54,8 @@ def validate(
 
     check_writable(out if out is not None else folder / "validation", "--out")  # before any work
     t0 = time.perf_counter()
-    es = read_experiments(folder)
     ores = _ore_files(ore_file)
+    es = read_experiments(folder, ores=ores, skip=ore_file or ())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)  # reported per survey in the table
         v = run_validation(es, stage_parameters, ores=ores, breakage=breakage, damage=damage)
@@ -77,11 +80,14 @@ def validate(
 
 
 def _ore_files(paths: list[Path] | None) -> dict:
+    """``{name: Ore}`` of the user's ore files (``--ore-file``; one-line errors naming the file)."""
     from msmill.ore import Ore
 
-    out = {}
+    out: dict = {}
     for p in paths or []:
         o = Ore.from_toml(p)
+        if o.name in out:
+            raise MsmillInputError("--ore-file", str(p), f"ore files with different names ({o.name!r} given twice)")
         out[o.name] = o
     return out
 
@@ -128,6 +134,13 @@ def calibrate(
                                                     "parameter (repeatable; defaults in docs/validation.md).")] = None,
     breakage: Annotated[str | None, typer.Option(help="Breakage sub-model of the survey fits (default: the model default, jk_t10).")] = None,
     damage: Annotated[str | None, typer.Option(help="Damage sub-model of the survey fits (default tavares).")] = None,
+    ore_file: Annotated[list[Path] | None, typer.Option(
+        "--ore-file", help="Your own ore TOML (msmill ore show --help; repeatable): experiments name it by its "
+        "name, it overrides a built-in ore of that name.")] = None,
+    hold_out: Annotated[str, typer.Option(help="Single-impact tests held out one 'test' or one 'speed' at a "
+                                          "time (the held-out K-S).")] = "test",
+    stage_samples: Annotated[int, typer.Option(help="Posterior samples of the stage parameters refitted with "
+                                               "(their spread enters the s.e.; a surrogate's only; 0: none).")] = 8,
 ) -> None:
     """Fit L_ref (optionally A, b, gamma) per ore to the surveys; fit and compare breakage sub-models on lab tests."""
     import tomli_w
@@ -135,28 +148,46 @@ def calibrate(
     from msmill.cli.output import check_writable
     from msmill.errors import OutOfDomainWarning
     from msmill.model.experiments import read_experiments
-    from msmill.model.fitting import calibrate_surveys, calibrated_ore
+    from msmill.model.fitting import HOLD_OUT, calibrate_surveys, calibrated_ore
     from msmill.model.validation import SurveyModel
     from msmill.ore import get_ore
 
     check_writable(out if out is not None else folder / "calibration", "--out")  # before any work
+    if hold_out not in HOLD_OUT:
+        raise MsmillInputError("--hold-out", hold_out, "one of " + ", ".join(HOLD_OUT))
+    if stage_samples != 0 and not 2 <= stage_samples <= MAX_STAGE_SAMPLES:
+        raise MsmillInputError("--stage-samples", stage_samples, f"0 (none) or 2-{MAX_STAGE_SAMPLES}")
     t0 = time.perf_counter()
-    es = read_experiments(folder)
+    ores = _ore_files(ore_file)
+    es = read_experiments(folder, ores=ores, skip=ore_file or ())
     con = _console()
     files: dict[str, bytes] = {}
+    fitted_rows: list[dict] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         for ore_name in es.ores("survey"):
             surveys = [e for e in es.surveys if e.ore == ore_name]
             t1 = time.perf_counter()
-            model = SurveyModel(ore_name, surveys, stage_parameters, breakage=breakage, damage=damage)
-            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound))
-            new = calibrated_ore(get_ore(ore_name), cal)
+            ore = ores.get(ore_name) or get_ore(ore_name)
+            model = SurveyModel(ore, surveys, stage_parameters, breakage=breakage, damage=damage)
+            cal = calibrate_surveys(model, fit or ("l_ref_mm",), objective, bounds=_bounds(bound),
+                                    stage_samples=stage_samples)
+            new = calibrated_ore(ore, cal)
             files[f"{ore_name}_calibrated.toml"] = tomli_w.dumps(new.to_dict()).encode()
             files[f"{ore_name}_calibration.csv"] = cal.table.to_csv(index=False).encode()
+            if cal.stage_samples:
+                files[f"{ore_name}_stage_samples.csv"] = cal.stage_params.to_csv(index_label="sample").encode()
+            fitted_rows += [{"ore": ore_name, "parameter": k, "value": cal.params[k], "se": cal.std_errors[k],
+                             "se_jackknife": cal.jackknife_std_errors[k], "se_stage": cal.stage_std_errors[k],
+                             "se_jacobian": cal.jacobian_std_errors[k], "stage_samples": cal.stage_samples}
+                            for k in cal.fitted]
             _print_calibration(con, cal, time.perf_counter() - t1)
+        if fitted_rows:
+            import pandas as pd
+
+            files["survey_fits.csv"] = pd.DataFrame(fitted_rows).to_csv(index=False).encode()
         if impact_tests and es.impact_tests:
-            files.update(_impact_outputs(con, es))
+            files.update(_impact_outputs(con, es, ores, hold_out))
     if not files:
         raise MsmillInputError("experiments", str(folder), "at least one survey or single-impact test")
     dest = out if out is not None else folder / "calibration"
@@ -185,39 +216,58 @@ def _print_calibration(con, cal, seconds: float) -> None:
 
     t = Table(title=f"{cal.ore}: {len(cal.table)} surveys, {cal.n_points} operating points, "
                     f"objective {cal.objective} ({seconds:.1f} s)")
-    for col in ("parameter", "value", "s.e. (jackknife)", "s.e. (Jacobian)"):
+    for col in ("parameter", "value", "s.e.", "of it: surveys (jackknife)",
+                f"stage parameters ({cal.stage_samples} posterior samples)", "s.e. (Jacobian)"):
         t.add_column(col)
     for k in cal.fitted:
-        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jacobian_std_errors[k]:.2g}")
+        stage = f"{cal.stage_std_errors[k]:.2g}" if cal.stage_samples else "not drawn"
+        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jackknife_std_errors[k]:.2g}",
+                  stage, f"{cal.jacobian_std_errors[k]:.2g}")
     con.print(t)
+    if not cal.stage_samples:
+        con.print("  s.e. without the stage parameters' uncertainty (a table has no posterior samples, "
+                  "or --stage-samples 0): it is the surveys' scatter only")
     tb = cal.table
     con.print(f"  mean K-S: {tb['ks_before'].mean():.3f} with the start parameters, {tb['ks_fit'].mean():.3f} "
               f"fitted, {tb['ks_cv'].mean():.3f} leave-one-survey-out"
               + (f"; spline interpolation K-S {cal.interpolation_ks:.1e}" if cal.fitted == ("l_ref_mm",) else ""))
 
 
-def _impact_outputs(con, es) -> dict[str, bytes]:
+def _impact_outputs(con, es, ores: dict, hold_out: str) -> dict[str, bytes]:
+    """Every breakage sub-model fitted to each ore's single-impact tests: table, CSVs."""
     import pandas as pd
+    from rich.table import Table
 
-    from msmill.model.fitting import compare_submodels, fit_impact_tests
+    from msmill.model.fitting import FITTABLE, impact_report
 
     files: dict[str, bytes] = {}
-    rows = []
+    tables = []
     for ore_name in es.ores("single_impact"):
         tests = [t for t in es.impact_tests if t.ore == ore_name]
-        held = compare_submodels(tests, ore_name)
+        t1 = time.perf_counter()
+        summary, held = impact_report(tests, ores.get(ore_name, ore_name), hold_out=hold_out)
         files[f"{ore_name}_impact_heldout.csv"] = held.to_csv(index=False).encode()
-        for name, g in held.groupby("submodel", sort=False):
-            f = fit_impact_tests(tests, ore_name, name)
-            rows.append({"ore": ore_name, "submodel": name, "ks_held_out_mean": g["ks_held_out"].mean(),
-                         "ks_fit_mean": sum(f.ks.values()) / len(f.ks), "rmse_log": f.rmse_log,
-                         **{f"{k}": v for k, v in f.params.items()},
-                         **{f"se_{k}": v for k, v in f.std_errors.items()}})
-    table = pd.DataFrame(rows)
-    files["impact_fits.csv"] = table.to_csv(index=False).encode()
-    for ore_name, g in table.groupby("ore", sort=False):
-        best = g.loc[g["ks_held_out_mean"].idxmin()]
-        parts = ", ".join(f"{r['submodel']} {r['ks_held_out_mean']:.3f}" for _, r in g.iterrows())
-        con.print(f"{ore_name} single-impact tests: held-out K-S (fit on the other speeds) {parts}: "
-                  f"{best['submodel']} fits better")
+        tables.append(summary.assign(ore=ore_name))
+        how = "leave-one-test-out" if hold_out == "test" else "leave-one-speed-out"
+        t = Table(title=f"{ore_name}: {len(tests)} single-impact tests at "
+                        f"{len({float(x.impact_speed_m_s) for x in tests})} speeds, every breakage sub-model "
+                        f"({time.perf_counter() - t1:.1f} s)")
+        for col in ("sub-model", "K-S fitted", f"K-S {how}", "parameters +- s.e.", "on a bound", "identified"):
+            t.add_column(col)
+        for _, r in summary.iterrows():
+            pars = ", ".join(f"{k} {r[k]:.4g} +- {r['se_bootstrap_' + k]:.2g}" for k in FITTABLE[r["submodel"]])
+            spread = max(r[f"spread_{k}"] for k in FITTABLE[r["submodel"]])
+            why = "a parameter on a bound" if r["on_bound"] else f"multi-start spread {spread:.2g}"
+            t.add_row(r["submodel"], f"{r['ks_fit_mean']:.3f}", f"{r['ks_held_out_mean']:.3f}", pars,
+                      r["on_bound"] or "none", "yes" if r["identified"] else f"NO ({why})")
+        con.print(t)
+        sig = ", ".join(f"{r['submodel']} {r['noise_sigma']:.3f}" for _, r in summary.iterrows())
+        con.print("  s.e.: parametric bootstrap (the fit's products re-sieved with each retained mass scattered "
+                  f"by the scatter the tests show about the fit, sigma: {sig}); jackknife and Jacobian "
+                  "errors in impact_fits.csv; bounds scale with the tests' sizes and energies (lo_/hi_ columns)")
+        for _, r in summary[summary["on_bound"] != ""].iterrows():
+            con.print(f"  {r['submodel']}: {r['on_bound']} on its bound: the value is the bound's, not the data's")
+        best = summary.loc[summary["ks_held_out_mean"].idxmin()]
+        con.print(f"  {ore_name}: {best['submodel']} fits better (held-out K-S {best['ks_held_out_mean']:.3f})")
+    files["impact_fits.csv"] = pd.concat(tables, ignore_index=True).to_csv(index=False).encode()
     return files

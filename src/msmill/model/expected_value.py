@@ -32,7 +32,12 @@ import scipy.sparse.linalg as spla
 
 from msmill.errors import MsmillError
 from msmill.model.parameters import CountArrays, MixtureArrays
-from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
+from msmill.model.submodels import (
+    ImpactStatistics,
+    as_transition,
+    fragment_index,
+    specific_energy_kwh_t,
+)
 
 
 def quadrature(mix: MixtureArrays, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,11 +158,12 @@ def _impact_chunk(edges_mm, v, w, breakage, damage, nd) -> tuple[np.ndarray, ...
     broke_thr = d_new >= th
     pbr = pb + (1.0 - pb) * broke_thr
     wf = fold(w)
+    u = fragment_index(breakage, ef, L, dn, pb)  # what sets the fragments (pb unless the sub-model says)
     if hasattr(breakage, "expected_fragments"):  # optional fast path of the sub-model
-        frag = breakage.expected_fragments(edges_mm, pb, wf * pbr)
+        frag = breakage.expected_fragments(edges_mm, u, wf * pbr)
     else:
         parent = np.broadcast_to(np.arange(n)[:, None, None], pb.shape)
-        frag = np.einsum("iqd,iqdk->kid", wf * pbr, breakage.fragments(edges_mm, parent, pb))
+        frag = np.einsum("iqd,iqdk->kid", wf * pbr, breakage.fragments(edges_mm, parent, u))
     surv = wf * (1.0 - pbr)  # (N, Q, cols)
     lo, frac = split_damage(np.where(broke_thr, 0.0, d_new), nd, th)
     # survivors of (i, column) land in damage classes lo and lo + 1 (frac = 0 at the top class)

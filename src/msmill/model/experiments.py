@@ -44,6 +44,7 @@ Every error is one line naming the file and the field
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -221,8 +222,12 @@ def _inline_csv(data: dict[str, Any], origin: str, base: Path | None) -> dict[st
     return out
 
 
-def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path: Path | None = None) -> Experiment:
-    """Validate a parsed experiment document (errors name ``origin`` and the field)."""
+def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path: Path | None = None,
+                         ores: Iterable[str] = ()) -> Experiment:
+    """Validate a parsed experiment document (errors name ``origin`` and the field).
+
+    ``ores``: ore names known besides the registry (a user's own ore files).
+    """
     if not isinstance(data, dict):
         raise MsmillInputError(origin, type(data).__name__, "a TOML table")
     data = _inline_csv(data, origin, path.parent if path is not None else None)
@@ -234,10 +239,13 @@ def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path:
         raise from_validation_error(exc, prefix=origin) from None
     from msmill.ore import get_ore
 
+    known = tuple(ores)
     try:
-        get_ore(v.ore)
+        if v.ore not in known:
+            get_ore(v.ore)
     except MsmillInputError as exc:
-        raise MsmillInputError(f"{origin}.ore", v.ore, exc.allowed) from None
+        allowed = exc.allowed + (f", or an ore file's name ({', '.join(known)})" if known else "")
+        raise MsmillInputError(f"{origin}.ore", v.ore, allowed) from None
     raw = {"feed": v.feed.model_dump(), "product": v.product.model_dump()}
     common = dict(kind=kind, id=v.id, ore=v.ore, source=v.source, feed_psd=v.feed.psd(),
                   product_psd=v.product.psd(), weight=v.weight, path=path, raw=raw)
@@ -250,8 +258,8 @@ def experiment_from_dict(data: dict[str, Any], origin: str = "experiment", path:
     return Experiment(**common, impact_speed_m_s=v.impact_speed_m_s)
 
 
-def read_experiment(path: str | Path) -> Experiment:
-    """Read and validate one experiment TOML file."""
+def read_experiment(path: str | Path, ores: Iterable[str] = ()) -> Experiment:
+    """Read and validate one experiment TOML file (``ores``: as :func:`experiment_from_dict`)."""
     p = Path(path)
     if not p.is_file():
         raise MsmillInputError("experiment file", str(p), "an existing TOML file")
@@ -259,7 +267,7 @@ def read_experiment(path: str | Path) -> Experiment:
         data = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise MsmillInputError(p.name, str(exc).split("\n")[0], "valid TOML") from None
-    return experiment_from_dict(data, origin=p.name, path=p)
+    return experiment_from_dict(data, origin=p.name, path=p, ores=ores)
 
 
 def write_experiment(exp: Experiment, path: str | Path) -> Path:
@@ -295,8 +303,12 @@ class ExperimentSet:
         return list(dict.fromkeys(e.ore for e in self.experiments if e.kind == kind))
 
 
-def read_experiments(folder: str | Path) -> ExperimentSet:
+def read_experiments(folder: str | Path, ores: Iterable[str] = (),
+                     skip: Iterable[str | Path] = ()) -> ExperimentSet:
     """Read every ``*.toml`` in ``folder`` (not recursive); ids must be unique.
+
+    ``ores``: ore names known besides the registry (:func:`experiment_from_dict`);
+    ``skip``: files that are not experiments (a user's ore files kept in the folder).
 
     Raises
     ------
@@ -306,10 +318,12 @@ def read_experiments(folder: str | Path) -> ExperimentSet:
     d = Path(folder)
     if not d.is_dir():
         raise MsmillInputError("experiments folder", str(d), "an existing folder of experiment TOML files")
-    files = sorted(d.glob("*.toml"))
+    skipped = {Path(f).resolve() for f in skip}
+    files = sorted(f for f in d.glob("*.toml") if f.resolve() not in skipped)
     if not files:
         raise MsmillInputError("experiments folder", str(d), "a folder with at least one *.toml experiment file")
-    exps = [read_experiment(f) for f in files]
+    known = tuple(ores)
+    exps = [read_experiment(f, known) for f in files]
     seen: dict[str, str] = {}
     for e, f in zip(exps, files, strict=True):
         if e.id in seen:

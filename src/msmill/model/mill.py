@@ -15,6 +15,7 @@ Example
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import warnings
 from pathlib import Path
@@ -27,7 +28,12 @@ from msmill.errors import ExtrapolationWarning, MsmillInputError, SummaryNote
 from msmill.model import submodels as sm
 from msmill.model.expected_value import LinearMill, assemble, steady_products
 from msmill.model.montecarlo import MonteCarloSolver
-from msmill.model.providers import StageParameterProvider, load_provider
+from msmill.model.providers import (
+    HeldBelow,
+    StageParameterProvider,
+    load_provider,
+    smallest_covered_mm,
+)
 from msmill.model.result import MillResult, time_to_steady_state, with_band
 from msmill.psd import PSD, SizeGrid
 from msmill.threadpools import single_threaded
@@ -300,7 +306,7 @@ class Mill:
 
     # ------------------------------------------------------------------ running
     def run(self, feed: PSD, operating_point: Any, *, timeseries: bool = True,
-            max_steps: int = 20000) -> MillResult:
+            max_steps: int = 20000, held_below: bool = True) -> MillResult:
         """Predict the mill's response to ``feed`` at ``operating_point``.
 
         Parameters
@@ -315,6 +321,12 @@ class Mill:
             direct solve.
         max_steps : int
             Cap on the number of time steps marched.
+        held_below : bool
+            Where size classes lie below the sizes the stage statistics cover, solve the steady state
+            again with the statistics held at the smallest covered size (:class:`~msmill.model.providers.
+            HeldBelow`) and report the product's P80 and passing 75 um under that rule
+            (``MillResult.held_below_*``, a note): the sensitivity to the rule for rock finer than any
+            DEM run. Costs a second steady-state solve; sweeps turn it off.
         """
         if not isinstance(feed, PSD):
             raise MsmillInputError("feed", type(feed).__name__, "a msmill.psd.PSD")
@@ -323,6 +335,8 @@ class Mill:
         limit(max_steps, "max_steps", "time_steps")
         with _single_threaded_blas():
             res = self._run(feed, op, timeseries, max_steps)
+            if held_below:
+                res = self._with_held_below(res, feed, op, max_steps)
         return self._with_capacity(res, feed, op)
 
     def _with_capacity(self, res: MillResult, feed: PSD, op: Any) -> MillResult:
@@ -345,10 +359,12 @@ class Mill:
                           f"({grid.edges_mm[-1]:.4g} mm) and is lumped into its top class",
                           InputWarning, stacklevel=3)
         feed_m = feed.rebin(grid) if feed.grid != grid else feed
+        _warn_implausible_feed(feed, self.machine)
         params, streams, stats, lm, caught = self.prepare(grid, op)
         dt = params.characteristic_time_s
         tonnes_per_step = op.feed_tph * dt / 3600.0
-        notes = [*self.ore.notes, f"stage parameters: {params.source}"]
+        brk_notes = getattr(getattr(self.breakage, "ore", None), "notes", ())  # e.g. a sub-model's default
+        notes = [*dict.fromkeys([*self.ore.notes, *brk_notes]), f"stage parameters: {params.source}"]
         notes += [streams.note] if streams.note else []
         if self.solver != "expected_value" and getattr(streams, "filling", None) is not None:
             notes.append("transport: the Monte-Carlo solver moves rock by the steady matrix throughout "
@@ -369,6 +385,27 @@ class Mill:
                 self._band_cache[key] = self.product_band(feed_m, op, grid)
             res = with_band(res, *self._band_cache[key])
         return res
+
+    def _with_held_below(self, res: MillResult, feed: PSD, op: Any, max_steps: int) -> MillResult:
+        """The result with the product under the other bounding rule below the covered sizes (:class:`HeldBelow`).
+
+        Nothing to add when no class lies below the sizes the statistics cover.
+        """
+        with warnings.catch_warnings():  # the run issued them already
+            warnings.simplefilter("ignore")
+            params = self.prepare(self.model_grid(feed), op)[0]  # cached by the run
+        lo = smallest_covered_mm(params, self.provider)
+        if lo is None:
+            return res
+        held = copy.copy(self)
+        held.provider, held.band_samples = HeldBelow(self.provider), 0
+        held._cache, held._band_cache = {}, {}
+        with warnings.catch_warnings():  # the same warnings as the prediction's own
+            warnings.simplefilter("ignore")
+            other = held._run(feed, op, False, max_steps)
+        return dataclasses.replace(res, held_below_mm=lo, held_below_p80_mm=other.p80_mm,
+                                   held_below_passing_75um_pct=float(other.product_psd.passing_at(0.075)),
+                                   notes=(*res.notes, held_below_note(res, other, lo)))
 
     def product_band(self, feed: PSD, op: Any, grid: SizeGrid) -> tuple[np.ndarray, np.ndarray]:
         """Product % passing and P80 of posterior samples of the stage parameters.
@@ -545,6 +582,28 @@ def _warn_extrapolated_share(res: MillResult) -> None:
         warnings.warn(f"{pct:.0f} % of the product mass{n} rests on stage statistics extrapolated beyond the "
                       f"rock sizes the DEM ran (feed {res.extrapolated_feed_pct:.0f} %): the passing fractions "
                       "there are extrapolations", ExtrapolationWarning, stacklevel=3)
+
+
+def _warn_implausible_feed(feed: PSD, machine: Any) -> None:
+    """Warn when the feed holds rock wider than the mill's feed chute (sieves in the wrong unit, typically)."""
+    from msmill.machine import Machine
+
+    chute_m = machine.chute_width_m if machine is not None else Machine.model_fields["chute_width_m"].default
+    nonzero = np.flatnonzero(feed.fractions > 1e-12)
+    if not nonzero.size:
+        return
+    top_mm = float(feed.grid.edges_mm[nonzero[-1] + 1])
+    if top_mm > 1000.0 * chute_m:
+        warnings.warn(f"feed: rock up to {top_mm:.4g} mm is wider than the mill's feed chute "
+                      f"({1000.0 * chute_m:g} mm): check the sieve sizes (mm)", InputWarning, stacklevel=4)
+
+
+def held_below_note(res: MillResult, held: MillResult, lo_mm: float) -> str:
+    """One line: how far P80 and passing 75 um move when the statistics are held below ``lo_mm``."""
+    p, q = float(res.product_psd.passing_at(0.075)), float(held.product_psd.passing_at(0.075))
+    return (f"rule below the DEM's sizes: statistics held at {lo_mm:.3g} mm instead of the provider's "
+            f"extrapolation give P80 {held.p80_mm:.3g} mm (here {res.p80_mm:.3g}) and passing 75 um "
+            f"{q:.3g} % (here {p:.3g} %)")
 
 
 def _with_extrapolated_share(res: MillResult, params: Any) -> MillResult:

@@ -38,7 +38,12 @@ import numpy as np
 from msmill.errors import MsmillError
 from msmill.model.expected_value import split_damage
 from msmill.model.parameters import CountArrays, MixtureArrays
-from msmill.model.submodels import ImpactStatistics, as_transition, specific_energy_kwh_t
+from msmill.model.submodels import (
+    ImpactStatistics,
+    as_transition,
+    fragment_index,
+    specific_energy_kwh_t,
+)
 
 
 @dataclass
@@ -169,7 +174,8 @@ class MonteCarloSolver:
                 np.add.at(counts[f"{kind}_kwh"], st, mass[idx] * e)
             b = idx[broke]
             if b.size:
-                cols = breakage.fragments(edges, cls[b], pb[broke])
+                u = fragment_index(breakage, e[broke], L[broke], d0[broke], pb[broke])
+                cols = breakage.fragments(edges, cls[b], u)
                 cls[b] = _sample_class(rng, cols)
                 dmg[b] = 0.0
             s = idx[~broke]

@@ -93,7 +93,7 @@ def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float
         warnings.simplefilter("always", OutOfDomainWarning)
         op = base_op.model_validate({**base_op.model_dump(exclude_none=True), **upd})
         f = _scaled_feed(feed, float(settings.get("feed_scale", 1.0)))
-        res = mill.run(f, op, timeseries=False)
+        res = mill.run(f, op, timeseries=False, held_below=False)
     pw = power_estimate(res, no_load_kw=no_load_kw)
     row = {**{k: float(v) for k, v in settings.items()},
            "p80_mm": res.p80_mm, "f80_mm": res.f80_mm, "throughput_tph": res.feed_tph,

@@ -402,6 +402,12 @@ class TableProvider:
         """Number of stages of the table's runs."""
         return self.table.runs[0].n_stages
 
+    @property
+    def covered_sizes_mm(self) -> tuple[float, float]:
+        """Smallest and largest rock size (mm) of the table's runs."""
+        sizes = [r.design.size_mm for r in self.table.runs]
+        return float(min(sizes)), float(max(sizes))
+
     @classmethod
     def from_file(cls, path: str | Path) -> TableProvider:
         """Read a JSON table, or the simple ``.toml`` / ``.csv`` format (:func:`read_simple_table`)."""
@@ -474,7 +480,22 @@ def default_table_path(field: str = "stage_parameters") -> Path:
 TABLE_NAME = "table"
 
 
-class WithFillingCurves:
+class _Wrapper:
+    """A provider that passes another's stage parameters on, changed (its ``provider``)."""
+
+    provider: Any
+
+    @property
+    def n_stages(self) -> int:
+        """Number of stages (the provider's)."""
+        return self.provider.n_stages
+
+    @property
+    def velocities_at_requested_speeds(self) -> bool:
+        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
+
+
+class WithFillingCurves(_Wrapper):
     """A provider whose stage parameters take their filling curves from another provider (a table's).
 
     The filling curves (``StageParameters.filling_*``, the ``dem_matrix_fill``
@@ -501,15 +522,6 @@ class WithFillingCurves:
     @property
     def source(self) -> str:
         return f"{self.provider.source}; filling curves from {self.filling.source}"
-
-    @property
-    def n_stages(self) -> int:
-        """Number of stages (the provider's)."""
-        return self.provider.n_stages
-
-    @property
-    def velocities_at_requested_speeds(self) -> bool:
-        return bool(getattr(self.provider, "velocities_at_requested_speeds", False))
 
     def __getattr__(self, name: str) -> Any:  # anything else is the provider's (e.g. the surrogate itself)
         if name in ("provider", "filling", "_cache"):
@@ -542,6 +554,112 @@ class WithFillingCurves:
 
     def __repr__(self) -> str:
         return f"WithFillingCurves({self.provider!r}, filling={self.filling!r})"
+
+
+class HeldBelow(_Wrapper):
+    """A provider whose stage parameters below the smallest size it covers are those of that size.
+
+    The other bounding rule for rock finer than any DEM run (issue 38): the provider's own rule (the
+    surrogate's Gaussian process, the table's ln-size trend) continues the statistics' trends past the
+    data; this one holds them at the smallest size the statistics cover (the smallest size class not
+    flagged ``extrapolated``). :meth:`msmill.model.Mill.run` solves the mill with both and reports how far
+    the product moves (``MillResult.held_below_p80_mm`` ...). It gives no posterior samples.
+
+    Parameters
+    ----------
+    provider : StageParameterProvider
+        The provider whose parameters are held.
+    """
+
+    def __init__(self, provider: Any) -> None:
+        self.provider = provider
+
+    @property
+    def source(self) -> str:
+        return f"{self.provider.source}; held below its smallest size"
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """The provider's parameters at ``max(sizes_mm, smallest covered size)``, at the requested sizes."""
+        sizes = np.asarray(sizes_mm, dtype=float)
+        own = self.provider.stage_parameters(sizes, stage_speeds_rpm, feed_tph, gate_deg)
+        lo = smallest_covered_mm(own, self.provider)
+        if lo is None or not np.any(sizes < lo):
+            return own
+        held = self.provider.stage_parameters(np.maximum(sizes, lo), stage_speeds_rpm, feed_tph, gate_deg)
+        return dataclasses.replace(held, sizes_mm=sizes.copy(), extrapolated=own.extrapolated,
+                                   source=f"{held.source}; held below {lo:.3g} mm")
+
+    def __repr__(self) -> str:
+        return f"HeldBelow({self.provider!r})"
+
+
+def smallest_covered_mm(params: StageParameters, provider: Any = None) -> float | None:
+    """Smallest rock size (mm) the stage statistics cover, when some size class of ``params`` lies below it.
+
+    The provider's ``covered_sizes_mm`` (an optional extension: the smallest DEM run's size) where it has
+    one, else the smallest size class not flagged ``extrapolated``; None when no class lies below it.
+    """
+    sizes = np.asarray(params.sizes_mm, dtype=float)
+    covered = getattr(provider, "covered_sizes_mm", None)
+    if covered is not None:
+        lo = float(covered[0])
+    else:
+        if params.extrapolated is None:
+            return None
+        inside = sizes[~np.asarray(params.extrapolated, dtype=bool)]
+        if not inside.size:
+            return None
+        lo = float(inside.min())
+    return lo if np.any(sizes < lo * (1 - 1e-9)) else None
+
+
+class PosteriorSample(_Wrapper):
+    """Posterior draw number ``index`` of a provider's stage parameters, wherever it is asked.
+
+    Each (sizes, operating point) asked draws ``n_samples`` samples once with
+    ``seed`` (:meth:`sample_stage_parameters` of ``provider``; cached in
+    ``cache``, which the members of one :func:`posterior_samples` set share)
+    and answers with draw ``index``. The draws are seeded alike at every
+    operating point, so a member is the same standard-normal deviation at each
+    point: a consistent perturbation, not a joint posterior draw over points
+    (the GP's correlation between operating points is not used).
+    """
+
+    def __init__(self, provider: Any, index: int, n_samples: int, seed: int = 0,
+                 cache: dict | None = None) -> None:
+        if not hasattr(provider, "sample_stage_parameters"):
+            raise MsmillInputError("stage_parameters", type(provider).__name__,
+                                   "a provider with posterior samples (a surrogate)")
+        self.provider, self.index, self.n_samples, self.seed = provider, int(index), int(n_samples), seed
+        self._draws = {} if cache is None else cache
+
+    @property
+    def source(self) -> str:
+        return f"posterior sample {self.index + 1} of {self.n_samples} of {self.provider.source}"
+
+    def __getattr__(self, name: str) -> Any:  # anything else is the provider's
+        if name in ("provider", "_draws", "index", "n_samples", "seed"):
+            raise AttributeError(name)
+        return getattr(self.provider, name)
+
+    def stage_parameters(self, sizes_mm, stage_speeds_rpm=None, feed_tph=None, gate_deg=None) -> StageParameters:
+        """Draw :attr:`index` of the posterior at ``sizes_mm`` and the operating point."""
+        sizes = np.asarray(sizes_mm, dtype=float)
+        key = (sizes.tobytes(), None if stage_speeds_rpm is None else tuple(map(float, stage_speeds_rpm)),
+               feed_tph, gate_deg)
+        if key not in self._draws:
+            self._draws[key] = self.provider.sample_stage_parameters(sizes, self.n_samples, stage_speeds_rpm,
+                                                                     feed_tph, gate_deg, seed=self.seed)
+        return self._draws[key][self.index]
+
+    def __repr__(self) -> str:
+        return f"PosteriorSample({self.index + 1}/{self.n_samples}, {self.provider!r})"
+
+
+def posterior_samples(provider: Any, n_samples: int, seed: int = 0) -> list[PosteriorSample]:
+    """``n_samples`` :class:`PosteriorSample` members of ``provider`` sharing one cache of draws."""
+    cache: dict = {}
+    return [PosteriorSample(provider, k, n_samples, seed, cache) for k in range(n_samples)]
 
 
 def default_surrogate_path() -> Path | None:

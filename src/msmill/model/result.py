@@ -82,6 +82,11 @@ class MillResult:
         Capacity at the feed's F80, speed and gate from the mill's DEM
         envelope (:mod:`msmill.capacity`), and the probability that the mill
         passes the requested feed there; None without an envelope.
+    held_below_mm, held_below_p80_mm, held_below_passing_75um_pct : float
+        The other bounding rule for rock finer than the stage statistics cover (issue 38): the smallest
+        size they cover (mm), and the product's P80 (mm) and % passing 75 um with the statistics held at
+        that size below it (:class:`msmill.model.providers.HeldBelow`) instead of the provider's own
+        extrapolation; NaN when no class lies below.
     capacity_is_lower_bound : bool
         The envelope has no choked run (method ``"demonstrated"``): ``capacity_tph``
         is the largest feed a steady DEM run near this point passed, and
@@ -122,6 +127,9 @@ class MillResult:
     capacity_tph: float | None = None
     probability_steady: float | None = None
     capacity_is_lower_bound: bool = False
+    held_below_mm: float = float("nan")
+    held_below_p80_mm: float = float("nan")
+    held_below_passing_75um_pct: float = float("nan")
 
     def summary(self) -> pd.Series:
         """Headline figures as a Series (index names carry the units)."""
@@ -140,6 +148,9 @@ class MillResult:
             "extrapolated_feed_pct": self.extrapolated_feed_pct,
             "extrapolated_product_pct": self.extrapolated_product_pct,
             "thin_data_feed_pct": self.thin_data_feed_pct, "thin_data_product_pct": self.thin_data_product_pct,
+            "passing_75um_pct": float(self.product_psd.passing_at(0.075)),
+            "held_below_mm": self.held_below_mm, "held_below_p80_mm": self.held_below_p80_mm,
+            "held_below_passing_75um_pct": self.held_below_passing_75um_pct,
         })
 
 

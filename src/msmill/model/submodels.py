@@ -36,6 +36,8 @@ KWH_T_PER_J_KG = 1.0 / _bk.J_KG_PER_KWH_T  # 1 kWh/t = 3600 J/kg
 DEFAULT_GAMMA = 4.0
 #: Damage threshold used when the ore gives none (project default, docs/model.md).
 DEFAULT_DAMAGE_THRESHOLD = 0.7
+#: ``energy_t10`` fineness ratio used when the ore gives none: 1 is ``ab_t10``'s fragments (t10 = A P_b).
+DEFAULT_FINENESS_RATIO = 1.0
 
 
 def specific_energy_kwh_t(v_m_s: np.ndarray) -> np.ndarray:
@@ -65,6 +67,9 @@ class BreakageParameters:
         Tavares damage exponent (dimensionless).
     damage_threshold : float
         Accumulated damage at which a rock breaks (dimensionless, 0-1).
+    fineness_ratio : float or None
+        ``energy_t10`` only: ``c`` of the fragments' ``t10 = A (1 - exp(-c x))`` (dimensionless);
+        None: the ore gives none (:data:`DEFAULT_FINENESS_RATIO` is used, and said).
     notes : tuple of str
         Defaults in use (reported with the results).
     """
@@ -76,6 +81,7 @@ class BreakageParameters:
     tn: Any = None
     gamma: float = DEFAULT_GAMMA
     damage_threshold: float = DEFAULT_DAMAGE_THRESHOLD
+    fineness_ratio: float | None = None
     notes: tuple[str, ...] = ()
     ore: Any = None
 
@@ -102,6 +108,7 @@ class BreakageParameters:
             tn=tn,
             gamma=float(pick("gamma", "damage_gamma", default=DEFAULT_GAMMA)),
             damage_threshold=float(pick("damage_threshold", "d_threshold", default=DEFAULT_DAMAGE_THRESHOLD)),
+            fineness_ratio=None if pick("fineness_ratio") is None else float(pick("fineness_ratio")),
             notes=tuple(notes),
             ore=ore,
         )
@@ -190,7 +197,13 @@ class BreakageModel(Protocol):
         ...
 
     def fragments(self, edges_mm: np.ndarray, parent: np.ndarray, pb: np.ndarray) -> np.ndarray:
-        """Mass fractions per class (last axis) of the fragments of parents in class ``parent``."""
+        """Mass fractions per class (last axis) of the fragments of parents in class ``parent``.
+
+        ``pb`` is the breakage probability, or for a sub-model with a
+        ``fragment_index(ecs_kwh_t, size_mm, damage)`` method what that returns
+        (:func:`fragment_index`: solvers call it, so fragments may depend on the
+        impact energy beyond what ``P_b`` tells).
+        """
         ...
 
 
@@ -740,6 +753,72 @@ class JkT10Breakage(AbT10Breakage):
         return np.einsum("id,ik->kid", w, self.columns(edges_mm))
 
 
+class EnergyT10Breakage(AbT10Breakage):
+    """Ab-t10 selection with fragments that keep getting finer past the energy that breaks every rock.
+
+    ``P_b = 1 - exp(-x)`` with the Eq. 11 exponent ``x = b E_cs L / (L_ref (1 - D))``,
+    as in :class:`AbT10Breakage`; a broken rock's fragments have
+
+        ``t10 = A (1 - exp(-c x))``
+
+    driven by the full specific energy through ``x``, which keeps growing once
+    ``P_b`` has reached 1. The fineness ratio ``c`` (``fineness_ratio``,
+    dimensionless) is the ratio of the energy scales of fragment fineness and
+    of first fracture: ``c = 1`` gives ``ab_t10``'s fragments (``t10 = A P_b``),
+    ``c -> infinity`` ``jk_t10``'s (``t10 = A`` at any energy), ``c < 1``
+    fragments that go on getting finer over ``1/c`` times the energy that
+    breaks nearly every rock (the t10-energy law of the JK drop-weight test,
+    ``t10 = A (1 - exp(-b' E))`` with its own ``b' = c b``, applied to the
+    fragments; Shi and Kojovic, Minerals Engineering 20 (2007) 1454, drive
+    t10 by the whole specific energy in the same way). docs/breakage.md
+    section 5.2.
+
+    The solvers index the fragments by :meth:`fragment_index`
+    (``t10 / A``) instead of ``P_b``, so the tabulated columns of
+    :class:`AbT10Breakage` (``t10 = A u`` at node ``u``) serve unchanged.
+
+    Parameters
+    ----------
+    ore : BreakageParameters
+        ``A_pct``, ``b_t_kwh``, ``l_ref_mm``, ``tn`` and ``fineness_ratio``
+        (None: :data:`DEFAULT_FINENESS_RATIO`, noted in ``ore.notes``).
+    fineness_ratio : float, optional
+        Overrides the ore's.
+    """
+
+    name = "energy_t10"
+    requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")  # fineness_ratio: a default, noted, when the ore has none
+    t10_convention = "energy"
+
+    def __init__(self, ore: BreakageParameters, fineness_ratio: float | None = None) -> None:
+        c = ore.fineness_ratio if fineness_ratio is None else fineness_ratio
+        notes = ore.notes
+        if c is None:
+            c = DEFAULT_FINENESS_RATIO
+            notes = (*notes, f"energy_t10 fineness ratio of {ore.name} is the default {c:g} "
+                     "(ab_t10's fragments): fit it to single-impact tests (msmill calibrate)")
+        if not (np.isfinite(c) and c > 0):
+            raise MsmillInputError("fineness_ratio", c, "a finite number > 0")
+        super().__init__(dataclasses.replace(ore, fineness_ratio=float(c), notes=notes))
+
+    def fragment_index(self, ecs_kwh_t, size_mm, damage):
+        """``t10 / A = 1 - exp(-c x)`` of the fragments (``x`` the Eq. 11 exponent; no underflow at large x)."""
+        o = self.ore
+        x = (o.b_t_kwh * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float)
+             / (o.l_ref_mm * (1.0 - np.asarray(damage, dtype=float))))
+        return -np.expm1(-o.fineness_ratio * np.maximum(x, 0.0))
+
+    def __repr__(self) -> str:
+        return f"{super().__repr__()[:-1]}, c={self.ore.fineness_ratio:.4g})"
+
+
+def fragment_index(breakage: Any, ecs_kwh_t: np.ndarray, size_mm: np.ndarray, damage: np.ndarray,
+                   pb: np.ndarray) -> np.ndarray:
+    """What indexes ``breakage``'s fragments: its ``fragment_index`` where it has one, else ``pb``."""
+    f = getattr(breakage, "fragment_index", None)
+    return pb if f is None else np.broadcast_to(f(ecs_kwh_t, size_mm, damage), np.shape(pb))
+
+
 def simulate_lab_test(breakage: BreakageModel, size_mm: np.ndarray, ecs_kwh_t: np.ndarray) -> np.ndarray:
     """Population t10 (%) of a drop-weight test simulated through a breakage sub-model.
 
@@ -757,7 +836,8 @@ def simulate_lab_test(breakage: BreakageModel, size_mm: np.ndarray, ecs_kwh_t: n
     parent = edges.size - 2
     below = int(np.flatnonzero(np.isclose(edges, 0.1))[0])  # classes < below lie under a tenth
     pb = np.asarray(breakage.probability(e, size, np.zeros_like(e)), dtype=float)
-    cols = breakage.fragments(edges, np.full(pb.shape, parent), pb)
+    cols = breakage.fragments(edges, np.full(pb.shape, parent),
+                              fragment_index(breakage, e, size, np.zeros_like(e), pb))
     return 100.0 * pb * cols[..., :below].sum(axis=-1)
 
 
@@ -870,7 +950,8 @@ SUBMODELS: dict[str, dict[str, Any]] = {
                   "dem_matrix_fill": FillingMatrixTransport},
     "impacts": {"speed_scaled": SpeedScaledImpacts, "dem": DemImpacts,
                 "primary_only": NoSecondaryImpacts},
-    "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "none": NoBreakage},
+    "breakage": {"jk_t10": JkT10Breakage, "ab_t10": AbT10Breakage, "energy_t10": EnergyT10Breakage,
+                 "none": NoBreakage},
     "damage": {"tavares": TavaresDamage, "none": NoDamage},
 }
 DEFAULTS: dict[str, str] = {"transport": "dem_matrix_fill", "impacts": "speed_scaled",

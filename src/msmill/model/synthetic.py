@@ -107,7 +107,7 @@ def model_surveys(ore_name: str, specs: list[tuple[str, dict, float, dict]], tru
     for e, frac in zip(drafts, prods, strict=True):
         kw = None
         if mill is not None:
-            kw = power(e, mill.run(e.feed_psd, e.operating_point(), timeseries=False))
+            kw = power(e, mill.run(e.feed_psd, e.operating_point(), timeseries=False, held_below=False))
         text = how or ("msmill expected-value model at " + ", ".join(f"{k} = {v:g}" for k, v in true_changes.items()))
         out.append(synthetic_survey(e.id, ore_name, e.raw["feed"], e.feed_tph, e.operating,
                                     PSD(model.grid, frac, validate=False), sigma, rng, text, kw))

@@ -110,6 +110,8 @@ class SurveyModel:
         self.surveys = list(surveys)
         self.grid = grid or model_grid_for(self.surveys)
         provider = load_provider(stage_parameters) if isinstance(stage_parameters, str) else stage_parameters
+        self.provider = provider
+        self._mill_options = dict(mill_options)
         # the K-S and the fit use the posterior-mean prediction: no uncertainty band per solve
         self.mill = Mill(ore, provider, grid=self.grid, solver="expected_value",
                          **{"band_samples": 0, **mill_options})
@@ -176,6 +178,10 @@ class SurveyModel:
         return np.array([measured_ks(e.product_psd, PSD(self.grid, products[i], validate=False))
                          for i, e in enumerate(self.surveys)])
 
+    def with_provider(self, provider: Any) -> SurveyModel:
+        """The same surveys, grid, ore parameters and sub-models with another stage-parameter provider."""
+        return SurveyModel(self.ore, self.surveys, provider, grid=self.grid, **self._mill_options)
+
     def with_ore(self, **changes: Any) -> sm.BreakageParameters:
         """The ore parameters with some fields replaced (``l_ref_mm``, ``A_pct``, ``gamma`` ...)."""
         return dataclasses.replace(self.ore, **changes)
@@ -239,7 +245,7 @@ def validate(experiments: Any, stage_parameters: Any = "default", ores: dict[str
             mills[e.ore] = Mill(ore, provider, grid=grid, **{"band_samples": 0, **mill_options})  # K-S of the mean
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = mills[e.ore].run(e.feed_psd, e.operating_point(), timeseries=False)
+            res = mills[e.ore].run(e.feed_psd, e.operating_point(), timeseries=False, held_below=False)
         ks = measured_ks(e.product_psd, res.product_psd)
         pw = power_estimate(res)
         op = e.operating_point

@@ -195,6 +195,6 @@ def is_surrogate_file(path: str | Path) -> bool:
     p = Path(path)
     if p.suffix.lower() != ".json" or not p.is_file():
         return False
-    with p.open(encoding="utf-8") as fh:
-        head = fh.read(4096)
+    with p.open("rb") as fh:
+        head = fh.read(4096).decode("utf-8", errors="replace")  # a binary file is not one (callers say why)
     return f'"kind": "{KIND}"' in head

@@ -76,6 +76,12 @@ class SurrogateProvider:
         return cls(load(path), source=Path(path).name)
 
     @property
+    def covered_sizes_mm(self) -> tuple[float, float]:
+        """Smallest and largest rock size (mm) of the training runs."""
+        lo, hi = self.surrogate.domain_[0]
+        return float(lo), float(hi)
+
+    @property
     def n_stages(self) -> int:
         """Number of stages of the surrogate."""
         return self.surrogate.n_stages

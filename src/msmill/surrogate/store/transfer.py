@@ -25,7 +25,12 @@ from typing import Any
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
 from msmill.surrogate.store.core import Store
-from msmill.surrogate.store.hashing import canonical_statistics, file_sha256, read_statistics
+from msmill.surrogate.store.hashing import (
+    canonical_statistics,
+    file_sha256,
+    read_statistics,
+    statistics_hash,
+)
 
 __all__ = ["EXPORT_KIND", "IngestResult", "export_runs", "ingest_paths"]
 
@@ -134,7 +139,12 @@ def export_document(store: Store, run_id: int) -> dict[str, Any]:
 
 
 def export_runs(store: Store, out_dir: str | Path, campaign: str | None = None) -> list[Path]:
-    """Write one ``run-<hash>.json`` per done run (sorted keys, stable text for git); returns the paths."""
+    """Write one ``run-<hash>.json`` per done run (sorted keys, stable text for git); returns the paths.
+
+    A document already in ``out_dir`` under another name whose run is one of those written (its
+    statistics hash to a written run's under today's schema: it was exported before the statistics
+    gained an optional field) is removed, so re-exporting an ingested folder never leaves a run twice.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -144,4 +154,22 @@ def export_runs(store: Store, out_dir: str | Path, campaign: str | None = None) 
         p = out / name
         p.write_text(json.dumps(doc, indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
         written.append(p)
+    _remove_renamed(out, written)
     return written
+
+
+def _remove_renamed(out: Path, written: list[Path]) -> None:
+    """Remove the documents in ``out`` that hold a run of ``written`` under an older hash."""
+    hashes = {json.loads(p.read_text(encoding="utf-8"))["content_hash"] for p in written}
+    names = {p.name for p in written}
+    for old in sorted(out.glob("run-*.json")):
+        if old.name in names:
+            continue
+        try:
+            doc = json.loads(old.read_text(encoding="utf-8"))
+            stats = read_statistics(doc["statistics"], source=old.name)
+            h = statistics_hash(stats, doc["machine_hash"])
+        except (json.JSONDecodeError, KeyError, TypeError, MsmillInputError):
+            continue
+        if h in hashes and h != doc.get("content_hash"):
+            old.unlink()
