@@ -139,6 +139,8 @@ def whiten_beta_star(alpha: float, beta: float) -> float:
     def f(bs: float) -> float:
         return (1.0 + beta * bs) * ea - 0.5 * (math.exp(alpha * bs) + ea - 1.0)
 
+    if f(1.0) <= 0.0:  # f(1) = beta (e^alpha - 1) > 0 in exact arithmetic; a tiny beta rounds it away
+        return 1.0
     hi = 2.0
     while f(hi) > 0.0:
         hi *= 2.0
