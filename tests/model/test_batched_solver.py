@@ -186,3 +186,22 @@ def test_tavares_table_lookup_equals_np_interp():
     ratio = bk.survivor_energy_ratio(e, 10.0, ORE.b_t_kwh, ORE.l_ref_mm, 0.2)
     want = 1.0 - 0.8 * (1.0 - np.interp(ratio, DAMAGE._r, DAMAGE._dd))
     np.testing.assert_allclose(d_new, want, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("impacted", ["refeed", "all"])
+@pytest.mark.parametrize("fallback", [False, True], ids=["batched", "one_by_one"])
+def test_steady_products_of_several_feeds_are_each_feeds_products(impacted, fallback):
+    """Feeds (N, K) at once (the identity: every member's transfer matrix, as circuits use it) give each
+    column's product, on the batched sweep and on the one-by-one fallback."""
+    rng = np.random.default_rng(7)
+    transports, stats = _members(rng, 3, True)
+    brk = UpwardBreakage(ORE) if fallback else BREAKAGE
+    feeds = np.column_stack([rng.dirichlet(np.ones(N)) for _ in range(4)])
+    tps = rng.uniform(0.1, 2.0, 3)
+    got = ev.steady_products(EDGES, transports, stats, brk, DAMAGE, 2, 3, impacted, feeds, tps)
+    assert got.shape == (3, N, 4)
+    for k in range(4):
+        one = ev.steady_products(EDGES, transports, stats, brk, DAMAGE, 2, 3, impacted, feeds[:, k], tps)
+        np.testing.assert_allclose(got[..., k], one, rtol=1e-10, atol=1e-14)
+    eye = ev.steady_products(EDGES, transports, stats, brk, DAMAGE, 2, 3, impacted, np.eye(N), np.ones(3))
+    np.testing.assert_allclose(np.einsum("bij,jk->bik", eye, feeds) * tps[:, None, None], got, rtol=1e-9, atol=1e-14)

@@ -164,7 +164,7 @@ def test_whiten_curve():
     np.testing.assert_allclose(whiten_fine_partition(x, 0.6875, 2.6e-61, 0.0), whiten_fine_partition(x, 0.6875, 0.0, 0.0))
     # sharpness: a larger alpha classifies more sharply around d50c
     assert whiten_fine_partition(0.8, 10.0, 0.0, 0.0) > whiten_fine_partition(0.8, 2.0, 0.0, 0.0)
-    with pytest.raises(MsmillInputError, match="s.beta"):
+    with pytest.raises(MsmillInputError, match=r"s\.beta"):
         Screen("s", d50c_mm=2.0, alpha=3.0, beta=2.0, bypass=0.0)  # the hook would send > 100 % to fines
 
 

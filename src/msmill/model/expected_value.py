@@ -620,14 +620,15 @@ def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactSt
         One-step transport of every member.
     stats : list of ImpactStatistics
         Impact statistics (S, N) of every member.
-    feed_fractions : ndarray (N,)
-        Feed mass fractions per size class.
+    feed_fractions : ndarray (N,) or (N, K)
+        Feed mass fractions per size class (K feeds at once: e.g. the identity gives every
+        member's transfer matrix, product per class per unit feed per class).
     tonnes_per_step : ndarray (B,)
         Feed of one step of every member (t).
 
     Returns
     -------
-    ndarray (B, N)
+    ndarray (B, N), or (B, N, K) for K feeds
         Product of one step at steady state by size class (t).
     """
     trs = [as_transition(t) for t in transports]
@@ -644,13 +645,16 @@ def steady_products(edges_mm: np.ndarray, transports: list, stats: list[ImpactSt
         b, n_st, n = hit.shape
         G4 = ops.G.reshape(b, n_st, n, n_damage, n, n_damage)
         if not np.any(G4.transpose(0, 1, 3, 5, 2, 4)[..., np.tril(np.ones((n, n), dtype=bool), -1)]):
-            f = np.zeros((b, n_st + 1, n, n_damage))
-            f[:, trs[0].feed_compartment, :, 0] = np.asarray(feed_fractions, dtype=float) * tps[:, None]
+            ff = np.asarray(feed_fractions, dtype=float)
+            f = np.zeros((b, n_st + 1, n, n_damage, *ff.shape[1:]))
+            f[:, trs[0].feed_compartment, :, 0] = ff[None] * tps.reshape(-1, *(1,) * ff.ndim)
             return _size_sweep(T, G4, ops.G, f, impacted)
     out = []
     for tr, st, t in zip(trs, stats, tps, strict=True):
         lm = assemble(edges_mm, tr, st, breakage, damage, n_damage, n_nodes, impacted)
-        out.append(np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(feed_fractions, t))))
+        ff = np.asarray(feed_fractions, dtype=float)
+        cols = [np.asarray(lm.out_op @ lm.steady_state(lm.feed_vector(c, t))) for c in ff.reshape(ff.shape[0], -1).T]
+        out.append(np.stack(cols, axis=-1).reshape(ff.shape))
     return np.array(out)
 
 
@@ -675,11 +679,14 @@ def _size_sweep(T: np.ndarray, G4: np.ndarray, G: np.ndarray, f: np.ndarray, imp
     """Steady state of a batch of mills by size class from the top; returns the product (B, N) (t/step).
 
     ``T`` (B, C, N, C+1) transitions, ``G4`` the stage operators (B, S, N, nd, N, nd)
-    (``G`` the same as (B, S, ns, ns)), ``f`` the feed of one step (B, C, N, nd).
+    (``G`` the same as (B, S, ns, ns)), ``f`` the feed of one step (B, C, N, nd), or
+    (B, C, N, nd, K) for K feeds at once (then the product is (B, N, K)).
     With ``impacted="refeed"`` a stage's operator acts on the mass that stays
     (``G_c T_cc``), with ``"all"`` on all its mass before it moves (``T_c. G_c``).
     """
-    b, n_c, n, nd = f.shape
+    if f.ndim == 4:
+        return _size_sweep(T, G4, G, f[..., None], impacted)[..., 0]
+    b, n_c, n, nd, k = f.shape
     m = n_c * nd
     ii = np.arange(n)
     Gd = np.moveaxis(G4[:, :, ii, :, ii, :], 0, 2)  # (B, S, N, nd, nd): within-class blocks
@@ -692,24 +699,25 @@ def _size_sweep(T: np.ndarray, G4: np.ndarray, G: np.ndarray, f: np.ndarray, imp
         else:
             A[:, :, :, :, c, :] = Tt[:, :, :, c, None, None] * Gd[:, c - 1][:, :, None]
     A = np.eye(m) - A.reshape(b, n, m, m)
-    x = np.zeros((b, n_c, n, nd))
-    h = np.zeros((b, n_c - 1, n, nd))  # fragments from larger classes, per stage and class
+    x = np.zeros((b, n_c, n, nd, k))
+    h = np.zeros((b, n_c - 1, n, nd, k))  # fragments from larger classes, per stage and class
     for i in range(n - 1, -1, -1):
         r = f[:, :, i].copy()
         if impacted == "refeed":
             r[:, 1:] += h[:, :, i]
         else:
-            r += np.einsum("bcs,bsd->bcd", Tt[:, i, :, 1:], h[:, :, i])
+            r += np.einsum("bcs,bsdk->bcdk", Tt[:, i, :, 1:], h[:, :, i])
         try:
-            x[:, :, i] = np.linalg.solve(A[:, i], r.reshape(b, m, 1)).reshape(b, n_c, nd)
+            x[:, :, i] = np.linalg.solve(A[:, i], r.reshape(b, m, k)).reshape(b, n_c, nd, k)
         except np.linalg.LinAlgError:
             x[:, :, i] = np.nan
-        u = x[:, 1:, i] * (stay[:, :, i, None] if impacted == "refeed" else 1.0)  # (B, S, nd)
-        h[:, :, :i] += np.einsum("bskxd,bsd->bskx", G4[:, :, :i, :, i, :], u)
+        u = x[:, 1:, i] * (stay[:, :, i, None, None] if impacted == "refeed" else 1.0)  # (B, S, nd, K)
+        h[:, :, :i] += np.einsum("bsjxd,bsdk->bsjxk", G4[:, :, :i, :, i, :], u)
     if not np.all(np.isfinite(x)):
         raise MsmillError("the mill never empties (no outflow for some rock); check the bottom stage's pass-through")
     x = np.maximum(x, 0.0)
     if impacted == "refeed":
-        return np.einsum("bcn,bcn->bn", T[..., -1], x.sum(axis=-1))
-    hit = (G @ x[:, 1:].reshape(b, n_c - 1, n * nd, 1)).reshape(b, n_c - 1, n, nd)
-    return T[:, 0, :, -1] * x[:, 0].sum(axis=-1) + np.einsum("bcn,bcn->bn", T[:, 1:, :, -1], hit.sum(axis=-1))
+        return np.einsum("bcn,bcnk->bnk", T[..., -1], x.sum(axis=3))
+    hit = (G @ x[:, 1:].reshape(b, n_c - 1, n * nd, k)).reshape(b, n_c - 1, n, nd, k)
+    return (T[:, 0, :, -1, None] * x[:, 0].sum(axis=2)
+            + np.einsum("bcn,bcnk->bnk", T[:, 1:, :, -1], hit.sum(axis=3)))
