@@ -281,3 +281,81 @@ def test_mill_unit_in_a_circuit_finishes_at_its_own_feed_rate(table_mill):
     assert res.product_tph == pytest.approx(20.0, rel=1e-9)
     assert res.circulating_load_pct > 0
     assert res.product_p80_mm < 8.0
+
+
+def test_mill_feed_rate_that_does_not_settle_is_one_line(table_mill):
+    unit, grid = table_mill
+    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
+    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
+                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
+                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        with pytest.raises(CircuitNotConverged) as exc:
+            c.solve(max_rebuilds=0)  # operators built at the fresh rate only
+    msg = str(exc.value)
+    assert "\n" not in msg and "did not settle in 0 rebuilds" in msg
+    fed, built = (float(msg.split(k)[1].split(" ")[0]) for k in ("fed ", "built at "))
+    assert built == pytest.approx(20.0) and fed > 25.0  # the recycle came on top of the fresh feed
+
+
+@pytest.fixture(scope="module")
+def ug2_circuit():
+    """The shipped example (default surrogate), solved, and its 64-sample band."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "ug2_closed_circuit.toml"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cf = CircuitFile.from_toml(path)
+        res = cf.solve()
+        band = cf.circuit.band(res, 64)
+    return cf, res, band
+
+
+def test_band_holds_the_prediction_and_every_sample_balances(ug2_circuit):
+    _, res, band = ug2_circuit
+    lo, hi = band.circulating_load_band_pct
+    assert lo < res.circulating_load_pct < hi
+    lo, hi = band.product_p80_band_mm
+    assert lo < res.product_p80_mm < hi
+    assert band.circulating_load_pct.shape == (64,) and np.ptp(band.circulating_load_pct) > 1.0
+    mill_feed = band.mill_feed_tph["mill"]  # fresh + recycle, per sample
+    np.testing.assert_allclose(mill_feed, 20.0 * (1 + band.circulating_load_pct / 100.0), rtol=1e-9)
+
+
+def test_band_sample_agrees_with_that_sample_solved_alone(ug2_circuit):
+    """Sample k of the band (transfer matrices interpolated in feed rate) against a circuit whose mill takes
+    posterior sample k wherever it is asked (PosteriorSample), solved by rebuilding at its own rates."""
+    import copy
+
+    from msmill.model.providers import posterior_samples
+
+    cf, res, band = ug2_circuit
+    c = cf.circuit
+    mu = c.units["mill"]
+    mill = copy.copy(mu.mill)
+    mill.provider = posterior_samples(mu.mill.provider, 64, 0)[0]
+    mill._cache, mill.damage_classes, mill.quadrature_nodes = {}, mill.band_damage_classes, mill.band_quadrature_nodes
+    alone = Circuit([MillUnit("mill", mill, mu.operating) if n == "mill" else u for n, u in c.units.items()],
+                    list(c.streams.values()), grid=c.grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = alone.solve()
+    assert abs(band.circulating_load_pct[0] - r.circulating_load_pct) < 0.05 * r.circulating_load_pct
+    assert band.product_p80_mm[0] == pytest.approx(r.product_p80_mm, rel=0.02)
+    # the sample sits far from the prediction: the agreement is not the band's width
+    assert abs(r.circulating_load_pct - res.circulating_load_pct) > 0.1 * res.circulating_load_pct
+
+
+def test_band_needs_posterior_samples(table_mill):
+    unit, grid = table_mill
+    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
+    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
+                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
+                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        res = c.solve()
+    with pytest.raises(MsmillInputError, match="posterior samples"):
+        c.band(res, 8)

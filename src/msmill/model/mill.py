@@ -423,19 +423,45 @@ class Mill:
         speeds = op.stage_speeds(self.provider.n_stages)
         samples = self.provider.sample_stage_parameters(grid.mids_mm, self.band_samples, speeds,
                                                         op.feed_tph, op.gate_deg, seed=self.seed or 0)
-        speeds_rpm = np.asarray(speeds, dtype=float)
-        transports = [sm.transition_of(self.transport, p) for p in samples]
-        stats = [sm.without_stopped_rotors(self.impacts.impacts(p, speeds_rpm), speeds_rpm) for p in samples]
-        tps = np.array([op.feed_tph * p.characteristic_time_s / 3600.0 for p in samples])
-        products = steady_products(grid.edges_mm, transports, stats, self.breakage, self.damage,
-                                   self.band_damage_classes, self.band_quadrature_nodes, self.impacted,
-                                   feed.fractions, tps)  # all samples in one batch
+        products = self.batch_products(grid, op, samples, feed.fractions)  # all samples in one batch
         passing, p80 = [], []
         for product in np.clip(products, 0.0, None):
             psd = PSD(grid, product / product.sum(), validate=False)
             passing.append(psd.passing_pct)
             p80.append(psd.p80_mm)
         return np.array(passing), np.array(p80)
+
+    def batch_products(self, grid: SizeGrid, op: Any, params: list, feed_fractions: np.ndarray,
+                       tonnes_per_step: np.ndarray | None = None) -> np.ndarray:
+        """Steady products of a batch of stage-parameter sets (e.g. posterior samples) at ``op``, solved together.
+
+        At the band's resolution (``band_damage_classes``, ``band_quadrature_nodes``) by
+        :func:`msmill.model.expected_value.steady_products`.
+
+        Parameters
+        ----------
+        params : list of StageParameters
+            One set per member, at ``grid.mids_mm``.
+        feed_fractions : ndarray (N,) or (N, K)
+            Feed mass fractions (K feeds at once: the identity gives transfer matrices).
+        tonnes_per_step : ndarray (B,), optional
+            Feed of one step of each member (t); default ``op.feed_tph`` over each member's
+            characteristic time.
+
+        Returns
+        -------
+        ndarray (B, N) or (B, N, K)
+            Product of one step by size class (t).
+        """
+        speeds_rpm = np.asarray(op.stage_speeds(self.provider.n_stages), dtype=float)
+        transports = [sm.transition_of(self.transport, p) for p in params]
+        stats = [sm.without_stopped_rotors(self.impacts.impacts(p, speeds_rpm), speeds_rpm) for p in params]
+        if tonnes_per_step is None:
+            tonnes_per_step = np.array([op.feed_tph * p.characteristic_time_s / 3600.0 for p in params])
+        with _single_threaded_blas():
+            return steady_products(grid.edges_mm, transports, stats, self.breakage, self.damage,
+                                   self.band_damage_classes, self.band_quadrature_nodes, self.impacted,
+                                   feed_fractions, tonnes_per_step)
 
     def _march(self, lm: LinearMill, f: np.ndarray, max_steps: int) -> tuple[np.ndarray, ...]:
         x = np.zeros(lm.n_state)

@@ -25,7 +25,6 @@ Layout::
     type = "mill"                # the sections of a run file that describe a mill:
     ore = { name = "UG2" }       # [ore], [operating], [machine], [stage_parameters], [model]
     operating = { speed_rpm = 1500.0, gate_deg = 40.0 }
-    # rate_tol = 1e-3            # relative feed-rate change that rebuilds the mill's operators
 
     [[units]]
     name = "screen"
@@ -62,7 +61,6 @@ from pydantic import ConfigDict, Field, ValidationError
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.circuit.solve import DEFAULT_MAX_ITERATIONS, DEFAULT_TOL, METHODS, Circuit, Stream
 from msmill.model.circuit.units import (
-    DEFAULT_RATE_TOL,
     UNITS,
     BreakageMatrixMill,
     FreshFeed,
@@ -131,13 +129,12 @@ def _unit(i: int, table: Any, name: str, base_dir: Path, grid: GridSpec) -> Any:
             _no_keys(spec, where, ("matrix",))
             return _renamed(where, uname, lambda: BreakageMatrixMill(uname, spec.get("matrix")))
         if utype == "mill":
+            from msmill.model.mill import DEFAULT_PASSING_SIZES_MM
             from msmill.model.runfile import MillSpec
 
-            rate_tol = spec.pop("rate_tol", DEFAULT_RATE_TOL)
             ms = MillSpec.model_validate({**spec, "base_dir": base_dir, "name": where})
-            mill = ms.build_mill(None, (0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0), band_samples=0)
-            return _renamed(where, uname, lambda: MillUnit(uname, mill, ms.operating.model_dump(exclude_none=True),
-                                                           rate_tol))
+            mill = ms.build_mill(None, DEFAULT_PASSING_SIZES_MM, band_samples=0)  # the circuit's band is its own
+            return _renamed(where, uname, lambda: MillUnit(uname, mill, ms.operating.model_dump(exclude_none=True)))
     except ValidationError as exc:
         raise from_validation_error(exc, prefix=where) from None
     raise AssertionError(utype)  # pragma: no cover - every registered type is handled above

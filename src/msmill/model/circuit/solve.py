@@ -23,12 +23,20 @@ import numpy as np
 import pandas as pd
 
 from msmill.errors import MsmillError, MsmillInputError
-from msmill.model.circuit.units import FINAL_RATE_TOL, FreshFeed, MillUnit, Product, Unit
+from msmill.model.circuit.units import RATE_TOL, FreshFeed, MillUnit, Product, SampleTransfers, Unit
+from msmill.model.mill import BAND_LIMITS_PCT, DEFAULT_BAND_SAMPLES, MAX_BAND_SAMPLES
 from msmill.psd import PSD, SizeGrid
 
 METHODS = ("wegstein", "direct")
 DEFAULT_TOL = 1e-10
 DEFAULT_MAX_ITERATIONS = 500
+DEFAULT_MAX_REBUILDS = 30
+#: Smallest reach of the band's feed rates below and above the circuit's (relative).
+BAND_MIN_RATE_STEP = 0.02
+#: Feed rates at which the band builds every sample's mill transfer matrices, and how far beyond
+#: the samples' first-pass rates they reach (fraction of their span).
+BAND_RATE_NODES = 7
+BAND_RATE_MARGIN = 0.15
 #: Bounds of Wegstein's relaxation ``q`` (negative: acceleration; 0: direct substitution).
 WEGSTEIN_Q_MIN = -20.0
 WEGSTEIN_Q_MAX = 0.0
@@ -121,6 +129,9 @@ class Circuit:
         self.grid = grid
         for u in self.units.values():
             u.bind(grid)
+        self._into: dict[str, list[str]] = {u: [s.name for s in self.streams.values() if s.target == u]
+                                            for u in self.units}
+        self._out_of = {(s.source, s.outlet): s.name for s in self.streams.values()}
 
     def _check_loops(self) -> None:
         """Every strongly connected group of units (a recycle loop) holds a unit that breaks rock."""
@@ -147,59 +158,42 @@ class Circuit:
         return float(sum(u.rate_tph for u in self.units.values() if isinstance(u, FreshFeed)))
 
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """One pass through the units with tear-stream flows ``x`` (T, N) (t/h per class).
+        """One pass through the units with tear-stream flows ``x`` (..., T, N) (t/h per class).
 
-        Returns the new tear flows ``g(x)`` (T, N), every stream's flow and every unit's feed.
+        Returns the new tear flows ``g(x)`` (..., T, N), every stream's flow and every unit's feed
+        (leading axes: posterior samples, when the band is solved).
         """
-        n = self.grid.n_classes
-        flows: dict[str, np.ndarray] = {t: x[k] for k, t in enumerate(self.tears)}
+        lead = x.shape[:-2]
+        flows: dict[str, np.ndarray] = {t: x[..., k, :] for k, t in enumerate(self.tears)}
         new: dict[str, np.ndarray] = {}
         feeds: dict[str, np.ndarray] = {}
-        into: dict[str, list[str]] = {u: [] for u in self.units}
-        for s in self.streams.values():
-            into[s.target].append(s.name)
-        out_of = {(s.source, s.outlet): s.name for s in self.streams.values()}
         for name in self.order:
-            u = self.units[name]
-            feed = np.zeros(n)
-            for sname in into[name]:
+            feed = np.zeros((*lead, self.grid.n_classes))
+            for sname in self._into[name]:
                 feed = feed + flows[sname]
             feeds[name] = feed
-            for outlet, q in u.apply(feed).items():
-                sname = out_of[name, outlet]
-                if sname in self.tears:
-                    new[sname] = q
-                else:
-                    flows[sname] = q
-        gx = np.array([new[t] for t in self.tears]).reshape(len(self.tears), n)
+            for outlet, q in self.units[name].apply(feed).items():
+                sname = self._out_of[name, outlet]
+                (new if sname in self.tears else flows)[sname] = np.broadcast_to(q, feed.shape)
+        gx = np.stack([new[t] for t in self.tears], axis=-2) if self.tears else np.zeros((*lead, 0, self.grid.n_classes))
         return gx, flows, feeds
 
-    def solve(self, method: str = "wegstein", tol: float = DEFAULT_TOL,
-              max_iterations: int = DEFAULT_MAX_ITERATIONS) -> CircuitResult:
-        """Steady state by tear streams (module docstring); raises :class:`CircuitNotConverged`."""
-        from msmill.validate import integer, number
+    def iterate(self, x: np.ndarray, method: str = "wegstein", tol: float = DEFAULT_TOL,
+                max_iterations: int = DEFAULT_MAX_ITERATIONS) -> tuple[np.ndarray, dict, dict, list[float]]:
+        """Tear-stream iteration from ``x`` (..., T, N) with the units as they are (a mill's operators fixed).
 
-        if method not in METHODS:
-            raise MsmillInputError("method", method, " or ".join(METHODS))
-        tol = number(tol, "tol", gt=0, lt=1)
-        max_iterations = integer(max_iterations, "max_iterations", ge=1, le=100000)
+        Returns the converged tear flows, the streams' and units' feeds of the last pass and the
+        residual of every pass (the largest over samples); raises :class:`CircuitNotConverged`.
+        """
         fresh = self.fresh_tph
-        x = np.zeros((len(self.tears), self.grid.n_classes))
         x_prev = g_prev = None
         history: list[float] = []
-        for it in range(1, max_iterations + 1):
+        for _ in range(max_iterations):
             gx, flows, feeds = self.evaluate(x)
-            res = float(np.abs(gx - x).sum()) / fresh
+            res = float(np.abs(gx - x).sum(axis=(-2, -1)).max(initial=0.0)) / fresh
             history.append(res)
             if res <= tol:
-                loose = [u for n, u in self.units.items() if isinstance(u, MillUnit)
-                         and u.rate_mismatch(float(feeds[n].sum())) > FINAL_RATE_TOL]
-                if not loose:
-                    return self._result(x, flows, feeds, method, it, res, history)
-                for u in loose:  # converged on operators built near the rate: finish on ones built at it
-                    u.active_rate_tol = FINAL_RATE_TOL
-                x_prev = g_prev = None
-                continue
+                return x, flows, feeds, history
             if not np.all(np.isfinite(gx)):
                 break
             if method == "wegstein" and x_prev is not None:
@@ -219,6 +213,137 @@ class Circuit:
             f"relative mass-balance error {history[-1]:.3g} (tolerance {tol:.3g}); raise max_iterations, try "
             f"method={'direct' if method == 'wegstein' else 'wegstein'}, or check the recycle")
 
+    def solve(self, method: str = "wegstein", tol: float = DEFAULT_TOL,
+              max_iterations: int = DEFAULT_MAX_ITERATIONS, max_rebuilds: int = DEFAULT_MAX_REBUILDS) -> CircuitResult:
+        """Steady state by tear streams (module docstring); raises :class:`CircuitNotConverged`.
+
+        With the mills' operators fixed the circuit is linear; :meth:`iterate` converges it. Then
+        every mill whose feed rate ``r`` differs from the rate ``r_0`` its operators were built at
+        by more than :data:`~msmill.model.circuit.units.RATE_TOL` is rebuilt at the next rate of the
+        same method on the rate (direct: ``r``; Wegstein: the secant step through the last two
+        ``(r_0, r)`` pairs) and the streams are converged again from where they were, until no mill
+        needs rebuilding (at most ``max_rebuilds`` rounds).
+        """
+        from msmill.validate import integer, number
+
+        if method not in METHODS:
+            raise MsmillInputError("method", method, " or ".join(METHODS))
+        tol = number(tol, "tol", gt=0, lt=1)
+        max_iterations = integer(max_iterations, "max_iterations", ge=1, le=100000)
+        max_rebuilds = integer(max_rebuilds, "max_rebuilds", ge=0, le=1000)
+        mills = {n: u for n, u in self.units.items() if isinstance(u, MillUnit)}
+        for u in mills.values():
+            u.samples = None
+        x = np.zeros((len(self.tears), self.grid.n_classes))
+        history: list[float] = []
+        last: dict[str, tuple[float, float]] = {}  # mill: (rate its operators were built at, its feed rate)
+        for round_ in range(max_rebuilds + 1):
+            x, flows, feeds, h = self.iterate(x, method, tol, max(max_iterations - len(history), 1))
+            history += h
+            loose = {n: u for n, u in mills.items() if u.rate_mismatch(float(feeds[n].sum())) > RATE_TOL}
+            if not loose:
+                for u in mills.values():
+                    for message, category in u.build_warnings:
+                        warnings.warn(message, category, stacklevel=2)
+                return self._result(x, flows, feeds, method, len(history), history[-1], history)
+            for n, u in loose.items():
+                r0, r = u.operator_rate_tph, float(feeds[n].sum())
+                if round_ == max_rebuilds:
+                    last[n] = (r0, r)
+                    continue
+                nxt = r
+                if method == "wegstein" and n in last and last[n][0] != r0:
+                    s = (r - last[n][1]) / (r0 - last[n][0])
+                    if abs(s - 1.0) > 1e-12:
+                        q = min(max(s / (s - 1.0), WEGSTEIN_Q_MIN), WEGSTEIN_Q_MAX)
+                        nxt = q * r0 + (1.0 - q) * r
+                last[n] = (r0, r)
+                u.rebuild(nxt if nxt > 0 else r)
+        n = max(loose, key=lambda m: abs(last[m][1] - last[m][0]) / last[m][0])
+        r0, r = last[n]
+        raise CircuitNotConverged(
+            f"{self.prefix}: mill {n}'s feed rate did not settle in {max_rebuilds} rebuilds of its operators: fed "
+            f"{r:.6g} t/h, built at {r0:.6g} t/h (relative difference {abs(r - r0) / r0:.3g}, tolerance "
+            f"{RATE_TOL:.3g}); raise max_rebuilds or try method=direct")
+
+    def band(self, result: CircuitResult, n_samples: int = DEFAULT_BAND_SAMPLES, seed: int = 0,
+             method: str | None = None, tol: float = DEFAULT_TOL,
+             max_iterations: int = DEFAULT_MAX_ITERATIONS, rate_nodes: int = BAND_RATE_NODES) -> CircuitBand:
+        """5-95 % band of the circulating load, product P80 and mill feed rates from posterior samples.
+
+        ``n_samples`` posterior samples of every mill's stage parameters
+        (:func:`msmill.model.providers.posterior_samples`, ``seed``) are solved together: each
+        mill unit gets every sample's transfer matrix (at the band's resolution,
+        :meth:`msmill.model.Mill.batch_products`) at the mill's feed rate in ``result``; a first
+        pass with those gives the samples' feed rates; then every sample's matrix is built at
+        ``rate_nodes`` rates spanning them and interpolated piecewise linearly at that sample's
+        own feed rate, and the tear-stream iteration runs again on all samples at once (streams
+        (K, N)). The band is the samples' 5 % and 95 %
+        quantiles relative to their median, added to ``result``'s own figures (so the band's
+        coarser resolution cancels, as in the mill's band).
+        """
+        from msmill.model.providers import posterior_samples
+        from msmill.validate import integer
+
+        n_samples = integer(n_samples, "band_samples", ge=2, le=MAX_BAND_SAMPLES)
+        rate_nodes = integer(rate_nodes, "rate_nodes", ge=2, le=50)
+        method = method or result.method
+        mills = {n: u for n, u in self.units.items() if isinstance(u, MillUnit)}
+        for n, u in mills.items():
+            if not hasattr(u.mill.provider, "sample_stage_parameters"):
+                raise MsmillInputError(f"{self.prefix}.units.{n}.stage_parameters", u.mill.provider.source,
+                                       "a provider with posterior samples (the default surrogate) for the band; "
+                                       "band samples = 0 without one")
+        members = {n: posterior_samples(u.mill.provider, n_samples, seed) for n, u in mills.items()}
+        rate = {n: float(result.unit_feeds_tph[n].sum()) for n in mills}
+        at_rate = {n: self._sample_transfers(u, members[n], rate[n]) for n, u in mills.items()}
+        x0 = np.broadcast_to(np.stack([result.flows_tph[t] for t in self.tears]) if self.tears
+                             else np.zeros((0, self.grid.n_classes)),
+                             (n_samples, len(self.tears), self.grid.n_classes)).copy()
+        try:
+            for n, u in mills.items():  # first pass: every sample's operators at the circuit's rate
+                u.samples = SampleTransfers([rate[n]], at_rate[n][None])
+            x, flows, feeds, h1 = self.iterate(x0, method, tol, max_iterations)
+            for n, u in mills.items():  # then at rates spanning the samples' own
+                rates = self._band_rates(rate[n], feeds[n].sum(axis=-1), rate_nodes)
+                u.samples = SampleTransfers(rates, np.stack([
+                    at_rate[n] if r == rate[n] else self._sample_transfers(u, members[n], r) for r in rates]))
+            x, flows, feeds, h2 = self.iterate(x, method, tol, max_iterations)
+        finally:
+            for u in mills.values():
+                u.samples = None
+        product = sum(flows[s.name] for s in self.streams.values() if isinstance(self.units[s.target], Product))
+        cl = 100.0 * sum(flows[r].sum(axis=-1) for r in result.recycle_streams) / self.fresh_tph
+        p80 = np.array([PSD(self.grid, q / q.sum(), validate=False).p80_mm for q in np.clip(product, 0.0, None)])
+        feeds_tph = {n: feeds[n].sum(axis=-1) for n in mills}
+        return CircuitBand(
+            n_samples=n_samples, seed=seed, iterations=len(h1) + len(h2),
+            circulating_load_pct=cl, product_p80_mm=p80, mill_feed_tph=feeds_tph,
+            circulating_load_band_pct=_shifted(result.circulating_load_pct, cl),
+            product_p80_band_mm=_shifted(result.product_p80_mm, p80),
+            mill_feed_band_tph={n: _shifted(rate[n], v) for n, v in feeds_tph.items()})
+
+    @staticmethod
+    def _band_rates(own_tph: float, samples_tph: np.ndarray, n_nodes: int) -> np.ndarray:
+        """``n_nodes`` evenly spaced feed rates (t/h) from below to above the samples' (widened by
+        :data:`BAND_RATE_MARGIN` of the span, at least :data:`BAND_MIN_RATE_STEP` of ``own_tph`` each
+        side), with ``own_tph`` (the circuit's rate, whose matrices are built already) one of them."""
+        lo = min(float(samples_tph.min()), own_tph * (1.0 - BAND_MIN_RATE_STEP))
+        hi = max(float(samples_tph.max()), own_tph * (1.0 + BAND_MIN_RATE_STEP))
+        pad = BAND_RATE_MARGIN * (hi - lo)
+        rates = np.linspace(max(lo - pad, 1e-3 * own_tph), hi + pad, n_nodes)
+        rates[np.argmin(np.abs(rates - own_tph))] = own_tph
+        return np.unique(rates)
+
+    def _sample_transfers(self, unit: MillUnit, members: list, feed_tph: float) -> np.ndarray:
+        """Transfer matrices (K, N, N) of posterior-sample ``members`` of ``unit``'s mill at ``feed_tph``."""
+        with warnings.catch_warnings():  # the circuit's own solve gave the stage parameters' warnings
+            warnings.simplefilter("ignore")
+            op = unit.operating_point(feed_tph)
+            speeds = op.stage_speeds(unit.mill.provider.n_stages)
+            params = [m.stage_parameters(self.grid.mids_mm, speeds, op.feed_tph, op.gate_deg) for m in members]
+            return unit.mill.batch_products(self.grid, op, params, np.eye(self.grid.n_classes), np.ones(len(members)))
+
     def _result(self, x, flows, feeds, method, iterations, residual, history) -> CircuitResult:
         for k, t in enumerate(self.tears):
             flows[t] = x[k]
@@ -232,6 +357,12 @@ class Circuit:
                              product_tph_by_class=np.asarray(product, dtype=float),
                              mass_balance_error=abs(fresh - float(np.sum(product))) / fresh,
                              circulating_load_pct=cl, recycle_streams=tuple(recycle))
+
+
+def _shifted(own: float, samples: np.ndarray) -> tuple[float, float]:
+    """``own`` plus the 5 % and 95 % quantiles of ``samples`` relative to their median."""
+    lo, mid, hi = np.percentile(samples, [BAND_LIMITS_PCT[0], 50.0, BAND_LIMITS_PCT[1]])
+    return float(own + lo - mid), float(own + hi - mid)
 
 
 def _one_of(what: str, names: Any) -> str:
@@ -278,6 +409,37 @@ def _tear_streams(units: list[str], streams: list[Stream]) -> tuple[tuple[str, .
                 if indeg[s.target] == 0:
                     ready.append(s.target)
     return tuple(tears), tuple(order)
+
+
+@dataclass(frozen=True)
+class CircuitBand:
+    """5-95 % band of a circuit's figures from posterior samples of its mills' stage parameters.
+
+    Attributes
+    ----------
+    n_samples, seed : int
+    iterations : int
+        Tear-stream passes of the samples' solve (all samples at once).
+    circulating_load_pct, product_p80_mm : ndarray (K,)
+        Each sample's circulating load (%) and product P80 (mm), at the band's resolution.
+    mill_feed_tph : dict
+        Each mill's feed rate (fresh plus recycle, t/h) per sample.
+    circulating_load_band_pct, product_p80_band_mm : (float, float)
+        The band: the circuit's own figure plus the samples' 5 % and 95 % quantiles relative to
+        their median.
+    mill_feed_band_tph : dict
+        The same for each mill's feed rate.
+    """
+
+    n_samples: int
+    seed: int
+    iterations: int
+    circulating_load_pct: np.ndarray
+    product_p80_mm: np.ndarray
+    mill_feed_tph: dict[str, np.ndarray]
+    circulating_load_band_pct: tuple[float, float]
+    product_p80_band_mm: tuple[float, float]
+    mill_feed_band_tph: dict[str, tuple[float, float]]
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """Circuit units: small registered classes behind one interface (:class:`Unit`).
 
 Every stream of a circuit is a vector of mass flow per size class of the
-circuit's :class:`~msmill.psd.SizeGrid` (t/h). A unit has named outlets and at
+circuit's :class:`~msmill.psd.SizeGrid` (t/h), or a stack of them (K, N), one row
+per posterior sample, when the circuit's uncertainty band is solved. A unit has named outlets and at
 most one inlet, ``"feed"`` (streams into it are summed); :meth:`Unit.apply`
 maps the inlet's flow to the outlets' flows. Units are registered by type name
 in :data:`UNITS` (:func:`register_unit`); a circuit file names them by type
@@ -76,7 +77,7 @@ class Unit(ABC):
 
     @abstractmethod
     def apply(self, feed_tph: np.ndarray) -> dict[str, np.ndarray]:
-        """Outlet flows (t/h per size class) for the inlet flow ``feed_tph`` (t/h per size class)."""
+        """Outlet flows (t/h per size class) for the inlet flow ``feed_tph`` (t/h per size class, (N,) or (K, N))."""
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r})"
@@ -270,14 +271,12 @@ class BreakageMatrixMill(Unit):
         super().bind(grid)
 
     def apply(self, feed_tph: np.ndarray) -> dict[str, np.ndarray]:
-        return {"product": self.matrix @ feed_tph}
+        return {"product": feed_tph @ self.matrix.T}
 
 
-#: Relative change of a mill's feed rate (t/h) above which its operators are rebuilt at the new rate.
-DEFAULT_RATE_TOL = 1e-3
-#: The same once the circuit has converged with ``rate_tol``: the solve goes on until every mill's
-#: operators were built within this of its feed rate.
-FINAL_RATE_TOL = 1e-6
+#: A circuit's steady state is accepted once every mill's operators were built within this relative
+#: difference of its feed rate (:meth:`msmill.model.circuit.Circuit.solve`).
+RATE_TOL = 1e-6
 
 
 @register_unit
@@ -292,32 +291,33 @@ class MillUnit(Unit):
     operating : dict
         :class:`msmill.machine.OperatingPoint` fields but the feed rate (``speed_rpm`` or
         ``stage_speeds_rpm``, ``bottom_speed_factor``, ``gate_deg``).
-    rate_tol : float
-        At a given feed rate the mill's steady state is linear in its feed, so the unit keeps the
-        transfer matrix ``T`` (product t/h per class for 1 t/h of feed in each class) and rebuilds it
-        (stage parameters at the new rate, every operator) only when its feed rate has moved by more
-        than ``rate_tol`` (relative) from the rate ``T`` was built at (:attr:`operator_rate_tph`);
-        once the circuit has converged, the solver goes on with :data:`FINAL_RATE_TOL`, so the
-        reported steady state uses operators built within 1e-6 of the mill's feed rate.
+
+    At a given feed rate the mill's steady state is linear in its feed, so the unit holds the
+    transfer matrix ``T`` (:meth:`transfer_matrix`: product t/h per class for 1 t/h of feed in each
+    class) built at :attr:`operator_rate_tph` and applies it to whatever it is fed. The circuit solver
+    converges the streams with ``T`` fixed, then :meth:`rebuild` s it at the mill's new feed rate,
+    until the two rates agree within :data:`RATE_TOL`.
+
+    For the circuit's uncertainty band the unit carries :attr:`samples` (a :class:`SampleTransfers`):
+    one transfer matrix per posterior sample at two feed rates, interpolated linearly at each
+    sample's own feed rate; the feed is then (K, N), one row per sample.
     """
 
     type_name = "mill"
     breaks_rock = True
 
-    def __init__(self, name: str, mill: Any, operating: dict[str, Any], rate_tol: float = DEFAULT_RATE_TOL) -> None:
+    def __init__(self, name: str, mill: Any, operating: dict[str, Any]) -> None:
         super().__init__(name, ("product",))
         if mill.solver != "expected_value":
             raise MsmillInputError(f"{name}.model.solver", mill.solver, "expected_value (circuits solve the "
                                    "mill's steady state many times)")
-        from msmill.validate import number
-
         self.mill = mill
         self.operating = dict(operating)
-        self.rate_tol = number(rate_tol, f"{name}.rate_tol", gt=0, le=0.1)
-        self.active_rate_tol = self.rate_tol  # the circuit solver tightens it to finish (FINAL_RATE_TOL)
         self.operator_rate_tph: float | None = None
         self.transfer: np.ndarray | None = None
         self.rebuilds = 0
+        self.build_warnings: list[tuple[Any, type]] = []
+        self.samples: SampleTransfers | None = None
 
     def operating_point(self, feed_tph: float) -> Any:
         """The mill's :class:`~msmill.machine.OperatingPoint` at ``feed_tph`` (t/h)."""
@@ -328,8 +328,7 @@ class MillUnit(Unit):
     def bind(self, grid: SizeGrid) -> None:
         super().bind(grid)
         self.mill.grid = grid
-        self.operator_rate_tph = self.transfer = None
-        self.active_rate_tol = self.rate_tol
+        self.operator_rate_tph = self.transfer = self.samples = None
         self.rebuilds = 0
 
     def rate_mismatch(self, feed_tph: float) -> float:
@@ -340,31 +339,66 @@ class MillUnit(Unit):
     def transfer_matrix(self, feed_tph: float) -> np.ndarray:
         """Transfer matrix ``T`` (N, N) at ``feed_tph``: steady product per class per unit feed per class.
 
-        Built from the assembled mill (:meth:`msmill.model.Mill.prepare`): ``T = P (I - M)^-1 F``
-        with ``F`` the undamaged feed of each class into the feed compartment, ``P`` the product
-        operator; one sparse LU factorisation, N right-hand sides. Columns sum to 1 (mass conserved).
+        Built from the assembled mill (:meth:`msmill.model.Mill.prepare`, cached by operating point):
+        ``T = P (I - M)^-1 F`` with ``F`` the undamaged feed of each class into the feed compartment,
+        ``P`` the product operator; one sparse LU factorisation, N right-hand sides. Columns sum to 1.
         """
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
         lm = self.mill.prepare(self.grid, self.operating_point(feed_tph))[3]
-        n = lm.n_sizes
-        F = np.zeros((lm.n_state, n))
-        F[lm.n_sizes * lm.n_damage * lm.feed_compartment + np.arange(n) * lm.n_damage, np.arange(n)] = 1.0
+        F = np.column_stack([lm.feed_vector(e, 1.0) for e in np.eye(lm.n_sizes)])
         lu = spla.splu((sp.identity(lm.n_state, format="csc") - lm.M.tocsc()).tocsc(), permc_spec="MMD_AT_PLUS_A")
         X = np.maximum(lu.solve(F), 0.0)
         return np.asarray(lm.out_op @ X)
 
+    def rebuild(self, feed_tph: float) -> None:
+        """Build the operators at ``feed_tph`` (t/h); their warnings are kept in :attr:`build_warnings`
+        (the circuit solver gives those of the last build, the one at the mill's own feed rate)."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            self.transfer = self.transfer_matrix(feed_tph)
+        self.build_warnings = [(w.message, w.category) for w in caught]
+        self.operator_rate_tph = float(feed_tph)
+        self.rebuilds += 1
+
     def apply(self, feed_tph: np.ndarray) -> dict[str, np.ndarray]:
-        rate = float(feed_tph.sum())
-        if rate <= 0.0:
-            return {"product": np.zeros_like(feed_tph)}
-        r0 = self.operator_rate_tph
-        if r0 is None or abs(rate - r0) > self.active_rate_tol * r0:
-            with warnings.catch_warnings():
-                if r0 is not None:  # the stage parameters' warnings were given at the first rate
-                    warnings.simplefilter("ignore")
-                self.transfer = self.transfer_matrix(rate)
-            self.operator_rate_tph = rate
-            self.rebuilds += 1
-        return {"product": self.transfer @ feed_tph}
+        if self.samples is not None:
+            return {"product": self.samples.apply(feed_tph)}
+        rate = float(np.sum(feed_tph))
+        if self.transfer is None:
+            if rate <= 0.0:
+                return {"product": np.zeros_like(feed_tph)}
+            self.rebuild(rate)
+        return {"product": feed_tph @ self.transfer.T}
+
+
+class SampleTransfers:
+    """Transfer matrices of K posterior samples of a mill at several feed rates, interpolated in rate.
+
+    Parameters
+    ----------
+    rates_tph : sequence of float (R,)
+        Ascending feed rates (t/h) the matrices were built at (one rate: no rate dependence).
+    transfers : ndarray (R, K, N, N)
+        Sample ``k``'s transfer matrix at each rate.
+
+    :meth:`apply` feeds sample ``k`` (row ``k`` of a (K, N) feed) through its matrix interpolated
+    piecewise linearly at its own feed rate (the end segments extended beyond the rates); columns
+    still sum to 1, as every built matrix's do.
+    """
+
+    def __init__(self, rates_tph: Any, transfers: np.ndarray) -> None:
+        self.rates_tph = np.asarray(rates_tph, dtype=float)
+        self.transfers = np.asarray(transfers, dtype=float)
+
+    def apply(self, feed_tph: np.ndarray) -> np.ndarray:
+        r = self.rates_tph
+        if r.size == 1:
+            return np.einsum("kij,kj->ki", self.transfers[0], feed_tph)
+        rate = np.sum(feed_tph, axis=-1)
+        j = np.clip(np.searchsorted(r, rate) - 1, 0, r.size - 2)  # segment of each sample
+        w = (rate - r[j]) / (r[j + 1] - r[j])
+        k = np.arange(rate.size)
+        T = self.transfers[j, k] + w[:, None, None] * (self.transfers[j + 1, k] - self.transfers[j, k])
+        return np.einsum("kij,kj->ki", T, feed_tph)
