@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "PSD",
+    "SQRT2_SIEVES_MM",
     "FitResult",
     "SizeGrid",
     "ks_statistic",
@@ -67,6 +68,12 @@ def _check_sizes(sizes: Any, field_name: str, min_len: int = 1) -> NDArray[np.fl
     if arr.size > 1 and np.any(np.diff(arr) <= 0):
         raise MsmillInputError(field_name, sizes, "strictly increasing sizes")
     return arr
+
+
+#: The standard sqrt(2) sieve series (ISO 565 R 40/3 principal sizes, as circuit stream tables
+#: are read), mm.
+SQRT2_SIEVES_MM = (0.038, 0.053, 0.075, 0.106, 0.15, 0.212, 0.3, 0.425, 0.6, 0.85, 1.18, 1.7, 2.36, 3.35,
+                   4.75, 6.7, 9.5, 13.2, 19.0, 26.5, 37.5, 53.0, 75.0, 106.0, 150.0)
 
 
 class SizeGrid:

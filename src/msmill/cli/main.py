@@ -34,6 +34,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("psd", "app", "psd"),
     ("breakage", "app", "breakage"),
     ("predict", "predict", "predict"),
+    ("circuit", "circuit", "circuit"),
     ("db", "app", "db"),
     ("campaign", "app", "campaign"),
     ("serve", "serve", "serve"),

@@ -1,4 +1,4 @@
-"""Closed circuits: the mill with screens, splitters and recycle, at steady state by tear streams.
+"""Closed circuits: the mill with screens, splitters and recycle, at steady state by tear streams, with a 5-95 % band from posterior samples.
 
 Units (:mod:`msmill.model.circuit.units`) are small registered classes behind one
 interface; a :class:`Circuit` joins them by streams and solves its steady state by
@@ -8,13 +8,21 @@ circuit files are validated TOML (:mod:`msmill.model.circuit.file`). See
 """
 
 from msmill.model.circuit.file import CircuitFile
-from msmill.model.circuit.solve import METHODS, Circuit, CircuitNotConverged, CircuitResult, Stream
+from msmill.model.circuit.solve import (
+    METHODS,
+    Circuit,
+    CircuitBand,
+    CircuitNotConverged,
+    CircuitResult,
+    Stream,
+)
 from msmill.model.circuit.units import (
     UNITS,
     BreakageMatrixMill,
     FreshFeed,
     MillUnit,
     Product,
+    SampleTransfers,
     Screen,
     Splitter,
     Unit,
@@ -27,12 +35,14 @@ __all__ = [
     "UNITS",
     "BreakageMatrixMill",
     "Circuit",
+    "CircuitBand",
     "CircuitFile",
     "CircuitNotConverged",
     "CircuitResult",
     "FreshFeed",
     "MillUnit",
     "Product",
+    "SampleTransfers",
     "Screen",
     "Splitter",
     "Stream",

@@ -13,6 +13,10 @@ Layout::
     tol = 1e-10                  # relative mass-balance error
     max_iterations = 500
 
+    [band]                       # optional: the 5-95 % band from the surrogate's posterior samples
+    samples = 64                 # 0: no band
+    seed = 0
+
     [[units]]
     name = "fresh"
     type = "feed"
@@ -69,6 +73,7 @@ from msmill.model.circuit.units import (
     Screen,
     Splitter,
 )
+from msmill.model.mill import DEFAULT_BAND_SAMPLES, MAX_BAND_SAMPLES
 from msmill.validate import InputModel, read_toml
 
 
@@ -86,6 +91,11 @@ class SolverSpec(_Section):
     method: str = "wegstein"
     tol: float = Field(default=DEFAULT_TOL, gt=0, lt=1)
     max_iterations: int = Field(default=DEFAULT_MAX_ITERATIONS, ge=1, le=100000)
+
+
+class BandSpec(_Section):
+    samples: int = Field(default=DEFAULT_BAND_SAMPLES, ge=0, le=MAX_BAND_SAMPLES)
+    seed: int = Field(default=0, ge=0)
 
 
 class StreamSpec(_Section):
@@ -132,6 +142,7 @@ def _unit(i: int, table: Any, name: str, base_dir: Path, grid: GridSpec) -> Any:
             from msmill.model.mill import DEFAULT_PASSING_SIZES_MM
             from msmill.model.runfile import MillSpec
 
+
             ms = MillSpec.model_validate({**spec, "base_dir": base_dir, "name": where})
             mill = ms.build_mill(None, DEFAULT_PASSING_SIZES_MM, band_samples=0)  # the circuit's band is its own
             return _renamed(where, uname, lambda: MillUnit(uname, mill, ms.operating.model_dump(exclude_none=True)))
@@ -174,10 +185,11 @@ def _stream(i: int, table: Any, name: str) -> Stream:
 class CircuitFile:
     """A validated circuit file: :attr:`circuit` (a :class:`Circuit`) and the solver settings."""
 
-    def __init__(self, circuit: Circuit, solver: SolverSpec, name: str) -> None:
+    def __init__(self, circuit: Circuit, solver: SolverSpec, name: str, band: BandSpec | None = None) -> None:
         self.circuit = circuit
         self.solver = solver
         self.name = name
+        self.band_spec = band or BandSpec()
 
     @classmethod
     def from_toml(cls, path: str | Path) -> CircuitFile:
@@ -192,14 +204,15 @@ class CircuitFile:
         if not isinstance(data, dict):
             raise MsmillInputError(name, type(data).__name__, "a table of circuit-file sections")
         for k in data:
-            if k not in ("title", "grid", "solver", "units", "streams"):
-                raise MsmillInputError(f"{name}.{k}", data[k], "one of: title, grid, solver, units, streams")
+            if k not in ("title", "grid", "solver", "band", "units", "streams"):
+                raise MsmillInputError(f"{name}.{k}", data[k], "one of: title, grid, solver, band, units, streams")
         for k in ("units", "streams"):
             if not isinstance(data.get(k), list) or not data[k]:
                 raise MsmillInputError(f"{name}.{k}", data.get(k), f"one or more [[{k}]] tables")
         try:
             grid = GridSpec.model_validate(data.get("grid", {}))
             solver = SolverSpec.model_validate(data.get("solver", {}))
+            band = BandSpec.model_validate(data.get("band", {}))
         except ValidationError as exc:
             raise from_validation_error(exc, prefix=name) from None
         if solver.method not in METHODS:
@@ -227,8 +240,16 @@ class CircuitFile:
         n = math.ceil(math.log(top / grid.min_mm) / math.log(grid.ratio) - 1e-9)
         limit(n, f"{name}.grid (min_mm, max_mm, ratio)", "grid_classes")
         circuit = Circuit(units, streams, SizeGrid.geometric(grid.min_mm, top, grid.ratio), title=title, prefix=name)
-        return cls(circuit, solver, name)
+        return cls(circuit, solver, name, band)
 
     def solve(self) -> Any:
         """The circuit's steady state with the file's solver settings."""
         return self.circuit.solve(self.solver.method, self.solver.tol, self.solver.max_iterations)
+
+    def band(self, result: Any, n_samples: int | None = None) -> Any:
+        """The 5-95 % band of ``result`` with the file's ``[band]`` settings (None when samples = 0)."""
+        n = self.band_spec.samples if n_samples is None else n_samples
+        if not n:
+            return None
+        return self.circuit.band(result, n, self.band_spec.seed, self.solver.method, self.solver.tol,
+                                 self.solver.max_iterations)

@@ -25,7 +25,7 @@ import pandas as pd
 from msmill.errors import MsmillError, MsmillInputError
 from msmill.model.circuit.units import RATE_TOL, FreshFeed, MillUnit, Product, SampleTransfers, Unit
 from msmill.model.mill import BAND_LIMITS_PCT, DEFAULT_BAND_SAMPLES, MAX_BAND_SAMPLES
-from msmill.psd import PSD, SizeGrid
+from msmill.psd import PSD, SQRT2_SIEVES_MM, SizeGrid
 
 METHODS = ("wegstein", "direct")
 DEFAULT_TOL = 1e-10
@@ -441,6 +441,12 @@ class CircuitBand:
     product_p80_band_mm: tuple[float, float]
     mill_feed_band_tph: dict[str, tuple[float, float]]
 
+    def samples_frame(self) -> pd.DataFrame:
+        """One row per sample: circulating load (%), product P80 (mm), each mill's feed (t/h)."""
+        return pd.DataFrame({"sample": np.arange(self.n_samples), "circulating_load_pct": self.circulating_load_pct,
+                             "product_p80_mm": self.product_p80_mm,
+                             **{f"{n}_feed_tph": v for n, v in self.mill_feed_tph.items()}})
+
 
 @dataclass(frozen=True)
 class CircuitResult:
@@ -500,22 +506,27 @@ class CircuitResult:
         q = np.clip(self.flows_tph[name], 0.0, None)
         return PSD(self.circuit.grid, q / q.sum(), validate=False) if q.sum() > 0 else None
 
-    def stream_table(self, name: str) -> pd.DataFrame:
-        """Size-by-size table of stream ``name``: t/h and % retained per sieve class, cumulative % passing.
+    def stream_table(self, name: str, sieves_mm: Any = SQRT2_SIEVES_MM) -> pd.DataFrame:
+        """Sieve table of stream ``name``: t/h and % retained on each sieve, cumulative % passing.
 
-        The sieve series is the circuit grid (the sqrt(2) series by default); the finest row's
-        lower edge is 0 (the pan holds everything finer).
+        Sieves: ``sieves_mm`` (the standard sqrt(2) series by default) from the smallest one at or
+        above the stream's top size down to the finest one above the circuit grid's lowest edge,
+        coarse first, then the pan (``sieve_mm`` 0). Passing at each sieve is read off the stream's
+        PSD (log interpolation on the circuit grid).
         """
+        q = np.clip(np.asarray(self.flows_tph[name], dtype=float), 0.0, None)
+        tot = float(q.sum())
         g = self.circuit.grid
-        q = np.asarray(self.flows_tph[name], dtype=float)
-        tot = q.sum()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ret = 100.0 * q / tot if tot > 0 else np.zeros_like(q)
-        lower = g.lower_mm.copy()
-        lower[0] = 0.0
-        df = pd.DataFrame({"lower_mm": lower, "upper_mm": g.upper_mm, "tph": q, "retained_pct": ret,
-                           "passing_pct": np.clip(np.cumsum(ret), 0.0, 100.0)})  # passing at the upper edge
-        return df.iloc[::-1].reset_index(drop=True)  # coarse first, as sieve tables are read
+        s = np.sort(np.asarray(sieves_mm, dtype=float))
+        nz = np.flatnonzero(q > 1e-12 * max(tot, 1e-300))
+        top = float(g.edges_mm[nz[-1] + 1]) if nz.size else float(g.edges_mm[-1])
+        above = s[s >= top * (1 - 1e-9)]
+        s = s[(s > g.edges_mm[0]) & (s <= (above[0] if above.size else s[-1]))][::-1]
+        passing = (np.asarray(PSD(g, q / tot, validate=False).passing_at(s), dtype=float) if tot > 0
+                   else np.zeros(s.size))
+        retained = np.clip(-np.diff(np.concatenate([[100.0], passing, [0.0]])), 0.0, None)  # on each sieve, the pan
+        return pd.DataFrame({"sieve_mm": np.concatenate([s, [0.0]]), "retained_tph": retained / 100.0 * tot,
+                             "retained_pct": retained, "passing_pct": np.concatenate([passing, [0.0]])})
 
     def streams_frame(self) -> pd.DataFrame:
         """One row per stream: from, to, t/h, P80 (mm)."""
@@ -532,6 +543,7 @@ class CircuitResult:
         """Per mill unit: its feed rate, the rate its operators were built at, impact energy and power,
         and the capacity check of its total feed (fresh plus recycle)."""
         from msmill.capacity import AboveCapacityWarning
+        from msmill.model.power import power_estimate
 
         out = {}
         for name, u in self.circuit.units.items():
@@ -542,7 +554,7 @@ class CircuitResult:
             feed = PSD(self.circuit.grid, q / rate, validate=False)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                res = u.mill.run(feed, u.operating_point(u.operator_rate_tph), timeseries=False)
+                res = u.mill.run(feed, u.operating_point(u.operator_rate_tph), timeseries=False, held_below=False)
             chk = u.mill.check_capacity(feed, u.operating_point(rate))
             for w in caught:
                 if not issubclass(w.category, AboveCapacityWarning):
@@ -551,8 +563,7 @@ class CircuitResult:
                 warnings.warn(f"{name}: fresh feed plus recycle is {rate:.4g} t/h (circulating load "
                               f"{self.circulating_load_pct:.3g} %): {chk.message()}", AboveCapacityWarning,
                               stacklevel=2)
-            kwh_t = res.specific_impact_energy_kwh_t
-            out[name] = {"feed_tph": rate, "operator_rate_tph": u.operator_rate_tph,
-                         "operator_rebuilds": u.rebuilds, "impact_energy_kwh_t_feed": kwh_t,
-                         "impact_kw": kwh_t * rate, "result": res, "capacity": chk}
+            out[name] = {"feed_tph": rate, "operator_rate_tph": u.operator_rate_tph, "operator_rebuilds": u.rebuilds,
+                         "impact_energy_kwh_t_feed": res.specific_impact_energy_kwh_t,
+                         "impact_kw": power_estimate(res).impact_kw, "result": res, "capacity": chk}
         return out
