@@ -359,3 +359,27 @@ def test_band_needs_posterior_samples(table_mill):
         res = c.solve()
     with pytest.raises(MsmillInputError, match="posterior samples"):
         c.band(res, 8)
+
+
+def test_capacity_warning_names_the_circulating_load(table_mill, monkeypatch):
+    """The mill's feed (fresh plus recycle) against a capacity between the fresh feed and that feed."""
+    from msmill.capacity import AboveCapacityWarning, CapacityCheck
+
+    unit, grid = table_mill
+    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
+    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
+                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
+                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutOfDomainWarning)
+        res = c.solve()
+    monkeypatch.setattr(unit.mill, "check_capacity", lambda f, op: CapacityCheck(
+        feed_tph=op.feed_tph, capacity_tph=25.0, probability_steady=0.2, size_mm=f.p80_mm, speed_rpm=1500.0,
+        gate_deg=40.0))
+    with pytest.warns(AboveCapacityWarning) as rec:
+        summary = res.mill_summaries()
+    msg = " ".join(str(w.message) for w in rec if issubclass(w.category, AboveCapacityWarning))
+    rate = res.unit_feeds_tph["mill"].sum()
+    assert f"fresh feed plus recycle is {rate:.4g} t/h" in msg
+    assert f"circulating load {res.circulating_load_pct:.3g} %" in msg
+    assert summary["mill"]["capacity"].above
