@@ -9,7 +9,11 @@ slope ``s`` of ``g`` between the last two iterates, ``q = s / (s - 1)`` bounded
 to [``WEGSTEIN_Q_MIN``, ``WEGSTEIN_Q_MAX``], ``x <- q x + (1 - q) g(x)``). The
 relative mass-balance error is ``sum |g(x) - x| / fresh feed``, the rock that a
 pass would accumulate in (or take out of) the loops per hour of fresh feed; the
-solve stops when it is at most ``tol`` (default 1e-10).
+solve stops when it is at most ``tol`` (default 1e-10). With the mills' operators
+fixed the circuit is linear; the mills are then rebuilt at their new feed rates
+and the streams converged again until every mill's operators were built within
+``RATE_TOL`` of its feed rate (:meth:`Circuit.solve`). :meth:`Circuit.band` solves
+posterior samples of the mills' stage parameters together for 5-95 % bands.
 """
 
 from __future__ import annotations
