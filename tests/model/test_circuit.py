@@ -250,6 +250,15 @@ def table_mill():
     return unit, grid
 
 
+def table_circuit(unit, grid, bypass=0.0):
+    """20 t/h fresh -> the table mill -> a screen at 8 mm; oversize back to the mill, undersize out."""
+    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
+    return Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0, bypass=bypass),
+                    Product("p")],
+                   [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
+                    Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+
+
 def test_mill_unit_transfer_matrix_is_the_mills_steady_state(table_mill):
     """T @ feed equals Mill.run's steady product at that feed, and every column of T sums to 1."""
     from msmill.machine import OperatingPoint
@@ -268,11 +277,7 @@ def test_mill_unit_transfer_matrix_is_the_mills_steady_state(table_mill):
 
 def test_mill_unit_in_a_circuit_finishes_at_its_own_feed_rate(table_mill):
     unit, grid = table_mill
-    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
-    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0, bypass=0.05),
-                 Product("p")],
-                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
-                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    c = table_circuit(unit, grid, bypass=0.05)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         res = c.solve()
@@ -285,10 +290,7 @@ def test_mill_unit_in_a_circuit_finishes_at_its_own_feed_rate(table_mill):
 
 def test_mill_feed_rate_that_does_not_settle_is_one_line(table_mill):
     unit, grid = table_mill
-    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
-    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
-                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
-                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    c = table_circuit(unit, grid)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         with pytest.raises(CircuitNotConverged) as exc:
@@ -350,10 +352,7 @@ def test_band_sample_agrees_with_that_sample_solved_alone(ug2_circuit):
 
 def test_band_needs_posterior_samples(table_mill):
     unit, grid = table_mill
-    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
-    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
-                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
-                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    c = table_circuit(unit, grid)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         res = c.solve()
@@ -366,10 +365,7 @@ def test_capacity_warning_names_the_circulating_load(table_mill, monkeypatch):
     from msmill.capacity import AboveCapacityWarning, CapacityCheck
 
     unit, grid = table_mill
-    feed = PSD.from_passing([2, 4.75, 9.5, 19, 31.5, 45], [2, 6, 18, 58, 90, 100], grid=grid)
-    c = Circuit([FreshFeed("fresh", 20.0, feed), unit, Screen("screen", d50c_mm=8.0, alpha=4.0), Product("p")],
-                [Stream("f", "fresh", "out", "mill"), Stream("m", "mill", "product", "screen"),
-                 Stream("o", "screen", "oversize", "mill"), Stream("u", "screen", "undersize", "p")], grid=grid)
+    c = table_circuit(unit, grid)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OutOfDomainWarning)
         res = c.solve()

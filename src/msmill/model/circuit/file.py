@@ -74,17 +74,12 @@ from msmill.model.circuit.units import (
     Splitter,
 )
 from msmill.model.mill import DEFAULT_BAND_SAMPLES, MAX_BAND_SAMPLES
+from msmill.model.runfile import GridSection
 from msmill.validate import InputModel, read_toml
 
 
 class _Section(InputModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=True)
-
-
-class GridSpec(_Section):
-    min_mm: float = Field(default=0.038, gt=0)
-    max_mm: float | None = Field(default=None, gt=0)
-    ratio: float = Field(default=math.sqrt(2.0), gt=1)
 
 
 class SolverSpec(_Section):
@@ -105,7 +100,7 @@ class StreamSpec(_Section):
     recycle: bool = False
 
 
-def _unit(i: int, table: Any, name: str, base_dir: Path, grid: GridSpec) -> Any:
+def _unit(i: int, table: Any, name: str, base_dir: Path, grid: GridSection) -> Any:
     where = f"{name}.units[{i}]"
     if not isinstance(table, dict):
         raise MsmillInputError(where, type(table).__name__, "a [[units]] table")
@@ -210,7 +205,7 @@ class CircuitFile:
             if not isinstance(data.get(k), list) or not data[k]:
                 raise MsmillInputError(f"{name}.{k}", data.get(k), f"one or more [[{k}]] tables")
         try:
-            grid = GridSpec.model_validate(data.get("grid", {}))
+            grid = GridSection.model_validate(data.get("grid", {}))
             solver = SolverSpec.model_validate(data.get("solver", {}))
             band = BandSpec.model_validate(data.get("band", {}))
         except ValidationError as exc:
