@@ -358,6 +358,10 @@ def test_band_needs_posterior_samples(table_mill):
         res = c.solve()
     with pytest.raises(MsmillInputError, match="posterior samples"):
         c.band(res, 8)
+    B = np.array([[1.0, 0.2], [0.0, 0.8]])
+    analytic = closed(GRID2, B, [0.0, 1.0], Screen("screen", d50c_mm=2.0, alpha=math.inf))
+    with pytest.raises(MsmillInputError, match="without a mill unit"):
+        analytic.band(analytic.solve(), 8)
 
 
 def test_capacity_warning_names_the_circulating_load(table_mill, monkeypatch):

@@ -293,6 +293,9 @@ class Circuit:
         rate_nodes = integer(rate_nodes, "rate_nodes", ge=2, le=50)
         method = method or result.method
         mills = {n: u for n, u in self.units.items() if isinstance(u, MillUnit)}
+        if not mills:
+            raise MsmillInputError("band_samples", n_samples, "0 for a circuit without a mill unit (nothing in it "
+                                   "has posterior samples)")
         for n, u in mills.items():
             if not hasattr(u.mill.provider, "sample_stage_parameters"):
                 raise MsmillInputError(f"{self.prefix}.units.{n}.stage_parameters", u.mill.provider.source,
