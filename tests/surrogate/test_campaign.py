@@ -217,3 +217,27 @@ def test_active_planner_within_campaign_domain(tmp_path) -> None:
     assert all(8.0 <= p[0] <= 20.0 and 10 <= p[1] <= 60 and 1200 <= p[2] <= 1900 and 0 <= p[3] <= 80 for p in pts)
     assert len(set(pts)) == 6  # the second batch believes the first (pending) and goes elsewhere
     assert all(d.stage_speeds_rpm[-1] == 2 * d.speed_rpm for d in first)
+
+
+def test_active_planner_moves_past_a_failed_point(tmp_path) -> None:
+    """A point whose attempts all failed is not proposed again (the store would drop it: the campaign
+    planned nothing, round after round, behind a fine-rock point whose workers ran out of memory)."""
+    from msmill.machine import Machine
+    from msmill.model.providers import default_table_path
+    from msmill.stageparams import StageParameterTable
+    from msmill.surrogate.campaign import PLANNERS
+
+    st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
+    machine = Machine.default()
+    for run in StageParameterTable.from_json(default_table_path()).runs:
+        st.record_run(run, machine, allow_not_steady=True)
+    st.create_campaign("al", machine, options={"size_range_mm": [8.0, 20.0]}, max_attempts=1)
+    first = PLANNERS["active"](st, "al", 1)
+    st.add_points("al", first)
+    token = new_token()
+    (claim,) = st.claim("al", 1, "w", token)
+    assert st.fail(claim.run_id, token, "KilledWorker") == "failed"
+    again = PLANNERS["active"](st, "al", 1)
+    key = (first[0].size_mm, first[0].feed_tph, first[0].speed_rpm, first[0].gate_deg)
+    assert (again[0].size_mm, again[0].feed_tph, again[0].speed_rpm, again[0].gate_deg) != key
+    assert st.add_points("al", again)[0] == 1

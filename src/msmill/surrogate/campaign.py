@@ -74,7 +74,7 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     Fits :class:`msmill.surrogate.stage_model.StageSurrogate` to the store's
     steady runs of the campaign's machine (a space-filling Sobol design while
     there are too few), within the campaign's size range (option
-    ``size_range_mm``, default the paper's 2-30 mm), avoids the campaign's planned and running points
+    ``size_range_mm``, default the paper's 2-30 mm), avoids the campaign's planned, running and failed points
     (kriging believer) and weights the acquisition by the DEM cost learnt from
     the runs' timings (:func:`msmill.surrogate.active.plan_batch`).
     """
@@ -91,7 +91,9 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     machine = info.machine
     pairs = store.training_runs(machine_hash=info.machine_hash)
     runs = [st for _, st in pairs]
-    pending = [r.design for r in store.runs(campaign=name) if r.status in ("planned", "running")]
+    # failed points count as pending too: re-proposing one would add nothing (the store keeps a point once)
+    # and stall the campaign on a point its workers cannot finish
+    pending = [r.design for r in store.runs(campaign=name) if r.status in ("planned", "running", "failed")]
     pend = np.array([[d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg] for d in pending]).reshape(-1, 4)
     model = StageSurrogate().fit(runs).gp_ if len(runs) >= 2 else None
     plan = plan_batch(model, n, space, n_existing=len(runs), pending=pend if len(pend) else None,
