@@ -127,3 +127,28 @@ def test_runs_outside_the_design_space_do_not_train(exported):
     assert split_runs([probe, other, *fulls]) == ([other], fulls)
     edge = moved(one, feed_tph=60.0, gate_deg=0.0)
     assert split_runs([edge])[0] == [edge]  # the bounds belong to the design space
+
+
+def test_a_failed_point_stays_failed_in_a_store_restored_from_the_export(tmp_path, table_runs):
+    """A point whose attempts all failed is exported with its error and restored as failed (not planned),
+    so the planner of the next session counts it as pending rather than proposing it again."""
+    st = Store(f"sqlite:///{tmp_path / 'a.sqlite'}")
+    st.record_run(table_runs[0], MACHINE, wall_s=100.0)
+    st.create_campaign("c", MACHINE, max_attempts=1)
+    bad, later = _point(3.51, 37.7), _point(17.0, 45.0)
+    st.add_points("c", [bad, later])
+    (claim,) = st.claim("c", 1, "w", "tok")
+    assert st.fail(claim.run_id, "tok", "KilledWorker: worker died 4 times") == "failed"
+    export_campaign(st, tmp_path / "export")
+    st.close()
+
+    fresh = Store(f"sqlite:///{tmp_path / 'b.sqlite'}")
+    ingest_paths(fresh, [tmp_path / "export"])
+    lines = restore_campaigns(fresh, tmp_path / "export")
+    assert lines == ["campaign c: re-created, 1 pending runs planned, 1 failed points kept failed"]
+    (f,) = fresh.runs(campaign="c", status="failed")
+    assert (f.design.size_mm, f.design.feed_tph) == (3.51, 37.7) and f.attempts == 1
+    assert "KilledWorker" in f.error
+    assert [r.design.size_mm for r in fresh.runs(campaign="c", status="planned")] == [17.0]
+    assert fresh.retry_failed("c") == 1  # still re-plannable by hand
+    fresh.close()

@@ -74,12 +74,21 @@ class ExportedRun:
     statistics: RunStatistics
 
 
+#: characters of a failed run's error text kept in the export (the end: the last attempts)
+FAILED_ERROR_CHARS = 2000
+
+
 def _campaign_doc(store: Store, info: Any) -> dict[str, Any]:
-    pending = [r.design.model_dump() for r in store.runs(campaign=info.name) if r.status in ("planned", "running")]
+    runs = store.runs(campaign=info.name)
+    pending = [r.design.model_dump() for r in runs if r.status in ("planned", "running")]
+    # failed points with their attempts and the end of their error text: a store restored from the
+    # export does not plan them again (the planner counts them as pending)
+    failed = [{"design": r.design.model_dump(), "attempts": r.attempts, "seed": r.seed,
+               "error": (r.error or "")[-FAILED_ERROR_CHARS:]} for r in runs if r.status == "failed"]
     return {"name": info.name, "machine_hash": info.machine_hash, "machine_toml": info.machine_toml,
             "mode": info.mode, "run_settings": info.run_settings, "options": info.options,
             "max_attempts": info.max_attempts, "allow_not_steady": info.allow_not_steady,
-            "counts": store.counts(info.name), "pending": pending}
+            "counts": store.counts(info.name), "pending": pending, "failed": failed}
 
 
 def export_campaign(store: Store, out_dir: str | Path) -> tuple[list[Path], Path]:
@@ -167,5 +176,8 @@ def restore_campaigns(store: Store, folder: str | Path, raw_dir: str | None = No
         done = _done_points(store, c["machine_hash"])
         todo = [d for d in (DesignPoint(**x) for x in c["pending"]) if _key(d) not in done]
         added, _ = store.add_points(c["name"], todo)
-        lines.append(f"campaign {c['name']}: re-created, {added} pending runs planned")
+        failed = sum(store.add_failed(c["name"], DesignPoint(**f["design"]), f["attempts"], f["error"], f["seed"])
+                     for f in c.get("failed", []) if _key(DesignPoint(**f["design"])) not in done)
+        lines.append(f"campaign {c['name']}: re-created, {added} pending runs planned"
+                     + (f", {failed} failed points kept failed" if failed else ""))
     return lines

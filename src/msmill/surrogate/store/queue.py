@@ -145,18 +145,40 @@ class QueueMixin:
                 if len(d.stage_speeds_rpm) != c.machine.n_stages:
                     raise MsmillInputError("stage_speeds_rpm", d.stage_speeds_rpm,
                                            f"{c.machine.n_stages} speeds (the machine's stages)")
-                dp = self._design_row(s, c.machine, d)
-                old = s.scalar(select(RunRow.id).where(RunRow.campaign_id == c.id, RunRow.design_point_id == dp.id,
-                                                       RunRow.seed == seed))
-                if old is not None:
+                if self._plan(s, c, d, seed) is None:
                     existing += 1
                     continue
-                s.add(RunRow(design_point_id=dp.id, machine_id=c.machine_id, campaign_id=c.id, mode=c.mode,
-                             source="campaign", status="planned", attempts=0, seed=seed,
-                             run_settings=dict(c.run_settings, seed=seed)))
-                s.flush()
                 added += 1
         return added, existing
+
+    def _plan(self, s: Any, c: CampaignRow, d: DesignPoint, seed: int, **values: Any) -> RunRow | None:
+        """A new planned run of ``d`` (``values`` override its columns); None if the campaign has it already."""
+        dp = self._design_row(s, c.machine, d)
+        old = s.scalar(select(RunRow.id).where(RunRow.campaign_id == c.id, RunRow.design_point_id == dp.id,
+                                               RunRow.seed == seed))
+        if old is not None:
+            return None
+        row = RunRow(design_point_id=dp.id, machine_id=c.machine_id, campaign_id=c.id, mode=c.mode,
+                     source="campaign", status="planned", attempts=0, seed=seed,
+                     run_settings=dict(c.run_settings, seed=seed))
+        for k, v in values.items():
+            setattr(row, k, v)
+        s.add(row)
+        s.flush()
+        return row
+
+    def add_failed(self, name: str, design: DesignPoint, attempts: int, error: str,
+                   seed: int | None = None) -> bool:
+        """Record a point that failed elsewhere (a campaign restored from its export) as failed here.
+
+        The planner then counts it as pending instead of proposing it again
+        (:meth:`retry_failed` re-plans it). False if the campaign has the point already.
+        """
+        with self.session() as s:
+            c = self._campaign_row(s, name)
+            seed = int(c.run_settings.get("seed", 0)) if seed is None else seed
+            return self._plan(s, c, design, seed, status="failed", attempts=int(attempts),
+                              error=error[-20000:]) is not None
 
     def claim(self, name: str, n: int, worker: str, token: str) -> list[Claim]:
         """Claim up to ``n`` planned runs of a campaign for this driver (status -> running)."""
