@@ -33,11 +33,10 @@ from typing import Any
 import numpy as np
 
 from msmill.errors import MsmillInputError
-from msmill.stageparams import RunStatistics
 from msmill.surrogate.gp import SurrogateGP
 from msmill.surrogate.space import DesignSpace
 from msmill.surrogate.stage_model import StageSurrogate
-from msmill.surrogate.targets import TargetLayout, TrainingSet
+from msmill.surrogate.targets import StoredRuns, TargetLayout, TrainingSet
 
 SCHEMA_VERSION = 1
 KIND = "msmill_surrogate"
@@ -104,7 +103,7 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate", factors_key: str |
         layout = TargetLayout.from_dict(doc["layout"])
         tr = doc["training"]
         X, Y, nv = (np.array(tr[k], dtype=float) for k in ("X", "Y", "noise_var"))
-        runs = tuple(RunStatistics.from_dict(r, source=f"{source}.training.runs") for r in tr.get("runs", []))
+        runs = StoredRuns(list(tr.get("runs", [])), source=f"{source}.training.runs")
         hyper = doc["gp"]["hyperparameters"]
     except (KeyError, TypeError) as exc:
         raise MsmillInputError(f"{source}", f"missing {exc}", "a complete msmill surrogate document") from None
