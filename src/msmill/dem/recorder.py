@@ -95,18 +95,27 @@ class EventRecorder:
         evi[:, :old] = self.evi
         self.evf, self.evi = evf, evi
 
-    def frame(self) -> pd.DataFrame:
-        """All events (finished and open) as a DataFrame sorted by onset time."""
+    def frame(self, since_s: float | None = None) -> pd.DataFrame:
+        """The events (finished and open) opened at or after ``since_s`` (s; None: all), sorted by onset time.
+
+        Rows are selected chunk by chunk before they are joined: memory holds the selection, not the
+        whole record (a fine-rock run records tens of millions of contacts before its window).
+        """
         fs = list(self._done_f)
         is_ = list(self._done_i)
         for c in range(self.n_chunks):
             rows = int(self.evn[c])
             fs.append(self.evf[c, :rows])
             is_.append(self.evi[c, :rows])
+        if since_s is not None:
+            keep = [f[:, K.EV_T] >= since_s for f in fs]
+            fs = [f[k] for f, k in zip(fs, keep, strict=True)]
+            is_ = [i[k] for i, k in zip(is_, keep, strict=True)]
         f = np.concatenate(fs) if fs else np.zeros((0, K.N_EVF))
         i = np.concatenate(is_) if is_ else np.zeros((0, K.N_EVI), np.int64)
+        del fs, is_
         data = {name: f[:, k] for k, name in enumerate(FLOAT_COLUMNS)}
         data.update({name: i[:, k] for k, name in enumerate(INT_COLUMNS)})
         data["partner_kind"] = data["partner_kind"].astype(np.int8)
-        df = pd.DataFrame({name: data[name] for name in EVENT_COLUMNS})
-        return df.sort_values(["time_s", "particle_id"], kind="stable").reset_index(drop=True)
+        order = np.lexsort((data["particle_id"], data["time_s"]))  # by onset, ties by rock (stable)
+        return pd.DataFrame({name: data[name][order] for name in EVENT_COLUMNS})

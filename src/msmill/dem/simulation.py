@@ -1068,9 +1068,12 @@ class Simulation:
             self._box_len, self._ptab, self._gc[0], self._gc[1], self._gcur, self._gkind,
             self._gmat))
 
-    def events(self) -> pd.DataFrame:
-        """One row per contact, recorded at onset (see ARCHITECTURE.md for the columns)."""
-        df = self._rec.frame()
+    def events(self, since_s: float | None = None) -> pd.DataFrame:
+        """One row per contact, recorded at onset (see ARCHITECTURE.md for the columns).
+
+        ``since_s`` (s): only the contacts opened at or after it (None: all).
+        """
+        df = self._rec.frame(since_s)
         geo = self.geometry()
         tag = np.full(len(df), "", dtype=object)
         grp = np.full(len(df), -1, dtype=np.int64)

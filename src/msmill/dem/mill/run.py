@@ -533,17 +533,23 @@ def _finish(scene: MillScene, rs: RunSettings, found: tuple[float, float] | None
             stats_settings: StatsSettings | None) -> MillRun:
     """The run as it stands: raw tables, outcome and statistics of the window so far."""
     sim = scene.sim
-    snaps = snapshots_frame(sim.snapshots())
+    ss = stats_settings or StatsSettings()
+    cut_s = ss.event_cut_s(window_s[0])
+    snap_list = sim.snapshots()
+    if cut_s is not None and not ss.with_filling_transport:  # a window check: no tag before the cut is read
+        snap_list = [(t, sn) for t, sn in snap_list if t >= cut_s - 1e-9]
+    snaps = snapshots_frame(snap_list)
     snaps = snaps.drop_duplicates(subset=["time_s", "particle_id"]).reset_index(drop=True)
     snaps["snap"] = pd.factorize(snaps["time_s"], sort=True)[0]
     run = MillRun(
-        scene=scene, settings=rs, events=sim.events(), removed=sim.removed(), timeseries=sim.timeseries(),
+        scene=scene, settings=rs, events=sim.events(cut_s), removed=sim.removed(), timeseries=sim.timeseries(),
         snapshots=snaps, steady_state_time_s=found[0] if found else None,
         steady_state_detected_s=found[1] if found else None, window_s=(float(window_s[0]), float(window_s[1])),
         wall_s=wall_s, outcome=verdict.outcome, verdict=verdict,
     )
     run.extra.update(extra)
     run.extra["dt_s"] = float(sim.dt_s)
+    run.extra["events_from_s"] = float(cut_s or 0.0)  # the events held (and saved) start here
     run.extra["n_particles_end"] = int(sim.n_particles)
     run.stats = _compute(run, stats_settings)
     return run
@@ -715,7 +721,8 @@ def save_run(run: MillRun, out_dir: str | Path, vtk: bool = False) -> Path:
                    "window_start_s": run.window_s[0], "window_end_s": run.window_s[1], "wall_s": run.wall_s,
                    "dt_s": run.extra.get("dt_s", 0.0), "outcome": run.outcome,
                    "feed_scale": float(sc.info.get("feed_scale", 1.0)),
-                   "warm_start": (run.extra.get("warm_start") or {}).get("kind", "none")},
+                   "warm_start": (run.extra.get("warm_start") or {}).get("kind", "none"),
+                   "events_from_s": run.extra.get("events_from_s", 0.0)},
     }
     (out / "run.toml").write_text(tomli_w.dumps(_toml_safe(settings)), encoding="utf-8")
     if run.stats is not None:
@@ -771,6 +778,11 @@ def stats_from_raw(raw: dict[str, Any], stats_settings: StatsSettings | None = N
         if not 0.0 <= window_s[0] < window_s[1] <= t_end + 1e-3:  # a saved end rounds to the record's
             raise MsmillInputError("window_s", tuple(window_s), f"a window inside the record (0-{t_end:.3f} s)")
         window = (float(window_s[0]), min(float(window_s[1]), t_end))
+    held_s = float(res.get("events_from_s", 0.0))
+    need_s = (stats_settings or StatsSettings()).event_cut_s(window[0])
+    if held_s > 0 and (need_s is None or need_s < held_s - 1e-9):
+        raise MsmillInputError("window_s", tuple(window), f"a window whose contacts the saved record holds (events "
+                               f"from {held_s:.3f} s: window start >= {held_s:.3f} s + event_lookback_s)")
     ms = compute_statistics(
         m, design, raw["events"], raw["removed"], raw["timeseries"], raw["snapshots"],
         window, mode=d["mode"],

@@ -177,6 +177,17 @@ class StatsSettings:
     #: add the between-run deviation (:func:`msmill.sampling.default_between_run`) to those errors: the part
     #: of the scatter between feed-seed replicas that no window shows (``benchmarks/error_calibration.py``)
     between_run: bool = True
+    #: the contacts analysed start this long before the window (s; None: the whole record). A contact's
+    #: label needs its rock's pass through the stage (a primary is the pass's first hit by a rotor), and
+    #: passes are short; the record before them only costs memory: a fine-rock run has 10 million
+    #: contacts per simulated second. A pass longer than this that spans the cut is taken from the cut
+    #: on, and a rock that blew up before it is not dropped (provenance ``n_passes_from_event_cut``: the passes
+    #: holding a counted primary that start within a snapshot interval of the cut, the only ones it can change)
+    event_lookback_s: float | None = 0.5
+
+    def event_cut_s(self, window_start_s: float) -> float | None:
+        """The onset time (s) of the first contact the statistics of a window from ``window_start_s`` read."""
+        return None if self.event_lookback_s is None else max(0.0, window_start_s - self.event_lookback_s)
 
     def __post_init__(self) -> None:
         if self.velocity_fit not in ("ml", "binned_kl"):
@@ -186,6 +197,8 @@ class StatsSettings:
         if self.error_estimator != "batch_means" and self.series_slices < 8:
             raise MsmillInputError("series_slices", self.series_slices,
                                    f"at least 8 with error_estimator {self.error_estimator} (or batch_means)")
+        if self.event_lookback_s is not None and not self.event_lookback_s >= 0:
+            raise MsmillInputError("event_lookback_s", self.event_lookback_s, "a time >= 0 s, or None for the whole record")
 
 
 @dataclass
@@ -612,6 +625,9 @@ def compute_statistics(
     """
     s_ = settings or StatsSettings()
     t0, t1 = map(float, window_s)
+    cut_s = s_.event_cut_s(t0)
+    if cut_s is not None and len(events) and float(events["time_s"].iloc[0]) < cut_s:
+        events = events[events["time_s"].to_numpy() >= cut_s]
     clean = _drop_blow_ups(machine, design, events, removed, snapshots_frame(snapshots))
     snaps = clean.snapshots[(clean.snapshots["time_s"] >= t0 - 1e-9) & (clean.snapshots["time_s"] <= t1 + 1e-9)]
     clock = _tag_clock(machine, snaps, characteristic_time_s)
@@ -646,6 +662,7 @@ def compute_statistics(
         "blow_up_speed_limit_m_s": clean.speed_limit_m_s,
         "n_rocks_dropped_as_blow_ups": clean.n_rocks_dropped, "n_events_blow_up": clean.n_events_blow_up,
         "n_touch_events_vn_le_0": clean.n_touch,
+        "event_cut_s": cut_s, "n_passes_from_event_cut": _passes_from_cut(ev, counts, cut_s, clock.interval_s),
     })
     by_size = None
     if size_edges_m is not None and len(tr.pairs):
@@ -854,6 +871,14 @@ def _hit_probabilities(pairs: pd.DataFrame, prim: pd.DataFrame) -> tuple[pd.Seri
     g = nxt.groupby("stage")[["mh", "mass_kg"]].sum()
     gb = nxt.groupby(["stage", "batch"])[["mh", "mass_kg"]].sum()
     return g["mh"] / g["mass_kg"], (gb["mh"] / gb["mass_kg"]).rename("p").reset_index(), nxt
+
+
+def _passes_from_cut(ev: pd.DataFrame, counts: _Counts, cut_s: float | None, interval_s: float) -> int:
+    """Passes holding a counted primary whose first contact is within a snapshot interval of the event cut."""
+    if cut_s is None or cut_s <= 0 or not counts.pr_rows.size:
+        return 0
+    first = ev.groupby("pass_id")["time_s"].transform("min").to_numpy()[counts.pr_rows]
+    return int(np.unique(ev["pass_id"].to_numpy()[counts.pr_rows][first < cut_s + interval_s]).size)
 
 
 @dataclass(frozen=True)
