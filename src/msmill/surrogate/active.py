@@ -248,10 +248,16 @@ def plan_batch(model: SurrogateGP | None, n_points: int, design_space: DesignSpa
     Up = space.to_unit(np.asarray(pending, dtype=float)) if n_pend else None
     state = [_OutputState(model, j, Uc, Up) for j in range(model.n_targets)]
     divisor = cost.predict_s(cand) ** cost_power
+    # a candidate at a point already run or pending adds nothing (the store keeps a point once): the
+    # fine campaign re-planned its first run's point, a candidate of the same deterministic set
+    taken = np.asarray(model.X_train_, dtype=float)
+    taken = np.vstack([taken, np.asarray(pending, dtype=float)]) if n_pend else taken
+    run_already = (np.abs(Uc[:, None, :] - space.to_unit(taken)[None]) < 1e-9).all(axis=2).any(axis=1)
     chosen, scores = [], []
     for _ in range(n_points):
         total = sum(wj * s.var for wj, s in zip(w, state, strict=True))
         acq = total / divisor
+        acq[run_already] = -np.inf
         acq[chosen] = -np.inf
         i = int(np.argmax(acq))
         chosen.append(i)
