@@ -144,14 +144,17 @@ def export_runs(store: Store, out_dir: str | Path, campaign: str | None = None) 
     A document already in ``out_dir`` under another name whose run is one of those written (its
     statistics hash to a written run's under today's schema: it was exported before the statistics
     gained an optional field) is removed, so re-exporting an ingested folder never leaves a run twice.
+    A run whose statistics equal a stored run's (``content_hash`` None: a bit-identical replica) is
+    not written: ingesting its document would only find the run it repeats.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for rec in store.runs(campaign=campaign, status="done"):
+        if rec.content_hash is None:
+            continue
         doc = export_document(store, rec.id)
-        name = f"run-{rec.content_hash[:16]}.json" if rec.content_hash else f"run-id{rec.id}.json"
-        p = out / name
+        p = out / f"run-{rec.content_hash[:16]}.json"
         p.write_text(json.dumps(doc, indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
         written.append(p)
     _remove_renamed(out, written)
