@@ -10,6 +10,12 @@ and writes ``src/msmill/data/surrogates/default.json`` with provenance
 (command, commit, versions, date, the runs used, LOO metrics, domain).
 
     python scripts/build_default_surrogate.py [--export DIR] [--out FILE] [--loo refit|closed]
+    python scripts/build_default_surrogate.py --amend-filling-curves table [--out FILE]
+
+The campaign's runs start from a filled mill, so the file says its filling curves are the packaged
+stage table's (``filling_curves``, :attr:`msmill.surrogate.stage_model.StageSurrogate.filling_curves`).
+``--amend-filling-curves`` writes that field into an existing file without refitting (every other
+byte stays), and records the amendment in its provenance.
 
 ``msmill predict`` and ``Mill(ore, "default")`` use the file when it is installed.
 """
@@ -37,7 +43,7 @@ def git_state() -> dict[str, object]:
 
 
 def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
-          groups: tuple[str, ...] | None = ("count",)):
+          groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table"):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
     from msmill.surrogate.accuracy import loo_scores
     from msmill.surrogate.campaign_export import read_export, split_runs
@@ -48,7 +54,7 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
     slices, fulls = split_runs(runs)
     if len(slices) < 2:
         sys.exit(f"{export}: {len(slices)} steady slice runs; at least 2 are needed")
-    model = StageSurrogate(n_restarts=n_restarts).fit([r.statistics for r in slices])
+    model = StageSurrogate(n_restarts=n_restarts, filling_curves=filling_curves).fit([r.statistics for r in slices])
     pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls]) if correct else []
     if pairs:
         model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs, groups=groups)
@@ -86,6 +92,26 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
     return model, report, prov
 
 
+def amend_filling_curves(path: Path, value: str | None) -> None:
+    """Set ``filling_curves`` of the surrogate file at ``path``, keeping every other field as it is."""
+    import json
+
+    from msmill.provenance import git_commit
+    from msmill.surrogate.persist import from_dict
+
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    doc["filling_curves"] = value
+    from_dict(doc, source=path.name)  # a value the loader refuses is refused here
+    doc["provenance"].setdefault("amendments", []).append({
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]), "git_commit": git_commit() or "unknown",
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "change": f"filling_curves = {value!r} (was keyed on the file's path in msmill.model.providers)"})
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    print(f"wrote {path}: filling_curves={value!r}")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -99,12 +125,22 @@ def main(argv: list[str] | None = None) -> None:
                          "(default: count, the secondary impacts the slice is known to under-count)")
     ap.add_argument("--no-slice-to-full", action="store_true",
                     help="ship the slice prediction without the slice-to-full-mill correction")
+    ap.add_argument("--filling-curves", choices=("own", "table"), default="table",
+                    help="where predictions take filling curves from: the runs' own, or the packaged stage "
+                         "table's (default: the campaign's runs start from a filled mill)")
+    ap.add_argument("--amend-filling-curves", choices=("own", "table"),
+                    help="only write this filling_curves field into --out (no refit)")
     a = ap.parse_args(argv)
     from msmill.surrogate.persist import save
 
+    if a.amend_filling_curves:
+        amend_filling_curves(a.out, None if a.amend_filling_curves == "own" else a.amend_filling_curves)
+        return
+
     t0 = time.process_time()
     groups = None if a.correct_groups == "all" else tuple(a.correct_groups.split(","))
-    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full, groups)
+    model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full, groups,
+                                None if a.filling_curves == "own" else a.filling_curves)
     prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     prov["cpu_s"] = round(time.process_time() - t0, 1)
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -532,6 +532,26 @@ def test_the_default_provider_takes_its_filling_curves_from_the_shipped_table():
     assert SUBMODELS["transport"][DEFAULT_TRANSPORT] is FillingMatrixTransport
 
 
+def test_the_surrogate_file_not_its_path_says_where_filling_curves_come_from(tmp_path):
+    """A copy of the shipped surrogate saved elsewhere predicts the same dynamics; the field decides."""
+    import json
+
+    from msmill.model.providers import default_surrogate_path
+
+    doc = json.loads(default_surrogate_path().read_text(encoding="utf-8"))
+    assert doc["filling_curves"] == "table"
+    copy = tmp_path / "mine.json"
+    copy.write_text(json.dumps(doc), encoding="utf-8")
+    assert isinstance(load_provider(copy), WithFillingCurves)
+    own = tmp_path / "own.json"
+    own.write_text(json.dumps({**doc, "filling_curves": None}), encoding="utf-8")
+    assert not isinstance(load_provider(own), WithFillingCurves)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**doc, "filling_curves": "tabel"}), encoding="utf-8")
+    with pytest.raises(MsmillInputError, match=r"bad\.json\.filling_curves"):
+        load_provider(bad)
+
+
 # ------------------------------------------------------------------ schema
 def test_filling_transport_is_optional_and_round_trips():
     run = _run(None)

@@ -91,6 +91,9 @@ def fit_cmd(
     refit_loo: Annotated[bool, typer.Option("--refit-loo/--closed-form-loo",
                                             help="Refit the GPs for every left-out run.")] = False,
     plot: Annotated[Path | None, typer.Option(help="Write the predicted-vs-DEM plot (PNG).")] = None,
+    filling_curves: Annotated[str, typer.Option(
+        help="Filling curves of its predictions: 'own' (the runs') or 'table' (the packaged stage table's, "
+             "for runs that start from a filled mill).")] = "own",
 ) -> None:
     """Train the surrogate, print its leave-one-out accuracy and write it as JSON."""
     from msmill.surrogate import persist
@@ -99,13 +102,17 @@ def fit_cmd(
 
     if restarts < 0:
         raise MsmillInputError("restarts", restarts, "an integer >= 0")
+    if filling_curves not in ("own", "table"):
+        raise MsmillInputError("filling_curves", filling_curves, "'own' or 'table'")
     runs = load_runs(sources)
-    model = StageSurrogate(n_restarts=restarts, random_state=seed).fit(runs)
+    model = StageSurrogate(n_restarts=restarts, random_state=seed,
+                           filling_curves=None if filling_curves == "own" else filling_curves).fit(runs)
     report = loo_scores(model, refit=refit_loo)
     con = _console()
     con.print(repr(model))
     _print_scores(report, con)
-    prov = {"command": f"msmill surrogate fit {' '.join(sources)} --out {out} --restarts {restarts} --seed {seed}",
+    prov = {"command": f"msmill surrogate fit {' '.join(sources)} --out {out} --restarts {restarts} --seed {seed}"
+                       f" --filling-curves {filling_curves}",
             "store_query": {"sources": list(sources)},
             "metrics": {"method": report.method, **report.summary()}}
     persist.save(model, out, prov)

@@ -709,9 +709,9 @@ def load_provider(path: str | Path) -> Any:
         from msmill.surrogate.provider import SurrogateProvider
 
         prov = SurrogateProvider.from_file(p)
-        if p == default_surrogate_path():
+        if p == default_surrogate_path():  # its name only: what it does, the file says (filling_curves)
             prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
-            # its runs start from a filled mill: the filling curves are the shipped table's (cold runs)
+        if prov.surrogate.filling_curves == TABLE_NAME:  # runs from a filled mill: the table's (cold runs)
             table = TableProvider.from_file(default_table_path())
             table.source = "the shipped stage table (cold DEM runs)"
             return WithFillingCurves(prov, table)

@@ -17,7 +17,11 @@ Layout (``schema_version`` 1)::
      "training": {"X": [[...]], "Y": [[...]], "noise_var": [[...]], "run_ids": [...],
                   "runs": [RunStatistics, ...]},
      "gp": {"hyperparameters": [{"c32", "ls32", "c52", "ls52", "white"}, ...]},
+     "filling_curves": null | "table",
      "provenance": {...}}
+
+``filling_curves`` (:attr:`StageSurrogate.filling_curves`) says where the providers built on the file
+take filling curves from; a file without it takes the runs' own.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import numpy as np
 from msmill.errors import MsmillInputError
 from msmill.surrogate.gp import SurrogateGP
 from msmill.surrogate.space import DesignSpace
-from msmill.surrogate.stage_model import StageSurrogate
+from msmill.surrogate.stage_model import FILLING_CURVES, StageSurrogate
 from msmill.surrogate.targets import StoredRuns, TargetLayout, TrainingSet
 
 SCHEMA_VERSION = 1
@@ -71,6 +75,7 @@ def to_dict(model: StageSurrogate, provenance: dict[str, Any] | None = None) -> 
                      "runs": [json.loads(r.model_dump_json()) for r in ts.runs]},
         "gp": {"kernel": "C*Matern(ARD,nu=1.5) + C*Matern(ARD,nu=2.5) + White",
                "hyperparameters": gp.hyperparameters()},
+        "filling_curves": model.filling_curves,
         "provenance": prov,
         **_correction_doc(model),
     }
@@ -121,7 +126,10 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate", factors_key: str |
         gp = SurrogateGP.rebuild(X, Y, nv, hyper, space)
         if factors_key:
             _write_factors(factors_key, gp.factors())
-    model = StageSurrogate(space)
+    filling = doc.get("filling_curves")
+    if filling not in FILLING_CURVES:
+        raise MsmillInputError(f"{source}.filling_curves", filling, " or ".join(map(str, FILLING_CURVES)))
+    model = StageSurrogate(space, filling_curves=filling)
     model._set(ts, gp)
     model.provenance_ = dict(doc.get("provenance", {}))
     if doc.get("slice_to_full") is not None:

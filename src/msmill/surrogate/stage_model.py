@@ -62,6 +62,10 @@ class DataSupport:
     nearest_distance: np.ndarray
 
 
+#: where a surrogate's providers take filling curves from (:attr:`StageSurrogate.filling_curves`)
+FILLING_CURVES = (None, "table")
+
+
 class StageSurrogate:
     """Gaussian-process surrogate of per-stage DEM statistics over the design space.
 
@@ -73,6 +77,11 @@ class StageSurrogate:
         GP optimiser restarts per target.
     random_state : int
         Seed of the restarts.
+    filling_curves : {None, "table"}
+        Where a provider built on this surrogate takes the filling curves (``StageParameters.filling_*``)
+        from: None, the training runs' own (none when they carry none); ``"table"``, the packaged
+        single-point DEM table's, for runs that start from a filled mill and so never measure filling.
+        Saved in the surrogate file (:mod:`msmill.surrogate.persist`).
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -83,10 +92,13 @@ class StageSurrogate:
     """
 
     def __init__(self, design_space: DesignSpace | None = None, n_restarts: int = 2,
-                 random_state: int = 0) -> None:
+                 random_state: int = 0, filling_curves: str | None = None) -> None:
+        if filling_curves not in FILLING_CURVES:
+            raise MsmillInputError("filling_curves", filling_curves, " or ".join(map(str, FILLING_CURVES)))
         self.design_space = design_space or DesignSpace()
         self.n_restarts = n_restarts
         self.random_state = random_state
+        self.filling_curves = filling_curves
 
     def fit(self, runs: TrainingSet | Iterable[RunStatistics],
             warm_start: list[dict[str, Any]] | None = None) -> StageSurrogate:
