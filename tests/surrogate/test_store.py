@@ -280,6 +280,18 @@ def test_lost_claim_cannot_record_and_stale_runs_are_replanned(store):
     assert c.run_id not in [x.run_id for x in store.claim("c", 10, "driver b", tb)]
 
 
+def test_a_result_whose_design_point_differs_from_the_planned_one_is_refused(store):
+    """The store keeps a run's design point once (its row); the DEM's statistics must agree with it."""
+    _campaign(store, 1)
+    t = new_token()
+    [c] = store.claim("c", 1, "driver a", t)
+    other = make_stats(c.design.size_mm * 1.01, seed=1)  # e.g. the DEM ran a rounded or other size
+    with pytest.raises(MsmillInputError, match=r"statistics\.design\.size_mm"):
+        store.complete(c.run_id, t, other)
+    assert store.run(c.run_id).status == "running" and store.count_stage_rows() == {}  # nothing written
+    assert store.complete(c.run_id, t, make_stats(c.design.size_mm, seed=1))
+
+
 def test_failed_runs_keep_errors_and_retry_up_to_the_limit(store):
     _campaign(store, 1, max_attempts=2)
     tok = new_token()

@@ -16,6 +16,7 @@ token, so two drivers never claim or record the same run.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -333,7 +334,26 @@ class Store(QueueMixin):
                 for st, d in zip(stats.stages, doc, strict=True)]
 
     @staticmethod
+    def _check_design(row: DesignPointRow, stats: RunStatistics) -> None:
+        """The statistics' design point is the row's: the store keeps the point once, in the row.
+
+        The SQL columns (which queries filter on) come from the plan, the statistics (which training
+        reads) from the DEM; a run whose two disagree is refused in one line, nothing written.
+        """
+        d = stats.design
+        pairs = [(k, getattr(row, k), getattr(d, k)) for k in DESIGN_FILTERS]
+        pairs += [(f"stage_speeds_rpm[{i}]", a, b) for i, (a, b) in
+                  enumerate(zip(row.stage_speeds_rpm, d.stage_speeds_rpm, strict=False))]
+        if len(row.stage_speeds_rpm) != len(d.stage_speeds_rpm):
+            pairs.append(("stage_speeds_rpm", len(row.stage_speeds_rpm), len(d.stage_speeds_rpm)))
+        for name, want, got in pairs:
+            if not math.isclose(float(want), float(got), rel_tol=1e-9, abs_tol=1e-12):
+                raise MsmillInputError(f"statistics.design.{name}", got,
+                                       f"{want:g}, the run's design point in the store")
+
+    @staticmethod
     def _fill_statistics(run: RunRow, stats: RunStatistics, content_hash: str | None) -> None:
+        Store._check_design(run.design_point, stats)
         run.statistics = canonical_statistics(stats)
         run.content_hash = content_hash
         run.characteristic_time_s = stats.characteristic_time_s
