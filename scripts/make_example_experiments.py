@@ -53,7 +53,7 @@ TRUE_L_REF_MM = {"UG2": 20.0, "Platreef": 40.0}
 NO_LOAD_KW = 12.0
 #: Stage parameters of the surveys: the default provider (``msmill calibrate``'s default).
 STAGE_PARAMETERS = "default"
-SWEBREC_TRUE = {"A_pct": 59.0, "k_t_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2}  # L_ref: ore default 29 mm
+SWEBREC_TRUE = {"A_pct": 59.0, "b_t_per_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2}  # L_ref: ore default 29 mm
 
 # ILLUSTRATIVE feeds (plausible crusher products), not measured.
 FEEDS = {

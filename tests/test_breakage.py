@@ -70,12 +70,12 @@ def test_pb_broadcasts():
 
 @pytest.mark.parametrize(
     ("kwargs", "field"),
-    [({"ecs_kwh_t": -1.0}, "ecs_kwh_t"), ({"size_mm": 0.0}, "size_mm"), ({"b": -1.0}, "b"),
+    [({"ecs_kwh_t": -1.0}, "ecs_kwh_t"), ({"size_mm": 0.0}, "size_mm"), ({"b_t_per_kwh": -1.0}, "b_t_per_kwh"),
      ({"l_ref_mm": 0.0}, "l_ref_mm"), ({"damage": 1.0}, "damage"), ({"ecs_kwh_t": float("nan")}, "ecs_kwh_t"),
      ({"ecs_kwh_t": "abc"}, "ecs_kwh_t")],
 )
 def test_pb_validation(kwargs, field):
-    args = {"ecs_kwh_t": 0.1, "size_mm": 10.0, "b": 1.0, "l_ref_mm": 30.0, "damage": 0.0} | kwargs
+    args = {"ecs_kwh_t": 0.1, "size_mm": 10.0, "b_t_per_kwh": 1.0, "l_ref_mm": 30.0, "damage": 0.0} | kwargs
     with pytest.raises(MsmillInputError) as exc:
         br.breakage_probability(**args)
     assert str(exc.value).startswith(field)

@@ -144,7 +144,7 @@ def ecs_kwh_t_to_velocity(ecs_kwh_t: ArrayLike) -> NDArray[np.float64] | float:
 def breakage_probability(
     ecs_kwh_t: ArrayLike,
     size_mm: ArrayLike,
-    b: ArrayLike,
+    b_t_per_kwh: ArrayLike,
     l_ref_mm: ArrayLike,
     damage: ArrayLike = 0.0,
 ) -> NDArray[np.float64] | float:
@@ -158,7 +158,7 @@ def breakage_probability(
         Specific impact energy ``E_cs`` (kWh/t), >= 0.
     size_mm : array_like
         Rock size ``L`` (mm), > 0.
-    b : array_like
+    b_t_per_kwh : array_like
         Ore breakability ``b`` (t/kWh), > 0.
     l_ref_mm : array_like
         Reference size ``L_ref`` (mm), > 0.
@@ -172,7 +172,7 @@ def breakage_probability(
     """
     e = _nonneg(ecs_kwh_t, "ecs_kwh_t", "specific energy (kWh/t)")
     size = _pos(size_mm, "size_mm", "size (mm)")
-    bb = _pos(b, "b", "breakability (t/kWh)")
+    bb = _pos(b_t_per_kwh, "b_t_per_kwh", "breakability (t/kWh)")
     lref = _pos(l_ref_mm, "l_ref_mm", "reference size (mm)")
     d = _damage(damage)
     with np.errstate(over="ignore"):  # a product beyond 1e308 is +inf: P_b = 1, its correct limit
@@ -224,7 +224,8 @@ def fragment_t10_pct(pb: ArrayLike, A: float, convention: str = "jk") -> NDArray
 
 
 def population_t10_pct(
-    ecs_kwh_t: ArrayLike, size_mm: ArrayLike, A: float, b: float, l_ref_mm: float, convention: str = "jk",
+    ecs_kwh_t: ArrayLike, size_mm: ArrayLike, A: float, b_t_per_kwh: float, l_ref_mm: float,
+    convention: str = "jk",
 ) -> NDArray[np.float64] | float:
     """t10 (%) of the whole population after one impact per rock (what a drop-weight test measures).
 
@@ -232,7 +233,7 @@ def population_t10_pct(
     ``P_b * fragment_t10``: ``A P_b**2`` (``"paper"``) or ``A P_b`` (``"jk"``, the JK law), with
     ``P_b`` from Eq. 11 at zero damage.
     """
-    x = b * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float) / l_ref_mm
+    x = b_t_per_kwh * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float) / l_ref_mm
     pb = -np.expm1(-x)
     return _ret(np.asarray(pb * fragment_t10_pct(pb, A, convention), dtype=float))
 
@@ -639,7 +640,7 @@ def is_broken(damage: ArrayLike, threshold: ArrayLike) -> NDArray[np.bool_] | bo
 
 
 def mean_fracture_energy_kwh_t(
-    size_mm: ArrayLike, b: ArrayLike, l_ref_mm: ArrayLike, damage: ArrayLike = 0.0
+    size_mm: ArrayLike, b_t_per_kwh: ArrayLike, l_ref_mm: ArrayLike, damage: ArrayLike = 0.0
 ) -> NDArray[np.float64] | float:
     """Mean fracture energy implied by Eq. 11: ``E_m = L_ref (1 - D) / (b L)`` (kWh/t).
 
@@ -647,7 +648,7 @@ def mean_fracture_energy_kwh_t(
     energies are exponential with this mean.
     """
     size = _pos(size_mm, "size_mm", "size (mm)")
-    bb = _pos(b, "b", "breakability (t/kWh)")
+    bb = _pos(b_t_per_kwh, "b_t_per_kwh", "breakability (t/kWh)")
     lref = _pos(l_ref_mm, "l_ref_mm", "reference size (mm)")
     d = _damage(damage)
     return _ret(lref * (1.0 - d) / (bb * size))
@@ -656,7 +657,7 @@ def mean_fracture_energy_kwh_t(
 def survivor_energy_ratio(
     ecs_kwh_t: ArrayLike,
     size_mm: ArrayLike,
-    b: ArrayLike,
+    b_t_per_kwh: ArrayLike,
     l_ref_mm: ArrayLike,
     damage: ArrayLike = 0.0,
 ) -> NDArray[np.float64] | float:
@@ -670,11 +671,11 @@ def survivor_energy_ratio(
     ----------
     ecs_kwh_t : array_like
         Impact energy (kWh/t), >= 0.
-    size_mm, b, l_ref_mm, damage : array_like
+    size_mm, b_t_per_kwh, l_ref_mm, damage : array_like
         As in :func:`breakage_probability`.
     """
     e = _nonneg(ecs_kwh_t, "ecs_kwh_t", "specific energy (kWh/t)")
-    em = np.asarray(mean_fracture_energy_kwh_t(size_mm, b, l_ref_mm, damage))
+    em = np.asarray(mean_fracture_energy_kwh_t(size_mm, b_t_per_kwh, l_ref_mm, damage))
     r = e / (e + em)
     return _ret(np.minimum(r, np.nextafter(1.0, 0.0)))
 
@@ -698,7 +699,7 @@ class DamageResult(NamedTuple):
 def damage_after_impact(
     ecs_kwh_t: ArrayLike,
     size_mm: ArrayLike,
-    b: ArrayLike,
+    b_t_per_kwh: ArrayLike,
     l_ref_mm: ArrayLike,
     gamma: ArrayLike,
     damage: ArrayLike = 0.0,
@@ -715,7 +716,7 @@ def damage_after_impact(
 
     Parameters
     ----------
-    ecs_kwh_t, size_mm, b, l_ref_mm : array_like
+    ecs_kwh_t, size_mm, b_t_per_kwh, l_ref_mm : array_like
         As in :func:`breakage_probability`.
     gamma : array_like
         Tavares' damage exponent.
@@ -729,8 +730,8 @@ def damage_after_impact(
     DamageResult
         ``(pb, damage)`` broadcast over all inputs.
     """
-    pb = np.asarray(breakage_probability(ecs_kwh_t, size_mm, b, l_ref_mm, damage))
-    r = np.asarray(survivor_energy_ratio(ecs_kwh_t, size_mm, b, l_ref_mm, damage))
+    pb = np.asarray(breakage_probability(ecs_kwh_t, size_mm, b_t_per_kwh, l_ref_mm, damage))
+    r = np.asarray(survivor_energy_ratio(ecs_kwh_t, size_mm, b_t_per_kwh, l_ref_mm, damage))
     dinc = np.asarray(damage_increment(r, gamma))
     dnew = np.minimum(np.asarray(accumulate_damage(damage, dinc)), np.nextafter(1.0, 0.0))
     dnew = np.broadcast_to(dnew, np.broadcast_shapes(dnew.shape, pb.shape))

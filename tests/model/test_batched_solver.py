@@ -183,7 +183,7 @@ def test_tavares_table_lookup_equals_np_interp():
     d_new = DAMAGE.after_impact(e, 10.0, 0.2)
     from msmill import breakage as bk
 
-    ratio = bk.survivor_energy_ratio(e, 10.0, ORE.b_t_kwh, ORE.l_ref_mm, 0.2)
+    ratio = bk.survivor_energy_ratio(e, 10.0, ORE.b_t_per_kwh, ORE.l_ref_mm, 0.2)
     want = 1.0 - 0.8 * (1.0 - np.interp(ratio, DAMAGE._r, DAMAGE._dd))
     np.testing.assert_allclose(d_new, want, rtol=0, atol=1e-15)
 

@@ -22,7 +22,7 @@ from msmill.model.expected_value import impact_operator
 from msmill.model.parameters import MixtureArrays
 from msmill.model.submodels import AbT10Breakage, BreakageParameters, NoDamage, TavaresDamage
 
-ORE = BreakageParameters(name="hand", A_pct=60.0, b_t_kwh=1.0, l_ref_mm=30.0, gamma=4.2,
+ORE = BreakageParameters(name="hand", A_pct=60.0, b_t_per_kwh=1.0, l_ref_mm=30.0, gamma=4.2,
                          damage_threshold=0.5)
 
 
@@ -38,7 +38,7 @@ def hand_chain(energies_kwh_t, size_mm: float, d0: float = 0.0, ore=ORE) -> list
     """Damage after each impact of ``energies_kwh_t``, by hand."""
     d, out = d0, []
     for e in energies_kwh_t:
-        em = ore.l_ref_mm * (1.0 - d) / (ore.b_t_kwh * size_mm)
+        em = ore.l_ref_mm * (1.0 - d) / (ore.b_t_per_kwh * size_mm)
         r = e / (e + em)
         d = 1.0 - (1.0 - d) * (1.0 - hand_increment(r, ore.gamma))
         out.append(d)
@@ -109,9 +109,9 @@ def test_core_damage_after_impact_chain_with_threshold():
     hand = hand_chain(energies, size)
     d = 0.0
     for k, e in enumerate(energies):
-        res = bk.damage_after_impact(e, size, ORE.b_t_kwh, ORE.l_ref_mm, ORE.gamma, damage=d,
+        res = bk.damage_after_impact(e, size, ORE.b_t_per_kwh, ORE.l_ref_mm, ORE.gamma, damage=d,
                                      damage_threshold=th)
-        pb_hand = 1.0 - math.exp(-ORE.b_t_kwh * e * size / (ORE.l_ref_mm * (1.0 - d)))
+        pb_hand = 1.0 - math.exp(-ORE.b_t_per_kwh * e * size / (ORE.l_ref_mm * (1.0 - d)))
         assert float(res.damage) == pytest.approx(hand[k], rel=1e-9)
         assert float(res.pb) == pytest.approx(1.0 if hand[k] >= th else pb_hand, rel=1e-12)
         d = float(res.damage)
@@ -132,7 +132,7 @@ def test_expected_value_operator_breaks_at_the_threshold():
     for d_class in range(nd):
         d = d_class * ORE.damage_threshold / nd
         d_new = hand_chain([e], size, d0=d)[0]
-        pb = 1.0 - math.exp(-ORE.b_t_kwh * e * size / (ORE.l_ref_mm * (1.0 - d)))
+        pb = 1.0 - math.exp(-ORE.b_t_per_kwh * e * size / (ORE.l_ref_mm * (1.0 - d)))
         crossed.append(d_new >= ORE.damage_threshold)
         surv = 0.0 if crossed[-1] else 1.0 - pb
         assert op.survive[0, :, d_class].sum() == pytest.approx(surv, rel=1e-4, abs=1e-12)

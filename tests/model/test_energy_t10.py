@@ -63,7 +63,7 @@ def test_population_t10_of_a_drop_weight_test():
     bp = dataclasses.replace(breakage_parameters("UG2"), fineness_ratio=0.25)
     brk = EnergyT10Breakage(bp)
     e, size = np.array([0.05, 0.4, 2.0, 8.0]), np.full(4, 20.0)
-    x = bp.b_t_kwh * e * size / bp.l_ref_mm
+    x = bp.b_t_per_kwh * e * size / bp.l_ref_mm
     expect = -np.expm1(-x) * bp.A_pct * -np.expm1(-0.25 * x)
     assert simulate_lab_test(brk, size, e) == pytest.approx(expect, rel=0.02)
 

@@ -120,7 +120,7 @@ def test_simulated_lab_test_is_the_convention_calibration_uses(name):
     """The drop-weight test simulated through the sub-model (probability and fragments) gives the
     population t10 of the sub-model's convention, which is what calibration fits."""
     factory = SUBMODELS["breakage"][name]
-    ore = BreakageParameters("x", A_pct=62.0, b_t_kwh=1.3, l_ref_mm=24.0)
+    ore = BreakageParameters("x", A_pct=62.0, b_t_per_kwh=1.3, l_ref_mm=24.0)
     size, e = np.meshgrid(JK_SIZES_MM, ENERGIES_KWH_T)
     sim = simulate_lab_test(factory(ore), size, e)
     closed = population_t10_pct(e, size, 62.0, 1.3, 24.0, factory.t10_convention)
@@ -173,7 +173,7 @@ def test_calibrated_ore_reproduces_its_drop_weight_data_through_the_model(name):
     data = _lab_data(name, 66.0, 1.5, 26.0, noise_pct=noise, seed=4)
     res = calibrate(data, fit=("A_pct", "l_ref_mm"), b_t_per_kwh=1.5, A_pct=70.0, l_ref_mm=29.0,
                     lab_test=lab_test(name))
-    ore = BreakageParameters("calibrated", A_pct=res.params["A_pct"], b_t_kwh=1.5, l_ref_mm=res.params["l_ref_mm"])
+    ore = BreakageParameters("calibrated", A_pct=res.params["A_pct"], b_t_per_kwh=1.5, l_ref_mm=res.params["l_ref_mm"])
     means = data.groupby(["size_mm", "ecs_kwh_t"])["t10_pct"].mean()
     for (size, e), t10_data in means.items():
         t10_model = _lab_mill_t10(ore, name, size, e)

@@ -46,7 +46,7 @@ def make_tests(ore, brk, speeds):
 
 TRUE = {
     "ab_t10": {"A_pct": 64.0, "l_ref_mm": 21.0},
-    "vogel_swebrec": {"A_pct": 59.0, "k_t_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2},
+    "vogel_swebrec": {"A_pct": 59.0, "b_t_per_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2},
 }
 
 

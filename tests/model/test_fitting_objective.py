@@ -116,8 +116,8 @@ def test_bounds_scale_with_particle_size_and_energy(scale):
     b0 = impact_bounds("ab_t10", base, bp)["l_ref_mm"]
     for other in (sized, faster):
         np.testing.assert_allclose(impact_bounds("ab_t10", other, bp)["l_ref_mm"], np.multiply(b0, scale), rtol=1e-9)
-        k0 = impact_bounds("vogel_swebrec", base, bp)["k_t_kwh"]
-        np.testing.assert_allclose(impact_bounds("vogel_swebrec", other, bp)["k_t_kwh"], np.divide(k0, scale),
+        k0 = impact_bounds("vogel_swebrec", base, bp)["b_t_per_kwh"]
+        np.testing.assert_allclose(impact_bounds("vogel_swebrec", other, bp)["b_t_per_kwh"], np.divide(k0, scale),
                                    rtol=1e-9)
     assert b0[0] < 20.0 < b0[1]
 
@@ -127,7 +127,7 @@ def test_bad_bounds_are_one_line():
 
     bp = ore_with(20.0)
     tests = impact_tests(build_breakage("ab_t10", bp, {}), COARSE_FEED, COARSE_SIEVES, (15.0, 45.0))
-    for bad in ({"l_ref_mm": (30.0, 3.0)}, {"l_ref_mm": (0.0, 3.0)}, {"k_t_kwh": (1.0, 2.0)}):
+    for bad in ({"l_ref_mm": (30.0, 3.0)}, {"l_ref_mm": (0.0, 3.0)}, {"b_t_per_kwh": (1.0, 2.0)}):
         with pytest.raises(MsmillInputError, match=r"^bounds\.") as exc:
             fit_impact_tests(tests, bp, "ab_t10", bounds=bad)
         assert "\n" not in str(exc.value)

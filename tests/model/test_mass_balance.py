@@ -21,7 +21,7 @@ from msmill.model.submodels import (
 from msmill.psd import SizeGrid
 
 GRID = SizeGrid.geometric(0.1, 40.0, ratio=2.0)
-ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_kwh=1.2, l_ref_mm=20.0, damage_threshold=0.6)
+ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_per_kwh=1.2, l_ref_mm=20.0, damage_threshold=0.6)
 BREAKAGE = AbT10Breakage(ORE)
 DAMAGE = TavaresDamage(ORE)
 

@@ -38,7 +38,7 @@ PARENT = N - 2  # every feed parcel in one class
 V_M_S = 60.0
 TONNES_PER_STEP = 0.5
 N_STEPS, COLLECT_FROM = 25, 5  # 20 collected steps, each with one step's feed in the stage
-ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_kwh=1.2, l_ref_mm=20.0)
+ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_per_kwh=1.2, l_ref_mm=20.0)
 
 
 def _run(lam: float, damage, parcels: int = 2000):
@@ -80,7 +80,7 @@ def _damage_chain() -> tuple[float, float]:
 
 
 def _tavares(threshold: float) -> TavaresDamage:
-    return TavaresDamage(BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_kwh=1.2, l_ref_mm=20.0,
+    return TavaresDamage(BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_per_kwh=1.2, l_ref_mm=20.0,
                                             damage_threshold=threshold))
 
 

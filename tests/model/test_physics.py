@@ -87,7 +87,7 @@ def test_one_stage_one_impact_matches_hand_calculation(op, breakage):
     ore = BreakageParameters.from_ore(__import__("msmill.ore", fromlist=["get_ore"]).get_ore("UG2"))
     e = 0.5 * 40.0**2 / 3600.0  # kWh/t
     L = grid.mids_mm[j]
-    pb = 1.0 - np.exp(-ore.b_t_kwh * e * L / ore.l_ref_mm)  # Eq. 11 by hand
+    pb = 1.0 - np.exp(-ore.b_t_per_kwh * e * L / ore.l_ref_mm)  # Eq. 11 by hand
     t10 = ore.A_pct * pb if breakage == "ab_t10" else ore.A_pct
     B = bk.appearance_matrix(grid, t10, ore.tn)
     expected = pb * B[:, j]
@@ -110,7 +110,7 @@ def test_damage_makes_repeated_impacts_break_more():
     surv_indep = indep.product_psd.fractions[j]
     surv_dam = damaged.product_psd.fractions[j]
     ore = BreakageParameters.from_ore(__import__("msmill.ore", fromlist=["get_ore"]).get_ore("UG2"))
-    pb = 1.0 - np.exp(-ore.b_t_kwh * (0.5 * 40.0**2 / 3600.0) * grid.mids_mm[j] / ore.l_ref_mm)
+    pb = 1.0 - np.exp(-ore.b_t_per_kwh * (0.5 * 40.0**2 / 3600.0) * grid.mids_mm[j] / ore.l_ref_mm)
     # independent impacts: survivors (1 - P_b)^2 (plus fragments staying in class j)
     assert surv_indep >= (1 - pb) ** 2
     assert surv_dam < surv_indep - 1e-3

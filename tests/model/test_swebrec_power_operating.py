@@ -26,7 +26,7 @@ def test_selection_reduces_to_eq11_without_threshold_and_has_a_threshold():
     bp = breakage_parameters("UG2")
     vp = VogelSwebrecBreakage.from_ore(bp)
     e, L = np.array([0.05, 0.2, 0.5]), np.array([5.0, 20.0, 40.0])
-    expect = 1 - np.exp(-bp.b_t_kwh * e * L / bp.l_ref_mm)
+    expect = 1 - np.exp(-bp.b_t_per_kwh * e * L / bp.l_ref_mm)
     assert np.allclose(vp.probability(e, L, 0.0), expect)
     th = VogelSwebrecBreakage.from_ore(bp, e_min_kwh_t=0.1)
     # threshold at L is E_min L_ref / L: zero below, positive above

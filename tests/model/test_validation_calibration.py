@@ -74,7 +74,7 @@ def test_calibrate_refuses_b_with_l_ref(clean_surveys):
     from msmill.errors import MsmillInputError
 
     with pytest.raises(MsmillInputError, match="b/L_ref"):
-        calibrate_surveys(SurveyModel("UG2", clean_surveys), fit=("l_ref_mm", "b_t_kwh"))
+        calibrate_surveys(SurveyModel("UG2", clean_surveys), fit=("l_ref_mm", "b_t_per_kwh"))
 
 
 def test_calibrate_several_parameters_on_exact_solves():

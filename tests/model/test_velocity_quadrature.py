@@ -19,7 +19,7 @@ from msmill.model.expected_value import impact_operator
 from msmill.model.parameters import MixtureArrays
 from msmill.model.submodels import AbT10Breakage, BreakageParameters, NoDamage
 
-ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_kwh=1.2, l_ref_mm=20.0)
+ORE = BreakageParameters("SYNTHETIC", A_pct=65.0, b_t_per_kwh=1.2, l_ref_mm=20.0)
 W, MU, SIG = np.array([0.3, 0.7]), np.array([25.0, 45.0]), np.array([4.0, 7.0])
 KWH_T_PER_J_KG = 1.0 / 3600.0
 
@@ -41,7 +41,7 @@ def test_mean_breakage_probability_equals_quadrature_of_eq11():
 
     def pb(v):
         e = 0.5 * max(v, 0.0) ** 2 * KWH_T_PER_J_KG
-        return 1.0 - math.exp(-ORE.b_t_kwh * e * size / ORE.l_ref_mm)
+        return 1.0 - math.exp(-ORE.b_t_per_kwh * e * size / ORE.l_ref_mm)
 
     want = sum(w * quad(lambda v, m=m, s=s: pb(v) * norm.pdf(v, m, s), m - 12 * s, m + 12 * s,
                         epsabs=1e-13)[0] for w, m, s in zip(W, MU, SIG, strict=True))

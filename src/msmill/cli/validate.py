@@ -125,7 +125,7 @@ def calibrate(
     folder: Annotated[Path, typer.Argument(help="Folder of experiment TOML files (docs/validation.md).")],
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default DIR/calibration).")] = None,
     fit: Annotated[list[str] | None, typer.Option("--fit", help="Parameter to fit (repeatable): l_ref_mm "
-                                                  "(default), A_pct, b_t_kwh, gamma.")] = None,
+                                                  "(default), A_pct, b_t_per_kwh, gamma.")] = None,
     objective: Annotated[str, typer.Option(help="ssq (weighted squares of % passing) or ks (mean K-S).")] = "ssq",
     stage_parameters: Annotated[str, typer.Option(help="Stage-parameter table ('default' = packaged).")] = "default",
     impact_tests: Annotated[bool, typer.Option("--impact-tests/--no-impact-tests",

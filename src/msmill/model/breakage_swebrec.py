@@ -4,14 +4,14 @@ Selection (breakage probability of one impact; Vogel & Peukert, Powder
 Technol. 129 (2003) 101-110 and Chem. Eng. Sci. 58 (2003) 2127; their
 ``S = 1 - exp(-f_Mat x k (W_m,kin - W_m,min))`` with ``x W_m,min = const``)::
 
-    P_b = 1 - exp(-k_t_kwh (L / L_ref) max(E / (1 - D) - E_min L_ref / L, 0))
+    P_b = 1 - exp(-b_t_per_kwh (L / L_ref) max(E / (1 - D) - E_min L_ref / L, 0))
 
 with ``E`` the specific impact energy (kWh/t), ``L`` the rock size (mm),
-``k_t_kwh`` the slope at ``L_ref`` (t/kWh; ``f_Mat x`` of Vogel-Peukert in
+``b_t_per_kwh`` the slope at ``L_ref`` (t/kWh; ``f_Mat x`` of Vogel-Peukert in
 these units), ``E_min`` the threshold energy at ``L_ref`` (kWh/t; it scales as
 ``1/L``) and ``D`` the accumulated damage (fracture energies scale by
-``1 - D``, as in ``docs/breakage.md``). With ``E_min = 0`` and
-``k_t_kwh = b`` this is Eq. 11.
+``1 - D``, as in ``docs/breakage.md``). With ``E_min = 0`` this is Eq. 11 and
+``b_t_per_kwh`` is the ore's ``b``.
 
 Appearance (Swebrec function, Ouchterlony, Fragblast 9 (2005) 1-25): the
 cumulative passing of the fragments of a parent of size ``x`` is::
@@ -70,7 +70,7 @@ class SwebrecParameters:
     ----------
     A_pct : float
         Largest ``t10`` (%), ``t10 = A P_b``.
-    k_t_kwh : float
+    b_t_per_kwh : float
         Selection slope at ``L_ref`` (t/kWh).
     e_min_kwh_t : float
         Threshold specific energy at ``L_ref`` (kWh/t), scaling as ``1/L``.
@@ -83,7 +83,7 @@ class SwebrecParameters:
     """
 
     A_pct: float
-    k_t_kwh: float
+    b_t_per_kwh: float
     e_min_kwh_t: float
     swebrec_b: float
     l_ref_mm: float
@@ -110,12 +110,12 @@ class VogelSwebrecBreakage(AbT10Breakage):
     """Vogel-Peukert selection with a size-scaled threshold and Swebrec fragments (module docstring)."""
 
     name = "vogel_swebrec"
-    requires = ("A_pct", "k_t_kwh", "e_min_kwh_t", "swebrec_b", "l_ref_mm")
+    requires = ("A_pct", "b_t_per_kwh", "e_min_kwh_t", "swebrec_b", "l_ref_mm")
 
     def __init__(self, params: SwebrecParameters) -> None:
         self.params = params
         # the tabulation machinery of AbT10Breakage reads ``self.ore.A_pct``
-        self.ore = BreakageParameters(name=params.name, A_pct=params.A_pct, b_t_kwh=params.k_t_kwh,
+        self.ore = BreakageParameters(name=params.name, A_pct=params.A_pct, b_t_per_kwh=params.b_t_per_kwh,
                                       l_ref_mm=params.l_ref_mm)
 
     @classmethod
@@ -123,7 +123,7 @@ class VogelSwebrecBreakage(AbT10Breakage):
         """Defaults from an ore (module docstring); keyword arguments override fields."""
         tn = ore.tn if ore.tn is not None else _bk.default_tn_constants()
         beta = _beta_from_tn(float(ore.A_pct), tuple(tn.k), tuple(tn.s))
-        p = SwebrecParameters(A_pct=ore.A_pct, k_t_kwh=ore.b_t_kwh, e_min_kwh_t=0.0, swebrec_b=beta,
+        p = SwebrecParameters(A_pct=ore.A_pct, b_t_per_kwh=ore.b_t_per_kwh, e_min_kwh_t=0.0, swebrec_b=beta,
                               l_ref_mm=ore.l_ref_mm, name=ore.name)
         return cls(replace(p, **overrides))
 
@@ -132,7 +132,7 @@ class VogelSwebrecBreakage(AbT10Breakage):
         L = np.asarray(size_mm, dtype=float)
         e = np.asarray(ecs_kwh_t, dtype=float) / (1.0 - np.asarray(damage, dtype=float))
         excess = np.maximum(e - p.e_min_kwh_t * p.l_ref_mm / L, 0.0)
-        return -np.expm1(-p.k_t_kwh * (L / p.l_ref_mm) * excess)
+        return -np.expm1(-p.b_t_per_kwh * (L / p.l_ref_mm) * excess)
 
     def appearance_table(self, edges_mm: np.ndarray) -> np.ndarray:
         """Swebrec columns tabulated at ``pb_k = (k / 1024)**2``: shape (1025, N, N), cached."""
@@ -154,7 +154,7 @@ class VogelSwebrecBreakage(AbT10Breakage):
 
     def __repr__(self) -> str:
         p = self.params
-        return (f"VogelSwebrecBreakage({p.name}: A={p.A_pct:.4g} %, k={p.k_t_kwh:.4g} t/kWh, "
+        return (f"VogelSwebrecBreakage({p.name}: A={p.A_pct:.4g} %, k={p.b_t_per_kwh:.4g} t/kWh, "
                 f"E_min={p.e_min_kwh_t:.4g} kWh/t at L_ref={p.l_ref_mm:.4g} mm, beta={p.swebrec_b:.4g})")
 
 

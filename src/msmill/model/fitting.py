@@ -73,7 +73,7 @@ FITTABLE: dict[str, tuple[str, ...]] = {
     "ab_t10": ("A_pct", "l_ref_mm"),
     "jk_t10": ("A_pct", "l_ref_mm"),
     "energy_t10": ("A_pct", "l_ref_mm", "fineness_ratio"),
-    "vogel_swebrec": ("A_pct", "k_t_kwh", "e_min_kwh_t", "swebrec_b"),
+    "vogel_swebrec": ("A_pct", "b_t_per_kwh", "e_min_kwh_t", "swebrec_b"),
 }
 #: Bounds of the dimensionless (shape) parameters, the same for every material.
 SHAPE_BOUNDS: dict[str, tuple[float, float]] = {"A_pct": (1.0, 100.0), "swebrec_b": (0.3, 10.0),
@@ -125,10 +125,10 @@ def impact_bounds(submodel: str, tests: Sequence[Any], ore: Any) -> dict[str, tu
     out = dict(SHAPE_BOUNDS)
     if submodel == "vogel_swebrec":
         lr = bp.l_ref_mm
-        out["k_t_kwh"] = (X_MIN * lr / (e_max * l_max), X_MAX * lr / (e_min * l_min))
+        out["b_t_per_kwh"] = (X_MIN * lr / (e_max * l_max), X_MAX * lr / (e_min * l_min))
         out["e_min_kwh_t"] = (0.0, e_max * l_max / lr)
     else:
-        b = bp.b_t_kwh
+        b = bp.b_t_per_kwh
         out["l_ref_mm"] = (b * e_max * l_max / X_MAX, b * e_min * l_min / X_MIN)
     return {k: out[k] for k in FITTABLE[submodel]}
 
@@ -564,7 +564,7 @@ def impact_report(tests: Sequence[Any], ore: Any, submodels: Sequence[str] | Non
 # ---------------------------------------------------------------- mill surveys
 #: Parameters :func:`calibrate_surveys` can fit, with bounds, and the ore field each sets.
 SURVEY_FITTABLE: dict[str, tuple[float, float]] = {
-    "l_ref_mm": (2.0, 500.0), "A_pct": (5.0, 100.0), "b_t_kwh": (0.02, 20.0), "gamma": (0.5, 50.0),
+    "l_ref_mm": (2.0, 500.0), "A_pct": (5.0, 100.0), "b_t_per_kwh": (0.02, 20.0), "gamma": (0.5, 50.0),
 }
 
 
@@ -576,7 +576,7 @@ class SurveyCalibration:
     ----------
     ore : str
     fitted : tuple of str
-        Fitted parameters (ore field names: ``l_ref_mm``, ``A_pct``, ``b_t_kwh``, ``gamma``).
+        Fitted parameters (ore field names: ``l_ref_mm``, ``A_pct``, ``b_t_per_kwh``, ``gamma``).
     params : dict[str, float]
         Fitted values.
     std_errors : dict[str, float]
@@ -697,7 +697,7 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
     model : SurveyModel
         Surveys of one ore, with the stage parameters cached per operating point.
     fit : sequence of str
-        From :data:`SURVEY_FITTABLE`; not ``b_t_kwh`` with ``l_ref_mm``.
+        From :data:`SURVEY_FITTABLE`; not ``b_t_per_kwh`` with ``l_ref_mm``.
     objective : {"ssq", "ks"}
         Weighted sum of squares of % passing at the measured sieves (default:
         smooth, and its jackknife standard error is sound), or the mean K-S
@@ -721,7 +721,7 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
     fit = tuple(dict.fromkeys(fit))
     if not fit or any(f not in SURVEY_FITTABLE for f in fit):
         raise MsmillInputError("fit", list(fit), f"a non-empty subset of {', '.join(SURVEY_FITTABLE)}")
-    if "b_t_kwh" in fit and "l_ref_mm" in fit:
+    if "b_t_per_kwh" in fit and "l_ref_mm" in fit:
         raise MsmillInputError("fit", list(fit), "not both b and L_ref (they enter Eq. 11 only as b/L_ref)")
     if objective not in OBJECTIVES:
         raise MsmillInputError("objective", objective, sm.did_you_mean(objective, list(OBJECTIVES)))
@@ -840,9 +840,9 @@ def calibrated_ore(ore: Any, cal: SurveyCalibration) -> Any:
     text = cal.provenance()
     new = ore.with_l_ref(cal.params["l_ref_mm"], text) if "l_ref_mm" in cal.fitted else ore
     upd: dict[str, Any] = {}
-    for field_name, ore_field in (("A_pct", "A_pct"), ("b_t_kwh", "b_t_per_kwh"), ("gamma", "gamma")):
-        if field_name in cal.fitted:
-            upd[ore_field] = cal.params[field_name]
+    for name in ("A_pct", "b_t_per_kwh", "gamma"):  # the ore's field names
+        if name in cal.fitted:
+            upd[name] = cal.params[name]
     if upd:
         srcs = dict(new.sources)
         for key, names in (("breakage", ("A_pct", "b_t_per_kwh")), ("damage", ("gamma",))):

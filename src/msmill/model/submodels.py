@@ -57,7 +57,7 @@ class BreakageParameters:
         Ore name.
     A_pct : float
         Pulverisability ``A`` (%), paper Eq. 12.
-    b_t_kwh : float
+    b_t_per_kwh : float
         Breakability ``b`` (t/kWh), paper Eq. 11.
     l_ref_mm : float
         Reference size ``L_ref`` (mm), paper Eq. 11.
@@ -76,7 +76,7 @@ class BreakageParameters:
 
     name: str
     A_pct: float
-    b_t_kwh: float
+    b_t_per_kwh: float
     l_ref_mm: float
     tn: Any = None
     gamma: float = DEFAULT_GAMMA
@@ -87,29 +87,23 @@ class BreakageParameters:
 
     @classmethod
     def from_ore(cls, ore: Any) -> BreakageParameters:
-        """Adapt an ``msmill.ore.Ore`` (or any object with the same attributes)."""
-        def pick(*names: str, default: Any = None) -> Any:
-            for n in names:
-                if hasattr(ore, n) and getattr(ore, n) is not None:
-                    return getattr(ore, n)
-            return default
-
-        tn = pick("tn", "tn_constants", default=None)
+        """Adapt an ``msmill.ore.Ore`` (or any object with its attribute names)."""
+        tn = getattr(ore, "tn", None)
         if tn is not None and not isinstance(tn, _bk.TnConstants):
             tn = _bk.TnConstants.from_mapping(tn)
-        notes = []
-        if pick("l_ref_is_default", default=False):
-            notes.append(f"L_ref of {pick('name', default='ore')} is the default reference size")
+        name = str(getattr(ore, "name", "ore"))
+        notes = (f"L_ref of {name} is the default reference size",) if getattr(ore, "l_ref_is_default", False) else ()
+        fineness, gamma, threshold = (getattr(ore, k, None) for k in ("fineness_ratio", "gamma", "damage_threshold"))
         return cls(
-            name=str(pick("name", default="ore")),
-            A_pct=float(pick("A_pct", "A", "a_pct")),
-            b_t_kwh=float(pick("b_t_kwh", "b", "b_t_per_kwh")),
-            l_ref_mm=float(pick("l_ref_mm", "L_ref_mm")),
+            name=name,
+            A_pct=float(ore.A_pct),
+            b_t_per_kwh=float(ore.b_t_per_kwh),
+            l_ref_mm=float(ore.l_ref_mm),
             tn=tn,
-            gamma=float(pick("gamma", "damage_gamma", default=DEFAULT_GAMMA)),
-            damage_threshold=float(pick("damage_threshold", "d_threshold", default=DEFAULT_DAMAGE_THRESHOLD)),
-            fineness_ratio=None if pick("fineness_ratio") is None else float(pick("fineness_ratio")),
-            notes=tuple(notes),
+            gamma=DEFAULT_GAMMA if gamma is None else float(gamma),
+            damage_threshold=DEFAULT_DAMAGE_THRESHOLD if threshold is None else float(threshold),
+            fineness_ratio=None if fineness is None else float(fineness),
+            notes=notes,
             ore=ore,
         )
 
@@ -598,11 +592,11 @@ class AbT10Breakage:
     Parameters
     ----------
     ore : BreakageParameters
-        ``A_pct``, ``b_t_kwh``, ``l_ref_mm`` and the t10-tn constants ``tn``.
+        ``A_pct``, ``b_t_per_kwh``, ``l_ref_mm`` and the t10-tn constants ``tn``.
     """
 
     name = "ab_t10"
-    requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")
+    requires = ("A_pct", "b_t_per_kwh", "l_ref_mm", "tn")
     #: t10 convention (``msmill.breakage.T10_CONVENTIONS``): broken rock ``t10 = A P_b``.
     t10_convention = "paper"
 
@@ -633,7 +627,7 @@ class AbT10Breakage:
         return tab
 
     def probability(self, ecs_kwh_t, size_mm, damage):
-        return np.asarray(_bk.breakage_probability(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
+        return np.asarray(_bk.breakage_probability(ecs_kwh_t, size_mm, self.ore.b_t_per_kwh,
                                                    self.ore.l_ref_mm, damage))
 
     def direct_fragments(self, edges_mm: np.ndarray, pb: np.ndarray) -> np.ndarray:
@@ -705,7 +699,7 @@ class AbT10Breakage:
 
     def __repr__(self) -> str:
         o = self.ore
-        return (f"{type(self).__name__}({o.name}: A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, "
+        return (f"{type(self).__name__}({o.name}: A={o.A_pct:g} %, b={o.b_t_per_kwh:g} t/kWh, "
                 f"L_ref={o.l_ref_mm:g} mm)")
 
 
@@ -780,14 +774,14 @@ class EnergyT10Breakage(AbT10Breakage):
     Parameters
     ----------
     ore : BreakageParameters
-        ``A_pct``, ``b_t_kwh``, ``l_ref_mm``, ``tn`` and ``fineness_ratio``
+        ``A_pct``, ``b_t_per_kwh``, ``l_ref_mm``, ``tn`` and ``fineness_ratio``
         (None: :data:`DEFAULT_FINENESS_RATIO`, noted in ``ore.notes``).
     fineness_ratio : float, optional
         Overrides the ore's.
     """
 
     name = "energy_t10"
-    requires = ("A_pct", "b_t_kwh", "l_ref_mm", "tn")  # fineness_ratio: a default, noted, when the ore has none
+    requires = ("A_pct", "b_t_per_kwh", "l_ref_mm", "tn")  # fineness_ratio: a default, noted, when the ore has none
     t10_convention = "energy"
 
     def __init__(self, ore: BreakageParameters, fineness_ratio: float | None = None) -> None:
@@ -804,7 +798,7 @@ class EnergyT10Breakage(AbT10Breakage):
     def fragment_index(self, ecs_kwh_t, size_mm, damage):
         """``t10 / A = 1 - exp(-c x)`` of the fragments (``x`` the Eq. 11 exponent; no underflow at large x)."""
         o = self.ore
-        x = (o.b_t_kwh * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float)
+        x = (o.b_t_per_kwh * np.asarray(ecs_kwh_t, dtype=float) * np.asarray(size_mm, dtype=float)
              / (o.l_ref_mm * (1.0 - np.asarray(damage, dtype=float))))
         return -np.expm1(-o.fineness_ratio * np.maximum(x, 0.0))
 
@@ -852,7 +846,7 @@ def lab_test(name: str, tn: Any = None):
         raise MsmillInputError("breakage", name, did_you_mean(name, list(SUBMODELS["breakage"])))
 
     def run(size_mm, ecs_kwh_t, A_pct, b_t_per_kwh, l_ref_mm):
-        ore = BreakageParameters("calibration", A_pct=A_pct, b_t_kwh=b_t_per_kwh, l_ref_mm=l_ref_mm, tn=tn)
+        ore = BreakageParameters("calibration", A_pct=A_pct, b_t_per_kwh=b_t_per_kwh, l_ref_mm=l_ref_mm, tn=tn)
         return simulate_lab_test(factory(ore), size_mm, ecs_kwh_t)
 
     run.convention = getattr(factory, "t10_convention", name)  # type: ignore[attr-defined]
@@ -895,11 +889,11 @@ class TavaresDamage:
     Parameters
     ----------
     ore : BreakageParameters
-        ``b_t_kwh``, ``l_ref_mm``, ``gamma`` and ``damage_threshold``.
+        ``b_t_per_kwh``, ``l_ref_mm``, ``gamma`` and ``damage_threshold``.
     """
 
     name = "tavares"
-    requires = ("b_t_kwh", "l_ref_mm", "gamma", "damage_threshold")
+    requires = ("b_t_per_kwh", "l_ref_mm", "gamma", "damage_threshold")
 
     def __init__(self, ore: BreakageParameters) -> None:
         self.ore = ore
@@ -913,7 +907,7 @@ class TavaresDamage:
 
     def after_impact(self, ecs_kwh_t, size_mm, damage):
         d = np.asarray(damage, dtype=float)
-        r = np.asarray(_bk.survivor_energy_ratio(ecs_kwh_t, size_mm, self.ore.b_t_kwh,
+        r = np.asarray(_bk.survivor_energy_ratio(ecs_kwh_t, size_mm, self.ore.b_t_per_kwh,
                                                  self.ore.l_ref_mm, d))
         # tabulated damage_increment(r, gamma), linear between nodes: np.interp on the uniform
         # table, its interval found by index arithmetic instead of a binary search
