@@ -37,8 +37,8 @@ from collections import Counter
 from pathlib import Path
 
 from msmill.machine import Machine
-from msmill.surrogate.campaign import design_grid, run_campaign
-from msmill.surrogate.store import Store
+from msmill.pipeline.campaign import design_grid, run_campaign
+from msmill.pipeline.store import Store
 
 NAME = "faults"
 SETTINGS = {"max_time_s": 1.0, "chunk_s": 0.05, "steady_window_s": 0.1, "measure_s": 0.2,

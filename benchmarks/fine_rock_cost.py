@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msmill.pipeline.export import default_export_dir, read_export, split_runs
 from msmill.surrogate.active import CostModel
-from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
 
 DATA = Path(__file__).parent / "data" / "fine_rock_cost"
 

@@ -58,7 +58,7 @@ from msmill.dem.mill.run import (
 )
 from msmill.dem.mill.stats import StatsSettings
 from msmill.machine import Machine, OperatingPoint
-from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 
 #: the training-run benchmark's design point (benchmarks/training_run_cost.py)
 POINT = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)

@@ -26,8 +26,8 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     from msmill.model.providers import default_surrogate_path
+    from msmill.pipeline.export import default_export_dir, read_export, split_runs
     from msmill.surrogate.accuracy import loo_coverage, loo_scores
-    from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
     from msmill.surrogate.persist import load
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

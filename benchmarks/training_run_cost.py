@@ -7,7 +7,7 @@ first from size to size:
 * **old**: today's training run: empty mill, steady state by
   :mod:`msmill.steadystate`, a fixed 0.5 s measurement window;
 * **new**: what a campaign run does by default (``--start table``,
-  :data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`): the stage table's
+  :data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`): the stage table's
   expected hold-up placed at t = 0 (``RunSettings.start = "table"``,
   :func:`msmill.dem.mill.warmstart.place_table_start`), then the adaptive
   window (``RunSettings.adaptive``) from the steady-state onset
@@ -82,8 +82,8 @@ import numpy as np
 from msmill.dem.mill.run import RunSettings, run_mill, stats_from_dir
 from msmill.dem.mill.warmstart import WarmStart
 from msmill.machine import Machine, OperatingPoint
+from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 from msmill.stageparams import RunStatistics
-from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
 
 KEYS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda")
 

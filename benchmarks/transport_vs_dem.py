@@ -111,7 +111,7 @@ from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTa
 from msmill.steadystate import SteadyStateCriterion, first_steady
 
 #: Ore parameters are irrelevant with breakage="none"; any valid set.
-_ORE = BreakageParameters("unbreakable", A_pct=50.0, b_t_kwh=1.0, l_ref_mm=29.0)
+_ORE = BreakageParameters("unbreakable", A_pct=50.0, b_t_per_kwh=1.0, l_ref_mm=29.0)
 _NAN = float("nan")
 
 
@@ -641,7 +641,7 @@ def main() -> None:
     if args.plot is not None:
         plot_approach(rows, reps, args.plot)
     if (args.campaign or "").lower() != "none":
-        from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
+        from msmill.pipeline.export import default_export_dir, read_export, split_runs
 
         folder = Path(args.campaign) if args.campaign else default_export_dir()
         if folder.is_dir():

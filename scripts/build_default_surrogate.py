@@ -45,8 +45,8 @@ def git_state() -> dict[str, object]:
 def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
           groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table"):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
+    from msmill.pipeline.export import read_export, split_runs
     from msmill.surrogate.accuracy import loo_scores
-    from msmill.surrogate.campaign_export import read_export, split_runs
     from msmill.surrogate.fidelity import SliceToFullBias, match_pairs
     from msmill.surrogate.stage_model import StageSurrogate
 

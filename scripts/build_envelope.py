@@ -3,7 +3,7 @@
 Reads the run documents of ``src/msmill/data/campaigns/default/`` (and,
 optionally, the done runs of a store not yet exported, e.g. a batch being
 ingested), takes each run's outcome (steady / choked / not steady) and measured
-throughput, fits the capacity model (``msmill.capacity.CapacityModel``, default
+throughput, fits the capacity model (``msmill.surrogate.capacity.CapacityModel``, default
 the censored log-linear model) and writes ``src/msmill/data/envelopes/default.json``:
 the points, the method and fitted parameters (refitted and checked on load, no
 pickles; with no choked run the method is ``demonstrated``, lower bounds from the
@@ -48,8 +48,8 @@ def _rel(p: Path) -> str:
 
 def export_rows(export: Path) -> list[dict]:
     """One row per run document of the export: source, hash, machine, mode and the envelope point."""
-    from msmill.capacity import EnvelopePoint
-    from msmill.surrogate.campaign_export import read_export
+    from msmill.pipeline.export import read_export
+    from msmill.surrogate.capacity import EnvelopePoint
 
     rows = []
     for r in read_export(export):
@@ -62,8 +62,8 @@ def export_rows(export: Path) -> list[dict]:
 
 def store_rows(url: str, known: set[str]) -> list[dict]:
     """Done runs of a store whose content hash is not among ``known`` (the export's)."""
-    from msmill.capacity import EnvelopePoint
-    from msmill.surrogate.store import Store
+    from msmill.pipeline.store import Store
+    from msmill.surrogate.capacity import EnvelopePoint
 
     rows = []
     for rec, st in Store(url).training_runs(steady_only=False):
@@ -80,7 +80,7 @@ def build(export: Path, store: str | None, method: str) -> tuple[object, object,
     from dataclasses import asdict
 
     from msmill._version import __version__
-    from msmill.capacity import CapacityModel
+    from msmill.surrogate.capacity import CapacityModel
 
     rows = export_rows(export)
     if store:
@@ -114,7 +114,7 @@ def build(export: Path, store: str | None, method: str) -> tuple[object, object,
 
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
-    from msmill.capacity import METHODS, load_capacity
+    from msmill.surrogate.capacity import METHODS, load_capacity
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--export", type=Path, default=EXPORT, help="campaign export folder")

@@ -13,7 +13,7 @@ Run: ``python scripts/build_stage_table.py [--sizes-mm 10 14 20 30] [--measure-s
 ``--restat`` recomputes the statistics (e.g. the secondary-impact count
 families) from the raw data saved in ``--runs-dir`` without running the DEM.
 ``--protocol campaign`` runs each point as a campaign run does
-(:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`: the shipped table's
+(:data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`: the shipped table's
 hold-up placed at t = 0, the adaptive window until the statistics' sampling
 errors reach their targets) instead of the cold start and the fixed
 ``--measure-s`` window: one 0.5 s window measures a coarse-rock point's
@@ -111,7 +111,7 @@ def _design(args) -> tuple[Machine, OperatingPoint, RunSettings]:
     op = OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm, gate_deg=args.gate_deg)
     protocol = {}
     if args.protocol == "campaign":
-        from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+        from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 
         protocol = dict(CAMPAIGN_RUN_DEFAULTS)
         if args.min_measure_s is not None:

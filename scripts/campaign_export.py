@@ -26,8 +26,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--db", default=None, help="store URL (default $MSMILL_DB or the user store)")
     ap.add_argument("--out", type=Path, default=EXPORT, help="export folder")
     a = ap.parse_args(argv)
-    from msmill.surrogate.campaign_export import export_campaign
-    from msmill.surrogate.store import Store
+    from msmill.pipeline.export import export_campaign
+    from msmill.pipeline.store import Store
 
     with Store(a.db) as st:
         runs, cpath = export_campaign(st, a.out)

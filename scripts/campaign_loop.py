@@ -6,7 +6,7 @@ killed at any point and restarted on this or another machine:
 
 1. ingest the export (runs already in the store are recognised by their hash)
    and re-create the exported campaigns missing from the store, with their
-   pending points (``msmill.surrogate.campaign_export.restore_campaigns``);
+   pending points (``msmill.pipeline.export.restore_campaigns``);
 2. create the campaign if it still does not exist (``--size-range-mm``,
    ``--set KEY=VALUE`` run settings);
 3. per round: run what is planned (``run_campaign``: stale runs of a dead
@@ -50,9 +50,9 @@ def _settings(items: list[str]) -> dict[str, object]:
 def prepare(st, a) -> None:
     """Ingest the export, restore its campaigns, create the campaign if missing."""
     from msmill.machine import Machine
-    from msmill.surrogate.campaign import run_settings_dict
-    from msmill.surrogate.campaign_export import restore_campaigns
-    from msmill.surrogate.store.transfer import ingest_paths
+    from msmill.pipeline.campaign import run_settings_dict
+    from msmill.pipeline.export import restore_campaigns
+    from msmill.pipeline.store.transfer import ingest_paths
 
     if a.export.is_dir():
         res = ingest_paths(st, [a.export], allow_not_steady=True)
@@ -95,7 +95,7 @@ def stop_reason(state: dict[str, float], a) -> str | None:
 
 def export(st, a) -> None:
     """Export the store and print (or run) the git commit of the export folder."""
-    from msmill.surrogate.campaign_export import export_campaign
+    from msmill.pipeline.export import export_campaign
 
     runs, _ = export_campaign(st, a.export)
     cmd = ["git", "-C", str(ROOT), "add", str(a.export)]
@@ -109,7 +109,7 @@ def export(st, a) -> None:
 
 def one_round(st, a) -> str | None:
     """Run the planned runs, export, check the stop criteria, plan the next batch; the stop reason or None."""
-    from msmill.surrogate.campaign import PLANNERS, run_campaign
+    from msmill.pipeline.campaign import PLANNERS, run_campaign
 
     if not a.no_run and (st.counts(a.campaign)["planned"] or st.counts(a.campaign)["running"]):
         rep = run_campaign(st, a.campaign, scheduler=a.scheduler, n_workers=a.workers, stale_s=a.stale_s)
@@ -153,7 +153,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
-    from msmill.surrogate.store import Store
+    from msmill.pipeline.store import Store
 
     a = parse(argv)
     a.state = {"runs": 0, "dem_hours": 0.0, "kl": float("nan")}

@@ -14,7 +14,7 @@ Runs on whatever the export holds (re-run it after every batch):
   surrogate's posterior spread; no tuning);
 * the product P80 at 10/30/60 t/h and gates 0/40/80 deg (``msmill predict``'s model);
 * the slice-to-full correction, when the export holds paired full-mill runs;
-* the capacity (operating envelope, ``msmill.capacity``) of the shipped envelope: a map over gate angle and
+* the capacity (operating envelope, ``msmill.surrogate.capacity``) of the shipped envelope: a map over gate angle and
   speed, the probability of steady flow against feed, the choked runs held out one at a time, and the
   capacity's sensitivity to the model's priors.
 
@@ -369,7 +369,7 @@ def pair_table(slices, fulls) -> list[str]:
 # ------------------------------------------------------------------ capacity (operating envelope)
 #: points at which the page tabulates the capacity (size mm, speed rpm, gate deg)
 CAPACITY_AT = ((14.0, 1500.0, 5.0), (20.0, 1500.0, 10.0), (20.0, 1900.0, 10.0), (28.0, 1500.0, 40.0))
-#: prior variants of the sensitivity table (entries of msmill.capacity.PRIORS)
+#: prior variants of the sensitivity table (entries of msmill.surrogate.capacity.PRIORS)
 PRIOR_VARIANTS = (("shipped priors", {}), ("slopes sd 0.5", {"slope_sd": 0.5}), ("slopes sd 2", {"slope_sd": 2.0}),
                   ("sigma prior 0.1", {"log_sigma_mean": float(np.log(0.1))}),
                   ("sigma prior 0.4", {"log_sigma_mean": float(np.log(0.4))}))
@@ -453,7 +453,7 @@ def _made_with(settings: dict) -> str:
 
 def choked_table(model, pts, settings: dict | None = None) -> list[str]:
     """Each choked run: the capacity and P(steady) at its feed, fitted with and without it (leave one out)."""
-    from msmill.capacity import CapacityModel
+    from msmill.surrogate.capacity import CapacityModel
 
     settings = settings or {}
     rows = ["| size (mm) | speed (rpm) | gate (deg) | feed (t/h) | passed (t/h) | run made with | "
@@ -529,7 +529,7 @@ def passed_share(pts) -> str:
 
 def prior_table(pts) -> list[str]:
     """Capacity at :data:`CAPACITY_AT` under the prior variants."""
-    from msmill.capacity import CapacityModel
+    from msmill.surrogate.capacity import CapacityModel
 
     head = "| priors | sigma | " + " | ".join(f"{s:g} mm, {v:g} rpm, {g:g} deg" for s, v, g in CAPACITY_AT) + " |"
     rows = [head, "|" + "---|" * (2 + len(CAPACITY_AT))]
@@ -546,7 +546,7 @@ DEMONSTRATED_AT = ((6.0, 10.0, 14.0, 20.0, 28.0), (1200.0, 1550.0, 1900.0), (0.0
 
 def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
     """Capacity section when no run choked: the largest feed a steady run passed near each point (lower bounds)."""
-    from msmill.capacity import (
+    from msmill.surrogate.capacity import (
         DEMONSTRATED_GATE_TOL_DEG,
         DEMONSTRATED_SIZE_FACTOR,
         DEMONSTRATED_SPEED_RPM,
@@ -572,7 +572,7 @@ def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
         f"deliver, up to {top.feed_tph:.0f} t/h ({top.size_mm:.3g} mm rock, {top.speed_rpm:.0f} rpm, gate "
         f"{top.gate_deg:.1f} deg; `docs/mill-dem.md` 3.1), more than 40 times the design space's largest feed. "
         "So the data bound the capacity from below only, and the shipped envelope (method `demonstrated`, "
-        "`msmill.capacity`) says exactly that: the capacity at a size, speed and gate is **at least** the largest "
+        "`msmill.surrogate.capacity`) says exactly that: the capacity at a size, speed and gate is **at least** the largest "
         f"feed of a steady run near it (rock within a factor {DEMONSTRATED_SIZE_FACTOR:g} of the size, a shaft "
         f"speed within {DEMONSTRATED_SPEED_RPM:g} rpm, a gate angle at most {DEMONSTRATED_GATE_TOL_DEG:g} deg above "
         "the point's: opening the gates further cannot pass less). '-': no run near that point, no statement.",
@@ -585,7 +585,7 @@ def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
         "excludes them. Where only low-feed runs are near (fine rock, the small entries above), the bound lies "
         "inside the design space's 10-60 t/h, so there the tools flag feeds that no DEM run near them has passed: "
         "a conservative constraint, lifted by a DEM run at a higher feed there (`msmill campaign add`). "
-        "The censored capacity model and the classifier stay in `msmill.capacity` for data with chokes "
+        "The censored capacity model and the classifier stay in `msmill.surrogate.capacity` for data with chokes "
         "(`scripts/build_envelope.py --method censored` refuses to fit without one).",
         "",
     ]
@@ -593,7 +593,7 @@ def demonstrated_section(env, model, missing, env_rel: str) -> list[str]:
 
 def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[str]:
     """The page's capacity section (and its figure) from the shipped envelope."""
-    from msmill.capacity import CapacityModel, EnvelopeData, load_capacity
+    from msmill.surrogate.capacity import CapacityModel, EnvelopeData, load_capacity
 
     if env_path is None:
         return ["No envelope ships (`scripts/build_envelope.py` builds it from the export).", ""]
@@ -623,7 +623,7 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
         "",
         "![capacity](img/campaign-capacity.png)",
         "",
-        "Model (`msmill.capacity`, censored): log capacity = b0 + b1 log2(size/15 mm) + b2 (speed - 1550 rpm)/350 "
+        "Model (`msmill.surrogate.capacity`, censored): log capacity = b0 + b1 log2(size/15 mm) + b2 (speed - 1550 rpm)/350 "
         "rpm + b3 (gate - 40 deg)/40 deg, with a run-to-run scatter sigma; a steady run at feed F says capacity "
         ">= F, a choked run says throughput <= capacity < F. Fitted (MAP, +- 1 posterior sd): "
         + ", ".join(f"{k} {v:.2f} +- {e:.2f}" for (k, v), e in zip(c.items(), sd, strict=True))
@@ -652,7 +652,7 @@ def capacity_section(env_path: Path | None, all_runs, img: Path, rel) -> list[st
         "choked ones at nearby sizes, speeds and gates, so the data do not show a sharp boundary; the probability "
         "of steady flow falls gradually through the capacity. A warning is a flag to check, not a prediction "
         "that the plant will choke.",
-        "- Sensitivity of the capacity (t/h) to the priors (`msmill.capacity.PRIORS`); columns inside the run "
+        "- Sensitivity of the capacity (t/h) to the priors (`msmill.surrogate.capacity.PRIORS`); columns inside the run "
         "data move less than the extrapolated wide-gate one:",
         "",
         *prior_table(pts),
@@ -684,7 +684,7 @@ def git_commit() -> str:
 def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     from msmill.model.providers import default_surrogate_path
-    from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
+    from msmill.pipeline.export import default_export_dir, read_export, split_runs
     from msmill.surrogate.provider import SurrogateProvider
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -711,7 +711,7 @@ def main(argv: list[str] | None = None) -> None:
     fit = plot_cost(runs, img / "campaign-cost.png")
     at = centre(provider.surrogate)
     plot_trends(provider, at, img / "campaign-trends.png")
-    from msmill.capacity import default_envelope_path
+    from msmill.surrogate.capacity import default_envelope_path
 
     page = render(all_runs, slices, fulls, runs, curve, fit, provider, at, spath, export,
                   a.envelope or default_envelope_path(), img)

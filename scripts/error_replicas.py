@@ -1,6 +1,6 @@
 """Feed-seed replicas of one design point with long fixed windows, for calibrating sampling errors (issue 36).
 
-Each replica is a campaign-protocol slice run (:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`:
+Each replica is a campaign-protocol slice run (:data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`:
 stage-table start, window from the steady-state onset, at the earliest ``settle_s``) with a *fixed*
 window of ``--measure-s`` (not adaptive: every replica measures the same length), the feed seed the only
 difference. The statistics record every statistic's per-slice numerator and denominator
@@ -29,7 +29,7 @@ from msmill._version import __version__
 from msmill.dem.mill.run import RunSettings, git_commit, run_mill
 from msmill.dem.mill.stats import StatsSettings
 from msmill.machine import Machine, OperatingPoint
-from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 
 ROOT = Path(__file__).resolve().parents[1]
 

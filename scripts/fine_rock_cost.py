@@ -1,7 +1,7 @@
 """One campaign-protocol run at a fine rock size, checkpointed, with a small text export of what it cost.
 
 The point of issue 35: 30 t/h, 1500 rpm upper stages (bottom at twice), gates 40 deg, periodic slice,
-the campaign's run settings (:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`: table start,
+the campaign's run settings (:data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`: table start,
 adaptive window from the onset), feed seed 0. The run checkpoints into ``WORK/<size>mm/checkpoint``
 every ``--checkpoint-every-s``; the same command after a stop continues it from there.
 
@@ -37,7 +37,7 @@ import numpy as np
 from msmill._version import __version__
 from msmill.dem.mill.run import RunSettings, git_commit, run_mill, save_run
 from msmill.machine import Machine, OperatingPoint
-from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 
 ROOT = Path(__file__).resolve().parents[1]
 POINT = {"feed_tph": 30.0, "speed_rpm": 1500.0, "gate_deg": 40.0}

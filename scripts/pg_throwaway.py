@@ -8,7 +8,7 @@ Usage::
 The cluster lives in ``DIR`` (trust authentication, listening on 127.0.0.1
 at a free port, fsync off: for tests only). Run as root, the server runs as
 the ``postgres`` user (PostgreSQL refuses to run as root). ``.ci/run`` uses
-this and exports the URL as ``MSMILL_TEST_PG_URL``; ``tests/surrogate``
+this and exports the URL as ``MSMILL_TEST_PG_URL``; ``tests/pipeline``
 starts one itself when that variable is not set and the binaries exist.
 """
 

@@ -9,7 +9,7 @@
 # table's runs), full/size_*mm (full-mill runs paired with slice runs), campaign_raw/run* (folders the
 # campaign runner saved with --raw-dir), capacity/pt_*, capacity2/pt_* (scripts/design_batch.py batches at high feed
 # and narrow gates, issue 20), capacity3/pt_*, choke*/pt_* (feeds of 60-600 t/h, outside the design space: they
-# feed the operating envelope, not the surrogate, msmill.surrogate.campaign_export.split_runs),
+# feed the operating envelope, not the surrogate, msmill.pipeline.export.split_runs),
 # fine*/pt_* (scripts/design_batch.py --adaptive, rock below 6 mm), rerun*/ (scripts/rerun_undersampled.py: under-sampled runs measured for longer, in place of the originals). Every folder's statistics are recomputed with this checkout's
 # code first (`msmill dem stats`), so outcomes follow today's steady-state criterion; not-steady and
 # choked runs are stored with their outcome (the surrogate trains on steady slice runs only).

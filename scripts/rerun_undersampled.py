@@ -36,8 +36,8 @@ from pathlib import Path
 from msmill._version import __version__
 from msmill.dem.mill.run import VELOCITY_FIT_PARAMETERS, RunSettings, git_commit, run_mill, save_run
 from msmill.machine import Machine, OperatingPoint
+from msmill.pipeline.export import in_design_space
 from msmill.stageparams import DesignPoint
-from msmill.surrogate.campaign_export import in_design_space
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPORT = ROOT / "src/msmill/data/campaigns/default"

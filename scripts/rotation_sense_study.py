@@ -6,7 +6,7 @@ pair counter-rotating, sweeping down through the centre), ``up_up`` (every pair 
 ``down_up`` (stage 1 down, stages 2-5 up), ``up_down`` (stage 1 up, stages 2-5 down) and
 ``co_rotating`` (``("down", "up")`` in every stage). Each at 10, 20, 30 mm x 1250, 1850 rpm
 (bottom stage at twice) x feed seeds 0, 1, 2; 30 t/h, gates 40 deg, periodic slice, the campaign's run
-settings (:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`: table start, adaptive window from
+settings (:data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`: table start, adaptive window from
 the onset).
 
 Order: seed by seed (all configurations at seed 0 first), within a seed 30, 20 then 10 mm (the
@@ -45,7 +45,7 @@ from msmill.dem.mill.observations import CONFIGS, run_dir_name
 from msmill.dem.mill.run import RunSettings, git_commit, run_mill
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, OperatingPoint
-from msmill.surrogate.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
 
 MACHINE_DIR = Path(msmill.__file__).parent / "data" / "machines"
 SIZES_MM = (30.0, 20.0, 10.0)

@@ -89,3 +89,27 @@ def own_ore_file(tmp_path):
         return p
 
     return make
+
+
+# ------------------------------------------------------------ a surrogate fitted once (surrogate, pipeline)
+@pytest.fixture(scope="session")
+def table_runs():
+    """The shipped single-point table's DEM runs."""
+    from msmill.model.providers import default_table_path
+    from msmill.stageparams import StageParameterTable
+
+    return list(StageParameterTable.from_json(default_table_path()).runs)
+
+
+@pytest.fixture(scope="session")
+def fitted(table_runs):
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    return StageSurrogate(n_restarts=0).fit(table_runs)
+
+
+@pytest.fixture(scope="session")
+def saved(fitted, tmp_path_factory):
+    from msmill.surrogate import persist
+
+    return persist.save(fitted, tmp_path_factory.mktemp("surrogate") / "s.json", {"note": "test"})

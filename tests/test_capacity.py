@@ -1,4 +1,4 @@
-"""Capacity from steady and choked points (msmill.capacity). Points here are SYNTHETIC or HAND-MADE, except
+"""Capacity from steady and choked points (msmill.surrogate.capacity). Points here are SYNTHETIC or HAND-MADE, except
 the shipped envelope's (our DEM campaign)."""
 
 import functools
@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from msmill.capacity import (
+from msmill.errors import MsmillInputError
+from msmill.surrogate.capacity import (
     AboveCapacityWarning,
     CapacityModel,
     EnvelopeData,
@@ -21,7 +22,6 @@ from msmill.capacity import (
     load_capacity,
     warn_if_above_capacity,
 )
-from msmill.errors import MsmillInputError
 
 
 def true_capacity(size_mm, speed_rpm, gate_deg):
@@ -148,7 +148,7 @@ def test_message_says_capacity_feed_excess_and_probability():
 
 def test_shipped_envelope_matches_the_shipped_export():
     """The shipped envelope was built from the shipped export (rebuild both together: scripts/build_envelope.py)."""
-    from msmill.surrogate.campaign_export import default_export_dir, read_export
+    from msmill.pipeline.export import default_export_dir, read_export
 
     path = default_envelope_path()
     runs = read_export(default_export_dir())

@@ -79,7 +79,7 @@ def test_sweep_and_optimize(tmp_path, capsys):
 
 
 def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):
-    from msmill.capacity import CapacityModel, EnvelopePoint
+    from msmill.surrogate.capacity import CapacityModel, EnvelopePoint
 
     # HAND-MADE envelope: 15 t/h passed, 25 and 40 t/h choked passing 20 t/h, at 10-30 mm, 1500 rpm, gate 40
     pts = [EnvelopePoint(s, f, 1500.0, 40.0, "steady") for s in (10, 20, 30) for f in (10.0, 15.0)]

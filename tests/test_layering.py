@@ -1,4 +1,9 @@
-"""Lower layers never import higher ones (ARCHITECTURE.md): core < dem < surrogate < model < edges."""
+"""Lower layers never import higher ones, nor a sibling package (ARCHITECTURE.md):
+
+core < {dem, surrogate} < {pipeline, model} < edges. ``dem`` and ``surrogate`` never import each other;
+nor do ``pipeline`` (store, campaigns) and ``model`` (the semi-analytical mill). The edges (cli, plots,
+report, web) may import each other.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,14 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).parents[1] / "src" / "msmill"
-LAYER = {"dem": 1, "surrogate": 2, "model": 3, "cli": 4, "plots": 4, "report": 4, "web": 4}
+LAYER = {"dem": 1, "surrogate": 1, "pipeline": 2, "model": 2, "cli": 3, "plots": 3, "report": 3, "web": 3}
+EDGES = 3
+
+
+def package_of(module: str) -> str | None:
+    """Sub-package of ``msmill.x.y`` (None for core)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in LAYER else None
 
 
 def layer_of(module: str) -> int:
@@ -38,6 +50,11 @@ def test_no_upward_imports(path):
     mine = layer_of(own)
     upward = sorted(m for m in imported_modules(path) if layer_of(m) > mine)
     assert not upward, f"{own} (layer {mine}) imports higher layers: {upward}"
+    if 0 < mine < EDGES:
+        pkg = package_of(own)
+        sideways = sorted(m for m in imported_modules(path)
+                          if layer_of(m) == mine and package_of(m) not in (None, pkg))
+        assert not sideways, f"{own} imports its sibling package (layer {mine}): {sideways}"
 
 
 def test_layer_map_sees_the_packages():

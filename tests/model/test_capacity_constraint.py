@@ -7,12 +7,12 @@ import warnings
 import numpy as np
 import pytest
 
-from msmill.capacity import AboveCapacityWarning, CapacityModel, EnvelopePoint
 from msmill.errors import OutOfDomainWarning
 from msmill.machine import Machine, OperatingPoint
 from msmill.model import Mill
 from msmill.model.operating import capacity_feasible, evaluate_point, optimize, sweep
 from msmill.psd import PSD, SizeGrid
+from msmill.surrogate.capacity import AboveCapacityWarning, CapacityModel, EnvelopePoint
 
 GRID = SizeGrid.geometric(0.038, 45.0)
 FEED = PSD.from_passing([2, 4.75, 9.5, 19, 31.5], [2, 6, 18, 58, 100])  # F80 ~ 24 mm
@@ -51,10 +51,10 @@ def test_run_warns_above_capacity_and_not_below(mill, cap):
 
 
 def test_envelope_off_and_the_default_only_for_the_default_machine(cap, monkeypatch):
-    import msmill.capacity
+    import msmill.surrogate.capacity
 
     # the hand-made envelope stands in for a shipped one (it stands in for the shipped one)
-    monkeypatch.setattr(msmill.capacity, "default_capacity_model", lambda: cap)
+    monkeypatch.setattr(msmill.surrogate.capacity, "default_capacity_model", lambda: cap)
     with warnings.catch_warnings():
         warnings.simplefilter("error", AboveCapacityWarning)
         res = run(Mill("UG2", "table", grid=GRID, envelope=None), 1e3 / 3)

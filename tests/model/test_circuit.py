@@ -366,7 +366,7 @@ def test_band_needs_posterior_samples(table_mill):
 
 def test_capacity_warning_names_the_circulating_load(table_mill, monkeypatch):
     """The mill's feed (fresh plus recycle) against a capacity between the fresh feed and that feed."""
-    from msmill.capacity import AboveCapacityWarning, CapacityCheck
+    from msmill.surrogate.capacity import AboveCapacityWarning, CapacityCheck
 
     unit, grid = table_mill
     c = table_circuit(unit, grid)

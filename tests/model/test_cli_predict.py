@@ -133,7 +133,7 @@ def test_bad_table_file_error_names_the_table_field(folder, capsys):
 def test_predict_warns_above_capacity_from_envelope(folder, capsys):
     import warnings
 
-    from msmill.capacity import AboveCapacityWarning, EnvelopeData, EnvelopePoint
+    from msmill.surrogate.capacity import AboveCapacityWarning, EnvelopeData, EnvelopePoint
 
     # SYNTHETIC envelope: at every size the mill passes 15 t/h and chokes at 25-40 t/h, passing 20 t/h
     pts = [EnvelopePoint(s, f, 1500.0, 40.0, "steady") for s in (10, 20, 30, 40) for f in (10.0, 15.0)]
@@ -150,7 +150,7 @@ def test_predict_warns_above_capacity_from_envelope(folder, capsys):
     assert run(["predict", str(low), "--envelope", str(folder / "envelope.json")]) == 0
     assert "above the predicted capacity" not in capsys.readouterr().err
     with pytest.warns(AboveCapacityWarning, match="above the predicted capacity"):  # the library warns
-        from msmill.capacity import CapacityModel, warn_if_above_capacity
+        from msmill.surrogate.capacity import CapacityModel, warn_if_above_capacity
 
         warn_if_above_capacity(CapacityModel.fit(pts), 20.0, 30.0, 1500.0, 40.0)
     with warnings.catch_warnings():
@@ -160,7 +160,7 @@ def test_predict_warns_above_capacity_from_envelope(folder, capsys):
 
 def test_predict_with_an_envelope_of_steady_runs_only(folder, capsys):
     """HAND-MADE envelope where no run choked: the summary gives a lower bound, and above it a warning."""
-    from msmill.capacity import EnvelopeData, EnvelopePoint
+    from msmill.surrogate.capacity import EnvelopeData, EnvelopePoint
 
     pts = [EnvelopePoint(s, 20.0, 1500.0, 30.0, "steady") for s in (10, 20, 30, 40)]
     EnvelopeData(pts, {"note": "HAND-MADE"}).to_json(folder / "envelope.json")

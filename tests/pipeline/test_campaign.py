@@ -8,9 +8,9 @@ import pytest
 from test_store import MACHINE, make_stats
 
 from msmill.cli.main import run as cli
-from msmill.surrogate.campaign import design_grid, run_campaign
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.queue import new_token
+from msmill.pipeline.campaign import design_grid, run_campaign
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.queue import new_token
 
 FLAKY_MM, BROKEN_MM, ODD_MM = 13.0, 14.0, 17.0
 
@@ -112,7 +112,7 @@ def test_campaign_default_is_warm_start_and_adaptive_window(tmp_path, monkeypatc
     window from the steady-state onset; ``--set start=empty --set adaptive=false --set window_from=detection``
     switches each off; the worker passes them to run_mill."""
     import msmill.dem.mill.run as run_mod
-    from msmill.surrogate import campaign as cm
+    from msmill.pipeline import campaign as cm
 
     db = f"sqlite:///{tmp_path / 's.sqlite'}"
     assert cli(["campaign", "create", "warm", "--db", db]) == 0
@@ -152,7 +152,7 @@ def test_campaign_default_is_warm_start_and_adaptive_window(tmp_path, monkeypatc
 
 
 def test_cli_run_with_progress_and_resume(tmp_path, client, monkeypatch, capsys):
-    import msmill.surrogate.campaign as cm
+    import msmill.pipeline.campaign as cm
 
     real = cm.run_campaign
     seen = []
@@ -202,8 +202,8 @@ def test_active_planner_within_campaign_domain(tmp_path) -> None:
     """The registered planner fits the store's runs and plans apart from pending points, in the size range."""
     from msmill.machine import Machine
     from msmill.model.providers import default_table_path
+    from msmill.pipeline.campaign import PLANNERS
     from msmill.stageparams import StageParameterTable
-    from msmill.surrogate.campaign import PLANNERS
 
     st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
     machine = Machine.default()
@@ -224,8 +224,8 @@ def test_active_planner_moves_past_a_failed_point(tmp_path) -> None:
     planned nothing, round after round, behind a fine-rock point whose workers ran out of memory)."""
     from msmill.machine import Machine
     from msmill.model.providers import default_table_path
+    from msmill.pipeline.campaign import PLANNERS
     from msmill.stageparams import StageParameterTable
-    from msmill.surrogate.campaign import PLANNERS
 
     st = Store(f"sqlite:///{tmp_path / 's.sqlite'}")
     machine = Machine.default()

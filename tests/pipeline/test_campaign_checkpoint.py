@@ -15,8 +15,8 @@ import pytest
 from msmill.dem.checkpoint import has_checkpoint, read_header
 from msmill.errors import OutOfDomainWarning
 from msmill.machine import Machine
-from msmill.surrogate.campaign import checkpoint_base, design_grid, execute_run, run_campaign
-from msmill.surrogate.store import Store
+from msmill.pipeline.campaign import checkpoint_base, design_grid, execute_run, run_campaign
+from msmill.pipeline.store import Store
 
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})
 SETTINGS = dict(max_time_s=0.55, chunk_s=0.05, steady_window_s=0.1, rel_tol=0.5, trend_tol=5.0, balance_tol=5.0,

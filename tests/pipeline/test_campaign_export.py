@@ -10,8 +10,7 @@ from dataclasses import replace
 import pytest
 
 from msmill.machine import Machine
-from msmill.stageparams import DesignPoint
-from msmill.surrogate.campaign_export import (
+from msmill.pipeline.export import (
     CAMPAIGNS_FILE,
     default_export_dir,
     export_campaign,
@@ -19,8 +18,9 @@ from msmill.surrogate.campaign_export import (
     restore_campaigns,
     split_runs,
 )
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.transfer import ingest_paths
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.transfer import ingest_paths
+from msmill.stageparams import DesignPoint
 
 MACHINE = Machine.default()
 

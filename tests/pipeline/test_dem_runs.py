@@ -13,10 +13,10 @@ from msmill.dem.mill.external import import_folder, write_external
 from msmill.dem.mill.run import stats_from_dir
 from msmill.errors import MsmillInputError, OutOfDomainWarning
 from msmill.machine import Machine
+from msmill.pipeline.campaign import design_grid, execute_run
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.hashing import canonical_statistics
 from msmill.stageparams import RunStatistics
-from msmill.surrogate.campaign import design_grid, execute_run
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.hashing import canonical_statistics
 
 # two stages, slow shafts, 30 mm rock, short windows (as tests/dem/test_mill_scene.py): seconds per run
 MACHINE = Machine.default().model_copy(update={"n_stages": 2})

@@ -14,11 +14,11 @@ from hypothesis import strategies as st_
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.hashing import canonical_statistics, file_sha256, statistics_hash
+from msmill.pipeline.store.queue import new_token
+from msmill.pipeline.store.transfer import export_runs, ingest_paths
 from msmill.stageparams import DesignPoint, GaussianMixture, RunStatistics, StageStatistics
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.hashing import canonical_statistics, file_sha256, statistics_hash
-from msmill.surrogate.store.queue import new_token
-from msmill.surrogate.store.transfer import export_runs, ingest_paths
 
 MACHINE = Machine.default()
 
@@ -68,7 +68,7 @@ def test_migrations_create_exactly_the_orm_schema(store):
     from alembic.autogenerate import compare_metadata
     from alembic.runtime.migration import MigrationContext
 
-    from msmill.surrogate.store.schema import Base
+    from msmill.pipeline.store.schema import Base
 
     assert store.revision() == store.head()
     with store.engine.connect() as conn:
@@ -79,7 +79,7 @@ def test_migrations_create_exactly_the_orm_schema(store):
 
 
 def test_default_url_and_env(monkeypatch, tmp_path):
-    from msmill.surrogate.store.core import default_url
+    from msmill.pipeline.store.core import default_url
 
     monkeypatch.delenv("MSMILL_DB", raising=False)
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
@@ -308,7 +308,7 @@ def test_failed_runs_keep_errors_and_retry_up_to_the_limit(store):
 
 
 def test_campaign_settings_are_validated(store):
-    from msmill.surrogate.campaign import run_settings_dict
+    from msmill.pipeline.campaign import run_settings_dict
 
     assert run_settings_dict({"max_time_s": "1.5", "seed": 3}, defaults={}) == {"max_time_s": 1.5, "seed": 3}
     with pytest.raises(MsmillInputError, match="no_such_setting"):
@@ -348,7 +348,7 @@ def test_any_statistics_round_trip_and_hash_ignores_provenance(tmp_path_factory,
 
 def test_outcome_comes_from_the_run_protocol_field() -> None:
     """A choked run's statistics (RunStatistics.outcome) are recorded as choked, whatever its steady-state time."""
-    from msmill.surrogate.store.hashing import outcome_of
+    from msmill.pipeline.store.hashing import outcome_of
 
     st = make_stats(20.0)
     assert outcome_of(st) == "steady"

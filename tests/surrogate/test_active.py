@@ -139,7 +139,7 @@ def test_cost_model_prices_fine_rock_as_measured():
     import json
     from pathlib import Path
 
-    from msmill.surrogate.campaign_export import default_export_dir, read_export, split_runs
+    from msmill.pipeline.export import default_export_dir, read_export, split_runs
 
     data = Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "fine_rock_cost"
     # the shipped runs of 6.4-30 mm only: the fine term is then the prior, not refitted (the export's fine

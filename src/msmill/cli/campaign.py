@@ -70,8 +70,8 @@ def create_cmd(
     from msmill.dem.mill.checks import check_run_inputs
     from msmill.dem.mill.run import RunSettings
     from msmill.machine import Machine
-    from msmill.surrogate.campaign import run_settings_dict
-    from msmill.surrogate.store.queue import check_campaign_name
+    from msmill.pipeline.campaign import run_settings_dict
+    from msmill.pipeline.store.queue import check_campaign_name
 
     check_campaign_name(name)
     machine = Machine.default() if machine_toml == "default" else Machine.from_toml(Path(machine_toml))
@@ -110,7 +110,7 @@ def add_cmd(
     db: DbOpt = None,
 ) -> None:
     """Plan runs: the grid of the given values and/or the rows of a CSV file (duplicates skipped)."""
-    from msmill.surrogate.campaign import design_grid
+    from msmill.pipeline.campaign import design_grid
 
     st = open_store(db)
     machine = st.campaign(name).machine
@@ -136,7 +136,7 @@ def add_cmd(
 def plan_cmd(
     name: NameArg,
     n: Annotated[int, typer.Option("--n", help="Number of new design points.")] = 4,
-    planner: Annotated[str, typer.Option(help="Planner name (registered in msmill.surrogate.campaign.PLANNERS).")]
+    planner: Annotated[str, typer.Option(help="Planner name (registered in msmill.pipeline.campaign.PLANNERS).")]
     = "active",
     cost_power: Annotated[float, typer.Option(
         "--cost-power", help="Exponent of the expected DEM cost in the acquisition (0: ignore cost; 1: "
@@ -145,7 +145,7 @@ def plan_cmd(
     db: DbOpt = None,
 ) -> None:
     """Let a planner (the surrogate's active learning) choose the next design points."""
-    from msmill.surrogate import campaign as cm
+    from msmill.pipeline import campaign as cm
 
     if planner not in cm.PLANNERS:
         raise MsmillInputError("--planner", planner, ", ".join(sorted(cm.PLANNERS)) or "no planner installed yet")
@@ -159,7 +159,7 @@ def plan_cmd(
 
 def _execute(name: str, db: str | None, scheduler: str | None, workers: int | None, stale_s: float,
              heartbeat_s: float, max_runs: int | None, retry_failed: bool, no_progress: bool) -> None:
-    from msmill.surrogate.campaign import run_campaign
+    from msmill.pipeline.campaign import run_campaign
 
     st = open_store(db)
     st.campaign(name)  # fails early on an unknown name

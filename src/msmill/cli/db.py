@@ -23,7 +23,7 @@ def open_store(db: str | None, create: bool = True):  # returns a Store (importe
 
     ``create=False`` (read commands): a SQLite file that does not exist is an error, not a new store.
     """
-    from msmill.surrogate.store import Store
+    from msmill.pipeline.store import Store
 
     return Store(db, create=create)
 
@@ -71,7 +71,7 @@ def info_cmd(db: DbOpt = None) -> None:
 @app.command("upgrade")
 def upgrade_cmd(db: DbOpt = None) -> None:
     """Migrate the store to the newest schema (opening a store does this too)."""
-    from msmill.surrogate.store import Store
+    from msmill.pipeline.store import Store
 
     st = Store(db, upgrade=False)
     before = st.revision()
@@ -87,7 +87,7 @@ def ingest_cmd(
                                                    help="Also take runs that did not reach steady state.")] = False,
 ) -> None:
     """Ingest saved 'msmill dem run' / 'msmill dem import' folders and exported documents (idempotent)."""
-    from msmill.surrogate.store.transfer import ingest_paths
+    from msmill.pipeline.store.transfer import ingest_paths
 
     res = ingest_paths(open_store(db), list(paths), allow_not_steady=allow_not_steady)
     for r in res:
@@ -104,7 +104,7 @@ def export_cmd(
     campaign: Annotated[str | None, typer.Option(help="Only this campaign's runs.")] = None,
 ) -> None:
     """Write every done run as one JSON document (readable back by 'msmill db ingest')."""
-    from msmill.surrogate.store.transfer import export_runs
+    from msmill.pipeline.store.transfer import export_runs
 
     paths = export_runs(open_store(db, create=False), out, campaign=campaign)
     typer.echo(f"exported {len(paths)} runs to {out}")

@@ -264,8 +264,8 @@ def envelope_cmd(
     from datetime import UTC, datetime
 
     from msmill._version import __version__
-    from msmill.capacity import EnvelopeData, EnvelopePoint
     from msmill.stageparams import RunStatistics
+    from msmill.surrogate.capacity import EnvelopeData, EnvelopePoint
 
     points = []
     for d in run_dirs:

@@ -141,8 +141,8 @@ class Mill:
         added to the full-resolution prediction, so the coarser resolution's
         bias cancels (:func:`msmill.model.result.with_band`).
     envelope : "default", path, CapacityModel or None
-        DEM operating envelope (:mod:`msmill.capacity`): :meth:`run` warns
-        (:class:`~msmill.capacity.AboveCapacityWarning`) when the feed rate
+        DEM operating envelope (:mod:`msmill.surrogate.capacity`): :meth:`run` warns
+        (:class:`~msmill.surrogate.capacity.AboveCapacityWarning`) when the feed rate
         exceeds the capacity at the feed's F80, speed and gate, and reports
         capacity and steady probability in the result. ``"default"``: the
         shipped envelope (only for the default machine, or no machine given);
@@ -220,7 +220,7 @@ class Mill:
 
     def use_envelope(self, envelope: Any) -> None:
         """Set the operating envelope :meth:`run` checks against (see the class's ``envelope``)."""
-        from msmill.capacity import CapacityModel, default_capacity_model, load_capacity
+        from msmill.surrogate.capacity import CapacityModel, default_capacity_model, load_capacity
 
         if envelope is None:
             self.capacity = None
@@ -238,8 +238,8 @@ class Mill:
                                    "'default', an envelope JSON path, a CapacityModel or None")
 
     def check_capacity(self, feed: PSD, operating_point: Any) -> Any:
-        """:class:`~msmill.capacity.CapacityCheck` of a feed and operating point (None without an envelope)."""
-        from msmill.capacity import check_capacity
+        """:class:`~msmill.surrogate.capacity.CapacityCheck` of a feed and operating point (None without an envelope)."""
+        from msmill.surrogate.capacity import check_capacity
 
         op = _operating_point(operating_point)
         return check_capacity(self.capacity, feed.p80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
@@ -249,7 +249,7 @@ class Mill:
         o = self.ore
         lines = [
             "Mill(",
-            f"  ore: {o.name} (A={o.A_pct:g} %, b={o.b_t_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)",
+            f"  ore: {o.name} (A={o.A_pct:g} %, b={o.b_t_per_kwh:g} t/kWh, L_ref={o.l_ref_mm:g} mm)",
             f"  stage_parameters: {self.provider!r}",
             f"  transport: {self.transport!r}",
             f"  impacts: {self.impacts!r}",
@@ -341,7 +341,7 @@ class Mill:
 
     def _with_capacity(self, res: MillResult, feed: PSD, op: Any) -> MillResult:
         """Warn above the envelope's capacity; capacity, probability and a note in the result."""
-        from msmill.capacity import AboveCapacityWarning
+        from msmill.surrogate.capacity import AboveCapacityWarning
 
         chk = self.check_capacity(feed, op)
         if chk is None:

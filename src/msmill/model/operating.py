@@ -10,7 +10,7 @@ point is inside the design space, and whether it is feasible.
 
 Feasibility hook: ``feasible(op, result) -> bool`` (default: every point is
 feasible). The mill's DEM operating envelope (``Mill(envelope=...)``, by
-default the shipped one, :mod:`msmill.capacity`) is a constraint on top of it:
+default the shipped one, :mod:`msmill.surrogate.capacity`) is a constraint on top of it:
 every row carries ``capacity_tph`` (at the feed's F80, speed and gate),
 ``p_steady`` (probability the mill passes the feed) and ``above_capacity``,
 and a point above capacity is infeasible, in sweeps and the optimiser alike.
@@ -60,7 +60,7 @@ def _check_vars(names: Any) -> None:
 
 def capacity_feasible(model: Any) -> Feasible:
     """Feasibility hook: the point's feed rate is within ``model``'s capacity (a :class:`CapacityModel`)."""
-    from msmill.capacity import check_capacity
+    from msmill.surrogate.capacity import check_capacity
 
     def feasible(op: Any, res: Any) -> bool:
         chk = check_capacity(model, res.f80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)

@@ -80,7 +80,7 @@ class MillResult:
         Number of posterior samples behind the band (0: no band).
     capacity_tph, probability_steady : float or None
         Capacity at the feed's F80, speed and gate from the mill's DEM
-        envelope (:mod:`msmill.capacity`), and the probability that the mill
+        envelope (:mod:`msmill.surrogate.capacity`), and the probability that the mill
         passes the requested feed there; None without an envelope.
     held_below_mm, held_below_p80_mm, held_below_passing_75um_pct : float
         The other bounding rule for rock finer than the stage statistics cover (issue 38): the smallest

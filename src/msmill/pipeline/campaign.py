@@ -30,7 +30,7 @@ Fault behaviour (``docs/campaign.md``):
   the next driver (``campaign resume``, or any ``campaign run``) re-plans
   runs whose heartbeat is older than ``stale_s``; results of the dead driver
   are lost with it and the runs are computed again, never recorded twice
-  (claim tokens, :mod:`msmill.surrogate.store.queue`);
+  (claim tokens, :mod:`msmill.pipeline.store.queue`);
 * a done run is never claimed again.
 
 ``plan_hook``: :data:`PLANNERS` maps a planner name to a callable
@@ -51,10 +51,10 @@ from pathlib import Path
 from typing import Any
 
 from msmill.errors import MsmillInputError
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.hashing import file_sha256, outcome_of, read_statistics
+from msmill.pipeline.store.queue import Claim, new_token
 from msmill.stageparams import DesignPoint
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.hashing import file_sha256, outcome_of, read_statistics
-from msmill.surrogate.store.queue import Claim, new_token
 
 __all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "checkpoint_base", "design_grid",
            "execute_run", "run_campaign", "run_checkpoint_dir", "run_settings_dict"]
@@ -254,7 +254,7 @@ def checkpoint_base(store: Store, info: Any) -> Path | None:
     """
     import hashlib
 
-    from msmill.surrogate.store.core import data_home
+    from msmill.pipeline.store.core import data_home
 
     opt = info.options.get("checkpoint_dir")
     if opt == "none":

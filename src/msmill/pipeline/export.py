@@ -4,7 +4,7 @@ A campaign runs for days on machines that may go away. Everything needed to
 continue it elsewhere lives in one folder that is committed as batches finish:
 
 * ``run-<hash>.json``: one document per done run (``msmill db export`` format,
-  :func:`msmill.surrogate.store.transfer.export_document`: statistics,
+  :func:`msmill.pipeline.store.transfer.export_document`: statistics,
   machine, run settings, seed, engine, commit, wall time, outcome, and the raw
   tables *by reference* — path, SHA-256, size; no raw events);
 * ``campaigns.json``: the campaigns' definitions (machine hash, mode, run
@@ -27,10 +27,10 @@ from typing import Any
 
 from msmill.errors import MsmillInputError
 from msmill.machine import DESIGN_SPACE
+from msmill.pipeline.store import Store
+from msmill.pipeline.store.hashing import read_statistics
+from msmill.pipeline.store.transfer import EXPORT_KIND, export_runs
 from msmill.stageparams import DesignPoint, RunStatistics
-from msmill.surrogate.store import Store
-from msmill.surrogate.store.hashing import read_statistics
-from msmill.surrogate.store.transfer import EXPORT_KIND, export_runs
 
 __all__ = ["CAMPAIGNS_FILE", "ExportedRun", "default_export_dir", "export_campaign", "in_design_space",
            "read_export", "restore_campaigns", "split_runs"]

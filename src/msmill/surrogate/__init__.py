@@ -1,15 +1,10 @@
-"""Training pipeline above the DEM: SQL store of run statistics, campaigns, Gaussian-process surrogate.
+"""The Gaussian-process surrogate of per-stage DEM statistics, and what is fitted on DEM runs.
 
-Sub-modules are imported on use (``import msmill.surrogate`` stays light):
-
-* :mod:`msmill.surrogate.store` -- SQL store (SQLAlchemy + Alembic) of machines,
-  design points, DEM runs, per-stage statistics, raw files and trained surrogates;
-  ingest and export of run folders.
-* :mod:`msmill.surrogate.campaign` -- campaigns of DEM runs executed on Dask.
-* ``space`` (the 4-D design space and its input scaling), ``targets``
-  (stage statistics <-> GP-regressable target vectors), ``gp`` (the estimator),
-  ``stage_model`` (targets + GP: a surrogate of whole runs), ``accuracy``
-  (leave-one-out figures), ``active`` (space-filling and batch acquisition),
-  ``persist`` (versioned JSON), ``provider`` (stage-parameter provider for the
-  mill model). See ``docs/surrogate.md`` and ``docs/campaign.md``.
+Imports only core (``import msmill.surrogate`` stays light; sub-modules are imported on use):
+``space`` (the 4-D design space and its input scaling), ``targets`` (stage statistics <-> GP-regressable
+target vectors), ``gp`` (the estimator), ``stage_model`` (targets + GP: a surrogate of whole runs),
+``accuracy`` (leave-one-out figures), ``active`` (space-filling and batch acquisition), ``fidelity``
+(slice-to-full-mill correction), ``persist`` (versioned JSON), ``provider`` (stage-parameter provider for
+the mill model) and ``capacity`` (the DEM operating envelope's classifier). The store and campaigns that
+produce the runs are :mod:`msmill.pipeline`. See ``docs/surrogate.md``.
 """

@@ -102,7 +102,7 @@ class RunSettings:
     from the default stage table's expected steady hold-up per compartment
     (:func:`msmill.dem.mill.warmstart.place_table_start`); a ``start`` run given
     to :func:`run_mill` takes precedence. Campaigns default to ``"table"`` and
-    ``adaptive`` (:data:`msmill.surrogate.campaign.CAMPAIGN_RUN_DEFAULTS`).
+    ``adaptive`` (:data:`msmill.pipeline.campaign.CAMPAIGN_RUN_DEFAULTS`).
     """
 
     max_time_s: float = 0.0

@@ -549,8 +549,8 @@ class CircuitResult:
     def mill_summaries(self) -> dict[str, dict[str, Any]]:
         """Per mill unit: its feed rate, the rate its operators were built at, impact energy and power,
         and the capacity check of its total feed (fresh plus recycle)."""
-        from msmill.capacity import AboveCapacityWarning
         from msmill.model.power import power_estimate
+        from msmill.surrogate.capacity import AboveCapacityWarning
 
         out = {}
         for name, u in self.circuit.units.items():

@@ -1,7 +1,7 @@
 """SQL training store of DEM runs (SQLAlchemy 2.0 ORM, Alembic migrations).
 
 See ``docs/campaign.md`` for the schema. Entry point: :class:`Store`
-(``from msmill.surrogate.store import Store``).
+(``from msmill.pipeline.store import Store``).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ __all__ = ["RunRecord", "Store", "default_url"]
 
 def __getattr__(name: str) -> Any:  # lazy: importing the package does not import SQLAlchemy
     if name in __all__:
-        from msmill.surrogate.store import core
+        from msmill.pipeline.store import core
 
         return getattr(core, name)
     raise AttributeError(name)

@@ -6,7 +6,7 @@ environment variable ``MSMILL_DB``, else the SQLite file
 A plain path is taken as a SQLite file. Opening a store migrates it to the
 newest schema (Alembic, migrations shipped inside the package).
 
-Concurrency: the campaign queue (:mod:`msmill.surrogate.store.queue`) claims
+Concurrency: the campaign queue (:mod:`msmill.pipeline.store.queue`) claims
 planned runs with ``SELECT ... FOR UPDATE SKIP LOCKED`` on PostgreSQL and
 inside ``BEGIN IMMEDIATE`` transactions on SQLite (one writer at a time, WAL
 journal), and every state change is a conditional ``UPDATE`` on the claim
@@ -29,8 +29,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
-from msmill.stageparams import DesignPoint, RunStatistics
-from msmill.surrogate.store.hashing import (
+from msmill.pipeline.store.hashing import (
     canonical_statistics,
     design_hash,
     machine_hash,
@@ -38,8 +37,8 @@ from msmill.surrogate.store.hashing import (
     read_statistics,
     statistics_hash,
 )
-from msmill.surrogate.store.queue import QueueMixin
-from msmill.surrogate.store.schema import (
+from msmill.pipeline.store.queue import QueueMixin
+from msmill.pipeline.store.schema import (
     CampaignRow,
     DesignPointRow,
     MachineRow,
@@ -50,6 +49,7 @@ from msmill.surrogate.store.schema import (
     SurrogateRunRow,
     utcnow,
 )
+from msmill.stageparams import DesignPoint, RunStatistics
 
 __all__ = [
     "DEFAULT_DB_ENV",

@@ -10,8 +10,8 @@ from typing import Any
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
+from msmill.pipeline.store.schema import OUTCOMES
 from msmill.stageparams import DesignPoint, RunStatistics
-from msmill.surrogate.store.schema import OUTCOMES
 
 __all__ = ["canonical_statistics", "design_hash", "file_sha256", "machine_hash", "outcome_of", "read_statistics",
            "statistics_hash"]

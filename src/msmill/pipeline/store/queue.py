@@ -27,9 +27,8 @@ from sqlalchemy import func, select, update
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
-from msmill.stageparams import DesignPoint, RunStatistics
-from msmill.surrogate.store.hashing import outcome_of, statistics_hash
-from msmill.surrogate.store.schema import (
+from msmill.pipeline.store.hashing import outcome_of, statistics_hash
+from msmill.pipeline.store.schema import (
     OUTCOMES,
     STATUSES,
     CampaignRow,
@@ -37,6 +36,7 @@ from msmill.surrogate.store.schema import (
     RunRow,
     utcnow,
 )
+from msmill.stageparams import DesignPoint, RunStatistics
 
 __all__ = ["CampaignInfo", "Claim", "QueueMixin", "new_token"]
 
@@ -97,7 +97,7 @@ def check_campaign_name(name: Any) -> str:
 
 
 class QueueMixin:
-    """Campaign methods of :class:`msmill.surrogate.store.Store`."""
+    """Campaign methods of :class:`msmill.pipeline.store.Store`."""
 
     def _campaign_row(self, s: Any, name: str) -> CampaignRow:
         row = s.scalar(select(CampaignRow).where(CampaignRow.name == name))

@@ -1,7 +1,7 @@
 """Tables of the training store (SQLAlchemy 2.0 declarative ORM).
 
 The Alembic migrations in ``migrations/versions`` create exactly these tables;
-``tests/surrogate/test_store.py`` checks that the migrated database matches
+``tests/pipeline/test_store.py`` checks that the migrated database matches
 this metadata, so a change here needs a new migration.
 
 All times are naive UTC ``datetime`` values (the same on SQLite and

@@ -10,7 +10,7 @@ Ingest takes, recursively:
 * export documents (``run-*.json``, ``"kind": "msmill_run"``) written by
   :func:`export_runs`.
 
-A run is identified by :func:`msmill.surrogate.store.hashing.statistics_hash`,
+A run is identified by :func:`msmill.pipeline.store.hashing.statistics_hash`,
 so ingesting the same folder or document twice records it once.
 """
 
@@ -24,8 +24,8 @@ from typing import Any
 
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine
-from msmill.surrogate.store.core import Store
-from msmill.surrogate.store.hashing import (
+from msmill.pipeline.store.core import Store
+from msmill.pipeline.store.hashing import (
     canonical_statistics,
     file_sha256,
     read_statistics,

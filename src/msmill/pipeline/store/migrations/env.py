@@ -1,6 +1,6 @@
 """Alembic environment of the training store.
 
-The store runs migrations programmatically (:meth:`msmill.surrogate.store.Store.upgrade`),
+The store runs migrations programmatically (:meth:`msmill.pipeline.store.Store.upgrade`),
 passing an open connection in ``config.attributes["connection"]``; the URL in
 the config is used otherwise (``alembic -x`` is not needed).
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import create_engine
 
-from msmill.surrogate.store.schema import Base
+from msmill.pipeline.store.schema import Base
 
 config = context.config
 target_metadata = Base.metadata
