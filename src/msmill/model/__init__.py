@@ -16,6 +16,7 @@ from msmill.model.providers import (
     read_simple_table,
 )
 from msmill.model.result import MillResult
+from msmill.model.solvers import SOLVERS, ExpectedValue, MonteCarlo, Solver
 from msmill.model.submodels import (
     SUBMODELS,
     BreakageModel,
@@ -26,14 +27,18 @@ from msmill.model.submodels import (
 )
 
 __all__ = [
+    "SOLVERS",
     "SUBMODELS",
     "BreakageModel",
     "BreakageParameters",
     "DamageModel",
+    "ExpectedValue",
     "ImpactModel",
     "Mill",
     "MillResult",
+    "MonteCarlo",
     "RunProvider",
+    "Solver",
     "StageParameterProvider",
     "TableProvider",
     "TransportModel",

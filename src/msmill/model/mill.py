@@ -26,8 +26,7 @@ import pandas as pd
 
 from msmill.errors import ExtrapolationWarning, MsmillInputError, SummaryNote
 from msmill.model import submodels as sm
-from msmill.model.expected_value import LinearMill, assemble, steady_products
-from msmill.model.montecarlo import MonteCarloSolver
+from msmill.model.expected_value import assemble, steady_products
 from msmill.model.providers import (
     HeldBelow,
     StageParameterProvider,
@@ -35,11 +34,11 @@ from msmill.model.providers import (
     smallest_covered_mm,
 )
 from msmill.model.result import MillResult, time_to_steady_state, with_band
+from msmill.model.solvers import Problem, Solution, resolve_solver
 from msmill.psd import PSD, SizeGrid
 from msmill.threadpools import single_threaded
 from msmill.validate import InputWarning, integer, limit, number
 
-SOLVERS = ("expected_value", "monte_carlo")
 IMPACTED = ("refeed", "all")
 DEFAULT_PASSING_SIZES_MM = (0.075, 0.15, 0.6, 1.0, 2.0, 5.0, 10.0)
 DEFAULT_MIN_SIZE_MM = 0.038
@@ -47,12 +46,6 @@ J_PER_KWH = 3.6e6
 #: Fewest Monte-Carlo steps accepted (``mc_steps``): the mill needs ~100 characteristic
 #: times to fill, so a handful of steps reports the filling mill's first trickle.
 MIN_MC_STEPS = 50
-#: Shortfall of the Monte-Carlo product rate below the feed rate over the collection
-#: window above which the run is reported as not at steady state.
-MC_STEADY_TOL = 0.1
-#: Centred moving-average window (steps) of the Monte-Carlo product rate for the
-#: time to steady state.
-MC_SMOOTHING_STEPS = 25
 #: Posterior samples behind the uncertainty band, its limits (%) and the quadrature nodes of its solves.
 DEFAULT_BAND_SAMPLES = 64
 MAX_BAND_SAMPLES = 1024
@@ -110,8 +103,11 @@ class Mill:
         Sub-model names (see :data:`msmill.model.submodels.SUBMODELS`) or objects
         implementing the step's protocol. Defaults: ``dem_matrix``,
         ``speed_scaled``, ``jk_t10``, ``tavares``.
-    solver : {"expected_value", "monte_carlo"}
-        How to solve (default expected value).
+    solver : str or Solver
+        How to solve: a name registered in :data:`msmill.model.solvers.SOLVERS`
+        (``"expected_value"``, the default, or ``"monte_carlo"``, which takes
+        ``parcels_per_step``, ``mc_steps`` and ``seed`` below) or an object with the
+        :class:`~msmill.model.solvers.Solver` interface.
     impacted : {"refeed", "all"}
         Which mass is impacted in a step: the rocks that stay (paper step 5b,
         default) or all rocks in the stage before transport (docs/model.md).
@@ -151,7 +147,7 @@ class Mill:
 
     def __init__(self, ore: Any, stage_parameters: Any, machine: Any = None, *,
                  transport: Any = None, impacts: Any = None, breakage: Any = None,
-                 damage: Any = None, solver: str = "expected_value", impacted: str = "refeed",
+                 damage: Any = None, solver: Any = "expected_value", impacted: str = "refeed",
                  grid: SizeGrid | None = None, damage_classes: int = 8, quadrature_nodes: int = 12,
                  parcels_per_step: int = 2000, mc_steps: int | None = None, seed: int | None = None,
                  passing_sizes_mm=DEFAULT_PASSING_SIZES_MM, band_samples: int = DEFAULT_BAND_SAMPLES,
@@ -176,8 +172,6 @@ class Mill:
             for need in getattr(getattr(self, step), "requires", ()):
                 if hasattr(self.ore, need) and getattr(self.ore, need) is None and need != "tn":
                     raise MsmillInputError(f"ore.{need}", None, f"a value (needed by the {step} sub-model)")
-        if solver not in SOLVERS:
-            raise MsmillInputError("solver", solver, sm.did_you_mean(solver, list(SOLVERS)))
         if impacted not in IMPACTED:
             raise MsmillInputError("impacted", impacted, sm.did_you_mean(impacted, list(IMPACTED)))
         damage_classes = integer(damage_classes, "damage_classes", ge=1)
@@ -200,7 +194,6 @@ class Mill:
             passing_sizes_mm = [number(s, "passing_sizes_mm", unit="mm", gt=0) for s in passing_sizes_mm]
         except TypeError:
             raise MsmillInputError("passing_sizes_mm", passing_sizes_mm, "a list of sizes > 0 mm") from None
-        self.solver = solver
         self.impacted = impacted
         self.grid = grid
         self.damage_classes = int(damage_classes)
@@ -209,6 +202,7 @@ class Mill:
         self.mc_steps = mc_steps
         self.seed = seed
         self.passing_sizes_mm = tuple(float(s) for s in passing_sizes_mm)
+        self.solver = resolve_solver(solver, self)
         if not isinstance(band_samples, int | np.integer) or not 0 <= band_samples <= MAX_BAND_SAMPLES:
             raise MsmillInputError("band_samples", band_samples, f"an integer 0-{MAX_BAND_SAMPLES}")
         self.band_samples = int(band_samples)
@@ -255,7 +249,7 @@ class Mill:
             f"  impacts: {self.impacts!r}",
             f"  breakage: {self.breakage!r}",
             f"  damage: {self.damage!r}",
-            f"  solver: {self.solver} (impacted={self.impacted!r}, damage_classes={self.damage_classes}, "
+            f"  solver: {self.solver!r} (impacted={self.impacted!r}, damage_classes={self.damage_classes}, "
             f"quadrature_nodes={self.quadrature_nodes})",
             ")",
         ]
@@ -292,7 +286,7 @@ class Mill:
                 stats = sm.without_stopped_rotors(self.impacts.impacts(params, np.asarray(speeds, dtype=float)),
                                                   np.asarray(speeds, dtype=float))
                 lm = None
-                if self.solver == "expected_value" or self.mc_steps is None:
+                if self.solver.needs_operator():
                     lm = assemble(grid.edges_mm, streams, stats, self.breakage, self.damage,
                                   self.damage_classes, self.quadrature_nodes, self.impacted)
             hit = (params, streams, stats, lm, [(w.message, w.category) for w in caught])
@@ -366,14 +360,13 @@ class Mill:
         brk_notes = getattr(getattr(self.breakage, "ore", None), "notes", ())  # e.g. a sub-model's default
         notes = [*dict.fromkeys([*self.ore.notes, *brk_notes]), f"stage parameters: {params.source}"]
         notes += [streams.note] if streams.note else []
-        if self.solver != "expected_value" and getattr(streams, "filling", None) is not None:
-            notes.append("transport: the Monte-Carlo solver moves rock by the steady matrix throughout "
+        if not self.solver.moves_by_fill and getattr(streams, "filling", None) is not None:
+            notes.append(f"transport: the {self.solver.name} solver moves rock by the steady matrix throughout "
                          "(the fill-dependent speed is the expected-value march's)")
         notes += [str(m) for m, _ in caught]
-        if self.solver == "expected_value":
-            res = self._run_ev(feed_m, op, grid, lm, dt, tonnes_per_step, timeseries, max_steps, notes)
-        else:
-            res = self._run_mc(feed_m, op, grid, streams, stats, lm, dt, tonnes_per_step, max_steps, notes)
+        problem = Problem(feed_m.fractions, grid.edges_mm, streams, stats, lm, tonnes_per_step, timeseries,
+                          max_steps, self.breakage, self.damage, self.impacted)
+        res = self._result(feed_m, op, grid, dt, tonnes_per_step, self.solver.solve(problem), notes)
         res = _with_extrapolated_share(res, params)
         _warn_extrapolated_share(res)
         if self.band_samples and hasattr(self.provider, "sample_stage_parameters"):
@@ -463,82 +456,12 @@ class Mill:
                                    self.band_damage_classes, self.band_quadrature_nodes, self.impacted,
                                    feed_fractions, tonnes_per_step)
 
-    def _march(self, lm: LinearMill, f: np.ndarray, max_steps: int) -> tuple[np.ndarray, ...]:
-        x = np.zeros(lm.n_state)
-        fs = f.sum()
-        prod, held, err = [], [], []
-        cum_fed = cum_out = 0.0
-        min_steps = 5 * (lm.n_stages + 1)
-        steady_t = float(lm.steady_state(f).sum()) if lm.fill_dependent else 1.0
-        for t in range(max_steps):
-            x, out = lm.step(x, float(x.sum()) / steady_t)
-            x = x + f
-            cum_fed += fs
-            cum_out += out
-            h = float(x.sum())
-            prod.append(out)
-            held.append(h)
-            err.append(abs(cum_fed - h - cum_out) / cum_fed)
-            if t >= min_steps and abs(out / fs - 1.0) < 1e-5:
-                break
-        return np.array(prod), np.array(held), np.array(err), x
-
-    def _run_ev(self, feed, op, grid, lm, dt, tps, timeseries, max_steps, notes) -> MillResult:
-        f = lm.feed_vector(feed.fractions, tps)
-        x = lm.steady_state(f)
-        if timeseries:
-            prod, held, err, _ = self._march(lm, f, max_steps)
-        else:
-            prod = held = err = np.zeros(0)
-        product = np.asarray(lm.out_op @ x)
-        ss_err = abs(product.sum() - tps) / tps
-        n, nd, n_st = lm.n_sizes, lm.n_damage, lm.n_stages
-        ns = n * nd
-        xs = x.reshape(n_st + 1, n, nd)
-        stage_mass = xs[1:].sum(axis=2)  # (S, N)
-        y = (lm.impacted @ x).reshape(n_st + 1, ns)[1:]
-        per = {
-            "primary_t": np.array([lm.stages[s].primary_count @ y[s] for s in range(n_st)]),
-            "primary_kwh": np.array([lm.stages[s].primary_energy_kwh_t @ y[s] for s in range(n_st)]),
-            "secondary_t": np.array([lm.stages[s].secondary_count @ y[s] for s in range(n_st)]),
-            "secondary_kwh": np.array([lm.stages[s].secondary_energy_kwh_t @ y[s] for s in range(n_st)]),
-        }
-        return self._result(feed, op, grid, product / product.sum(), stage_mass, float(xs[0].sum()),
-                            per, tps, dt, prod, held, max(float(err.max(initial=0.0)), ss_err), notes)
-
-    def _run_mc(self, feed, op, grid, streams, stats, lm, dt, tps, max_steps, notes) -> MillResult:
-        if self.mc_steps is not None:
-            n_steps = int(self.mc_steps)
-            warm = n_steps // 3
-        else:
-            f = lm.feed_vector(feed.fractions, tps)
-            prod, _, _, _ = self._march(lm, f, max_steps)
-            t_ss = time_to_steady_state(np.arange(1, prod.size + 1), prod / tps, 1.0, tol=0.001)
-            warm = int(2 * (t_ss if np.isfinite(t_ss) else prod.size)) + 10
-            n_steps = warm + 200
-        limit(self.parcels_per_step * n_steps, f"parcels_per_step x steps ({self.parcels_per_step} x {n_steps})",
-              "parcels_total")
-        solver = MonteCarloSolver(self.parcels_per_step, self.seed)
-        run = solver.run(grid.edges_mm, streams, stats, self.breakage, self.damage, feed.fractions,
-                         tps, n_steps, warm, self.impacted)
-        coll = run.product[warm:].sum(axis=0)
-        out_ratio = float(coll.sum()) / max((n_steps - warm) * tps, 1e-300)
-        if out_ratio < 1.0 - MC_STEADY_TOL:
-            warnings.warn(f"Monte Carlo with mc_steps={n_steps}: over its last {n_steps - warm} steps the mill "
-                          f"put out {100 * out_ratio:.3g} % of its feed, so it was still filling and the "
-                          "product PSD is not the steady one; raise mc_steps or leave it unset",
-                          InputWarning, stacklevel=4)
-        per = {k: v / (n_steps - warm) for k, v in run.counts.items()}  # per step
-        notes = [*notes, f"Monte Carlo: {self.parcels_per_step} parcels/step, {n_steps} steps, "
-                 f"statistics over the last {n_steps - warm}, seed {self.seed}"]
-        return self._result(feed, op, grid, coll / coll.sum(), run.stage_mass, float("nan"), per, tps,
-                            dt, run.product.sum(axis=1), run.holdup,
-                            float(run.mass_balance_error.max()), notes, solver="monte_carlo")
-
-    def _result(self, feed, op, grid, product_frac, stage_mass, inlet_t, per, tps, dt, prod, held,
-                mb_err, notes, solver="expected_value") -> MillResult:
-        product = PSD(grid, np.clip(product_frac, 0.0, None) / np.clip(product_frac, 0.0, None).sum(),
-                      validate=False)
+    def _result(self, feed: PSD, op: Any, grid: SizeGrid, dt: float, tps: float, sol: Solution,
+                notes: list[str]) -> MillResult:
+        """Format a solver's :class:`~msmill.model.solvers.Solution` as the :class:`MillResult`."""
+        prod, held, per, stage_mass = sol.product_series_t, sol.holdup_series_t, sol.per_step, sol.stage_mass_t
+        clipped = np.clip(sol.product_fractions, 0.0, None)
+        product = PSD(grid, clipped / clipped.sum(), validate=False)
         table = pd.DataFrame({
             "lower_mm": grid.lower_mm, "upper_mm": grid.upper_mm, "mid_mm": grid.mids_mm,
             "feed_mass_fraction": feed.fractions, "product_mass_fraction": product.fractions,
@@ -551,9 +474,9 @@ class Mill:
         ts = pd.DataFrame({"time_s": t, "feed_tph": np.full(prod.size, op.feed_tph),
                            "holdup_t": held, "product_tph": prod / dt * 3600.0})
         rate = ts["product_tph"].to_numpy()
-        if solver == "monte_carlo" and rate.size >= MC_SMOOTHING_STEPS:
+        k = self.solver.smoothing_steps
+        if k and rate.size >= k:
             # parcel noise: judge steady state on a centred moving average (no lag)
-            k = MC_SMOOTHING_STEPS
             c = np.cumsum(np.concatenate([[0.0], rate]))
             ma = (c[k:] - c[:-k]) / k
             half = k // 2
@@ -586,8 +509,8 @@ class Mill:
             primary_impacts_per_t=float(stages["primary_impacts_per_t"].sum()),
             secondary_impacts_per_t=float(stages["secondary_impacts_per_t"].sum()),
             specific_impact_energy_kwh_t=float(stages["impact_energy_kwh_t"].sum()),
-            mass_balance_error=float(mb_err), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
-            solver=solver, submodels=self.submodel_names(), notes=tuple(notes),
+            mass_balance_error=float(sol.mass_balance_error), feed_tph=float(op.feed_tph), characteristic_time_s=dt,
+            solver=self.solver.name, submodels=self.submodel_names(), notes=(*notes, *sol.notes),
         )
 
 

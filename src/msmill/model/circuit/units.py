@@ -308,8 +308,8 @@ class MillUnit(Unit):
 
     def __init__(self, name: str, mill: Any, operating: dict[str, Any]) -> None:
         super().__init__(name, ("product",))
-        if mill.solver != "expected_value":
-            raise MsmillInputError(f"{name}.model.solver", mill.solver, "expected_value (circuits solve the "
+        if mill.solver.name != "expected_value":
+            raise MsmillInputError(f"{name}.model.solver", mill.solver.name, "expected_value (circuits solve the "
                                    "mill's steady state many times)")
         self.mill = mill
         self.operating = dict(operating)
