@@ -1,6 +1,6 @@
 """The DEM ``Simulation``: a Python front end that validates, packs and drives the kernels.
 
-See ARCHITECTURE.md ("DEM engine API") for the contract and docs/dem.md for
+See docs/interfaces.md ("DEM engine API") for the contract and docs/dem.md for
 the physics, the numerics and the checks.
 """
 
@@ -1069,7 +1069,7 @@ class Simulation:
             self._gmat))
 
     def events(self, since_s: float | None = None) -> pd.DataFrame:
-        """One row per contact, recorded at onset (see ARCHITECTURE.md for the columns).
+        """One row per contact, recorded at onset (see docs/interfaces.md for the columns).
 
         ``since_s`` (s): only the contacts opened at or after it (None: all).
         """

@@ -13,7 +13,7 @@ vectorised function of numpy arrays.
 
 Adding a sub-model: write a class with the protocol's attributes and methods,
 add it to the step's table in :data:`SUBMODELS` (or pass an instance to
-:class:`msmill.model.Mill`). See ARCHITECTURE.md, "Mill model: how to add a
+:class:`msmill.model.Mill`). See docs/interfaces.md, "Mill model: how to add a
 sub-model".
 """
 
