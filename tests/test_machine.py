@@ -92,3 +92,14 @@ def test_rotation_sense_and_gate_geometry():
     assert x0 == pytest.approx(-0.48 + 0.3) and z0 == pytest.approx(m.gate_hinge_z_m)
     assert m.gate_opening_m(80) > m.gate_opening_m(0)
     assert m.tip_speed_m_s(1500) == pytest.approx(1500 * 2 * math.pi / 60 * 0.19)
+
+
+def test_a_rock_size_in_mm_gives_its_radius_in_m_for_scalars_and_arrays():
+    import numpy as np
+
+    from msmill.machine import size_mm_to_radius_m
+
+    assert size_mm_to_radius_m(10) == 0.005 and isinstance(size_mm_to_radius_m(10), float)
+    sizes = np.array([2.0, 6.4, 30.0])
+    np.testing.assert_array_equal(size_mm_to_radius_m(sizes), sizes / 2000.0)
+    np.testing.assert_array_equal(size_mm_to_radius_m([2.0, 6.4]), [0.001, 0.0032])

@@ -454,6 +454,18 @@ def rpm_to_rad_s(speed_rpm: float) -> float:
     return float(speed_rpm) * 2.0 * math.pi / 60.0
 
 
+def size_mm_to_radius_m(size_mm: Any) -> Any:
+    """Radius (m) of a rock of size ``size_mm`` (its diameter, mm): ``size_mm / 2000``.
+
+    A scalar gives a float, a sequence or array a float array (same rounding as the division).
+    """
+    if isinstance(size_mm, int | float):
+        return float(size_mm) / 2000.0
+    import numpy as np
+
+    return np.asarray(size_mm, dtype=float) / 2000.0
+
+
 class OperatingPoint(_Model):
     """How the mill is run: feed rate, shaft speeds and gate angle.
 

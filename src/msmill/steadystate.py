@@ -157,7 +157,7 @@ def _check(time_s: np.ndarray, *arrays: np.ndarray) -> None:
         raise MsmillInputError("time_s", "not increasing", "strictly increasing times")
 
 
-def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_rate: float,
+def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_per_s: float,
                  window_s: float) -> FlowWindows | None:
     """Window figures for every end time with ``2 window_s`` of history (None if the record is shorter).
 
@@ -168,8 +168,8 @@ def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     holdup : array
         Mass (or count) in the mill at each time.
     product_cum : array
-        Cumulative product mass out at each time (same mass unit as ``feed_rate * s``).
-    feed_rate : float
+        Cumulative product mass out at each time (same mass unit as ``feed_per_s * s``).
+    feed_per_s : float
         Feed rate (mass per s), > 0.
     window_s : float
         Window length ``W`` (s).
@@ -178,8 +178,8 @@ def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     h = np.asarray(holdup, dtype=float)
     q = np.asarray(product_cum, dtype=float)
     _check(t, h, q)
-    if not feed_rate > 0:
-        raise MsmillInputError("feed_rate", feed_rate, "a rate > 0")
+    if not feed_per_s > 0:
+        raise MsmillInputError("feed_per_s", feed_per_s, "a rate > 0")
     if t.size < 4 or t[-1] - t[0] < 2 * window_s - 1e-9:
         return None
     m = _POINTS_PER_WINDOW
@@ -190,8 +190,8 @@ def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     qg = np.interp(grid, t, q)
     i = np.arange(grid.size - 2 * m)  # window pair = grid points i .. i + 2m
     end = i + 2 * m
-    pa = (qg[i + m] - qg[i]) / window_s / feed_rate
-    pb = (qg[end] - qg[i + m]) / window_s / feed_rate
+    pa = (qg[i + m] - qg[i]) / window_s / feed_per_s
+    pb = (qg[end] - qg[i + m]) / window_s / feed_per_s
     # window means (trapezoid-free: mean of the grid points of each half) and LS slope over 2m + 1 points
     c = np.concatenate([[0.0], np.cumsum(y)])
     ma = (c[i + m] - c[i]) / m
@@ -206,14 +206,14 @@ def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     slope = (sky - kbar * sy) / skk / step  # hold-up per s
     with np.errstate(divide="ignore", invalid="ignore"):
         change = np.where(mb > 0, np.abs(mb - ma) / mb, np.inf)
-    return FlowWindows(end_s=grid[end], product_a=pa, product_b=pb, trend=slope / feed_rate, holdup_change=change)
+    return FlowWindows(end_s=grid[end], product_a=pa, product_b=pb, trend=slope / feed_per_s, holdup_change=change)
 
 
-def first_steady(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_rate: float,
+def first_steady(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_per_s: float,
                  crit: SteadyStateCriterion | None = None) -> tuple[float, float] | None:
     """``(onset_s, detected_s)`` of the first end time where the criterion holds, or None."""
     c = crit or SteadyStateCriterion()
-    fw = flow_windows(time_s, holdup, product_cum, feed_rate, c.window_s)
+    fw = flow_windows(time_s, holdup, product_cum, feed_per_s, c.window_s)
     if fw is None:
         return None
     ok = fw.steady(c)
@@ -223,7 +223,7 @@ def first_steady(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     return float(fw.end_s[j] - 2 * c.window_s), float(fw.end_s[j])
 
 
-def assess(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_rate: float,
+def assess(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_per_s: float,
            crit: SteadyStateCriterion | None = None, fed_cum: np.ndarray | None = None) -> SteadyStateVerdict:
     """Outcome of a record: steady (ever reached), choked or not steady at its end.
 
@@ -232,34 +232,34 @@ def assess(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed
     over its first window is not steady (feed-limited), never choked.
     """
     c = crit or SteadyStateCriterion()
-    fw = flow_windows(time_s, holdup, product_cum, feed_rate, c.window_s)
+    fw = flow_windows(time_s, holdup, product_cum, feed_per_s, c.window_s)
     if fw is None:
         return SteadyStateVerdict("not_steady", None, None, float("nan"), float("nan"), float("nan"),
                                   f"record shorter than two windows of {c.window_s:g} s")
-    found = first_steady(time_s, holdup, product_cum, feed_rate, c)
+    found = first_steady(time_s, holdup, product_cum, feed_per_s, c)
     pa, pb, tr = float(fw.product_a[-1]), float(fw.product_b[-1]), float(fw.trend[-1])
     ratio = 0.5 * (pa + pb)
     figures = (f"product {100 * pa:.0f} % then {100 * pb:.0f} % of feed over two {c.window_s:g} s windows, "
                f"hold-up trend {100 * tr:+.0f} % of feed")
     if found is not None:
-        return SteadyStateVerdict("steady", found[0], found[1], ratio, ratio * feed_rate, tr,
+        return SteadyStateVerdict("steady", found[0], found[1], ratio, ratio * feed_per_s, tr,
                                   f"steady from {found[0]:.2f} s (detected {found[1]:.2f} s)")
     low = 1.0 - c.balance_tol
     t0 = float(np.asarray(time_s)[0])
-    fed = fed_ratio(time_s, fed_cum, feed_rate, t0, t0 + c.window_s) if fed_cum is not None else 1.0
+    fed = fed_ratio(time_s, fed_cum, feed_per_s, t0, t0 + c.window_s) if fed_cum is not None else 1.0
     if fed < low:
-        return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_rate, tr,
+        return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_per_s, tr,
                                   f"not steady, feed-limited: the feed source placed only {100 * fed:.0f} % of the "
                                   f"nominal feed in the first {c.window_s:g} s, before any rock could back up "
                                   f"(the rate is beyond what the source can place; lower the feed rate); {figures}")
     if pa < low and pb < low and pb - pa < c.balance_tol:
-        return SteadyStateVerdict("choked", None, None, ratio, ratio * feed_rate, tr,
+        return SteadyStateVerdict("choked", None, None, ratio, ratio * feed_per_s, tr,
                                   f"choked: {figures}; it passes {100 * ratio:.0f} % of the feed")
-    return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_rate, tr, f"not steady: {figures}")
+    return SteadyStateVerdict("not_steady", None, None, ratio, ratio * feed_per_s, tr, f"not steady: {figures}")
 
 
-def fed_ratio(time_s: np.ndarray, fed_cum: np.ndarray, feed_rate: float, t_from_s: float, t_to_s: float) -> float:
-    """Mass fed between two times of a record / (``feed_rate`` x their interval); 1 for an empty interval."""
+def fed_ratio(time_s: np.ndarray, fed_cum: np.ndarray, feed_per_s: float, t_from_s: float, t_to_s: float) -> float:
+    """Mass fed between two times of a record / (``feed_per_s`` x their interval); 1 for an empty interval."""
     t = np.asarray(time_s, dtype=float)
     f = np.asarray(fed_cum, dtype=float)
     if f.shape != t.shape:
@@ -267,7 +267,7 @@ def fed_ratio(time_s: np.ndarray, fed_cum: np.ndarray, feed_rate: float, t_from_
     a, b = max(float(t[0]), t_from_s), min(float(t[-1]), t_to_s)
     if b <= a:
         return 1.0
-    return float((np.interp(b, t, f) - np.interp(a, t, f)) / (feed_rate * (b - a)))
+    return float((np.interp(b, t, f) - np.interp(a, t, f)) / (feed_per_s * (b - a)))
 
 
 def expected_residence_time_s(kickback: np.ndarray, refeed: np.ndarray, pass_through: np.ndarray,

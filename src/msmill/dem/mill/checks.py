@@ -13,7 +13,7 @@ import math
 from typing import Any
 
 from msmill.errors import MsmillInputError
-from msmill.machine import Machine
+from msmill.machine import Machine, size_mm_to_radius_m
 from msmill.validate import LIMITS, integer, number, one_of
 
 G_M_S2 = 9.81
@@ -98,7 +98,7 @@ def estimated_dt_s(scene: Any, settings: Any) -> float:
     if settings.dt_s is not None:
         return float(settings.dt_s)
     v = float(scene.max_impact_speed_m_s)
-    r_min_m = float(min(scene.sizes_mm)) / 2000.0
+    r_min_m = size_mm_to_radius_m(float(min(scene.sizes_mm)))
     return min(settings.safety * contact_time_s(scene.rock_used, r_min_m, v), TRAVEL_FRACTION * r_min_m / v)
 
 
@@ -128,7 +128,7 @@ def check_run_budget(scene: Any, settings: Any) -> None:
     measure = max(settings.measure_s, settings.max_measure_s if settings.adaptive else 0.0)
     duration = settings.time_limit_s(float(min(scene.sizes_mm))) + measure
     steps = duration / estimated_dt_s(scene, settings)
-    r_min_m = float(min(scene.sizes_mm)) / 2000.0
+    r_min_m = size_mm_to_radius_m(float(min(scene.sizes_mm)))
     cap, what = LIMITS["dem_steps"]
     if steps > cap:
         raise MsmillInputError("--max-time-s/--max-measure-s/--size-mm/--speed-rpm", f"~{steps:.3g} steps",

@@ -71,7 +71,7 @@ from msmill.dem.mill.stats import (
 )
 from msmill.dem.mill.warmstart import WarmStart, place_table_start, place_warm_start
 from msmill.errors import MsmillInputError
-from msmill.machine import Machine, OperatingPoint
+from msmill.machine import Machine, OperatingPoint, size_mm_to_radius_m
 from msmill.stageparams import DesignPoint, default_stage_table
 from msmill.steadystate import (
     SteadyStateCriterion,
@@ -671,7 +671,7 @@ def _compute(run: MillRun, stats_settings: StatsSettings | None) -> MillStatisti
     sc = run.scene
     edges = None
     if sc.sizes_mm.size > 1:
-        mids = np.sqrt(sc.sizes_mm[1:] * sc.sizes_mm[:-1]) / 2000
+        mids = size_mm_to_radius_m(np.sqrt(sc.sizes_mm[1:] * sc.sizes_mm[:-1]))
         edges = np.concatenate([[0.0], mids, [np.inf]])
     ms = compute_statistics(
         sc.machine, design_point(sc.machine, sc.op, sc.size_mm), run.events, run.removed, run.timeseries,
@@ -764,7 +764,7 @@ def stats_from_raw(raw: dict[str, Any], stats_settings: StatsSettings | None = N
     sizes = np.asarray(s["feed"]["sizes_mm"])
     edges = None
     if sizes.size > 1:
-        mids = np.sqrt(sizes[1:] * sizes[:-1]) / 2000
+        mids = size_mm_to_radius_m(np.sqrt(sizes[1:] * sizes[:-1]))
         edges = np.concatenate([[0.0], mids, [np.inf]])
     prov = {"generator": "msmill.dem.mill.run.stats_from_dir", "msmill_version": __version__,
             "source_dir": source, "run_settings": s.get("run", {}), "wall_s": res.get("wall_s")}

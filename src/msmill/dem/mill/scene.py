@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 
 from msmill.errors import MsmillInputError
-from msmill.machine import Machine, OperatingPoint, check_size_mm, rpm_to_rad_s
+from msmill.machine import Machine, OperatingPoint, check_size_mm, rpm_to_rad_s, size_mm_to_radius_m
 
 __all__ = ["STEEL", "MillScene", "RockMaterial", "build_scene", "mill_skin_m", "peak_overlap_fraction", "softened_youngs_modulus"]
 
@@ -177,8 +177,8 @@ def scene_extent(machine: Machine, sizes_mm: np.ndarray, mode: str) -> tuple[flo
     sizes = np.asarray(sizes_mm, dtype=float)
     if mode != "slice":
         return 0.0, machine.casing_length_m, list(range(machine.flinger_rows)), 1.0
-    skin = SLICE_SKIN_RADII * float(sizes.min()) / 2000
-    need = 3 * (2 * float(sizes.max()) / 2000 + skin) * 1.001
+    skin = SLICE_SKIN_RADII * size_mm_to_radius_m(float(sizes.min()))
+    need = 3 * (2 * size_mm_to_radius_m(float(sizes.max())) + skin) * 1.001
     n_rows = min(machine.flinger_rows, max(1, math.ceil(need / machine.row_pitch_m)))
     y0 = machine.row_y_m(0) - machine.row_pitch_m / 2
     y1 = y0 + n_rows * machine.row_pitch_m
@@ -198,8 +198,8 @@ def mill_skin_m(sizes_mm: np.ndarray, periodic_length_m: float = math.inf) -> fl
     ``SLICE_SKIN_RADII``) keeps at least three cells of ``2 r_max + skin``.
     """
     sizes = np.asarray(sizes_mm, dtype=float)
-    skin = SKIN_RADII * float(sizes.min()) / 2000
-    fit = periodic_length_m / (3 * 1.001) - 2 * float(sizes.max()) / 2000
+    skin = SKIN_RADII * size_mm_to_radius_m(float(sizes.min()))
+    fit = periodic_length_m / (3 * 1.001) - 2 * size_mm_to_radius_m(float(sizes.max()))
     return min(skin, fit)
 
 
@@ -348,7 +348,7 @@ def build_scene(
 
     # feed and outlet
     feed_kg_s = op.feed_tph * 1000.0 / 3600.0 * scale
-    radii = sizes / 2000.0
+    radii = size_mm_to_radius_m(sizes)
     nweights = mfrac / radii**3
     nweights = nweights / nweights.sum()
     rm = float(radii.max())

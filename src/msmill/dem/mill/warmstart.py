@@ -95,7 +95,7 @@ from msmill.dem import kernels as K
 from msmill.dem.mill.checks import START_KINDS
 from msmill.dem.mill.saved import load_raw
 from msmill.errors import MsmillInputError
-from msmill.machine import Machine, rpm_to_rad_s
+from msmill.machine import Machine, rpm_to_rad_s, size_mm_to_radius_m
 from msmill.stageparams import RunStatistics, StageParameterTable, chain_visits, default_stage_table
 
 __all__ = ["START_KINDS", "WarmStart", "place_table_start", "place_warm_start", "table_residence_s"]
@@ -353,7 +353,7 @@ def place_table_start(scene: Any, table: StageParameterTable | None = None, seed
         sim._pack()  # the geometry at t = 0
     rng = np.random.default_rng(seed)
     rho = sc.rock.density_kg_m3
-    radii = np.asarray(sc.sizes_mm, dtype=float) / 2000.0
+    radii = size_mm_to_radius_m(sc.sizes_mm)
     weights = np.asarray(sc.mass_fractions, dtype=float) / radii**3
     weights = weights / weights.sum()
     r_max = float(radii.max())
