@@ -90,3 +90,19 @@ def test_table_sizes_ascending_and_round_trip(tmp_path):
     assert list(t.sizes_mm) == [10, 20]
     with pytest.raises(ValueError, match="ascending"):
         StageParameterTable(runs=[RunStatistics.from_dict(r2), RunStatistics.from_dict(r1)])
+
+
+def test_design_inputs_are_size_feed_speed_gate_for_runs_and_any_point_with_the_fields():
+    import numpy as np
+
+    from msmill.stageparams import DESIGN_INPUTS, DesignPoint, design_inputs
+    from msmill.surrogate.capacity import EnvelopePoint
+
+    d = DesignPoint(size_mm=4.5, feed_tph=20.0, speed_rpm=1500.0, gate_deg=30.0, stage_speeds_rpm=[1500.0, 1400.0])
+    assert DESIGN_INPUTS == ("size_mm", "feed_tph", "speed_rpm", "gate_deg")
+    assert d.inputs() == (4.5, 20.0, 1500.0, 30.0)
+    e = EnvelopePoint.from_statistics(RunStatistics.from_dict(_run()))
+    X = design_inputs([d, e])
+    assert X.shape == (2, 4) and X[0].tolist() == [4.5, 20.0, 1500.0, 30.0]
+    assert X[1].tolist() == [getattr(e, k) for k in DESIGN_INPUTS]
+    assert design_inputs([]).shape == (0, 4) and np.issubdtype(design_inputs([]).dtype, np.floating)

@@ -442,6 +442,27 @@ class StageStatistics(_Frozen):
         return np.array([self.kickback, self.refeed, self.pass_through])
 
 
+#: The four design inputs of a run, in the column order every design matrix uses.
+DESIGN_INPUTS = ("size_mm", "feed_tph", "speed_rpm", "gate_deg")
+
+
+def design_inputs(points) -> np.ndarray:
+    """The ``(n, 4)`` matrix of :data:`DESIGN_INPUTS` of ``points``.
+
+    Parameters
+    ----------
+    points : iterable
+        Objects with the four attributes (:class:`DesignPoint`, capacity envelope points, ...).
+
+    Returns
+    -------
+    ndarray
+        Row ``i`` is ``(size_mm, feed_tph, speed_rpm, gate_deg)`` of point ``i`` (mm, t/h, rpm, deg);
+        shape ``(0, 4)`` for no points.
+    """
+    return np.array([[getattr(p, k) for k in DESIGN_INPUTS] for p in points], dtype=float).reshape(-1, 4)
+
+
 class DesignPoint(_Frozen):
     """The operating point of one DEM run (paper Table 2 design space)."""
 
@@ -457,6 +478,10 @@ class DesignPoint(_Frozen):
         if any(s < 0 for s in v):
             raise ValueError("stage speeds must be >= 0")
         return v
+
+    def inputs(self) -> tuple[float, float, float, float]:
+        """The point's :data:`DESIGN_INPUTS` (mm, t/h, rpm, deg), in that order."""
+        return tuple(getattr(self, k) for k in DESIGN_INPUTS)
 
 
 class FillingTransport(_Frozen):

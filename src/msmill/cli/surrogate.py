@@ -158,6 +158,7 @@ def plan_cmd(
     """Plan the next batch of DEM runs (space-filling, then cost-aware kriging believer)."""
     import pandas as pd
 
+    from msmill.stageparams import DESIGN_INPUTS
     from msmill.surrogate import persist
     from msmill.surrogate.active import CostModel, group_weights, plan_batch
 
@@ -168,7 +169,7 @@ def plan_cmd(
         weights = group_weights(model.training_.layout.names)
     plan = plan_batch(None if model is None else model.gp_, batch, n_initial=n_initial, cost=cost,
                       cost_power=cost_power, weights=weights, seed=seed)
-    frame = pd.DataFrame(plan.points, columns=["size_mm", "feed_tph", "speed_rpm", "gate_deg"])
+    frame = pd.DataFrame(plan.points, columns=list(DESIGN_INPUTS))
     frame["score"] = plan.score
     frame["expected_cost_s"] = plan.expected_cost_s
     t = Table(title=f"next batch ({plan.method})")

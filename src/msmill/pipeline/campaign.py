@@ -54,7 +54,7 @@ from msmill.errors import MsmillInputError
 from msmill.pipeline.store import Store
 from msmill.pipeline.store.hashing import file_sha256, outcome_of, read_statistics
 from msmill.pipeline.store.queue import Claim, new_token
-from msmill.stageparams import DesignPoint
+from msmill.stageparams import DesignPoint, design_inputs
 
 __all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "checkpoint_base", "design_grid",
            "execute_run", "run_campaign", "run_checkpoint_dir", "run_settings_dict"]
@@ -78,7 +78,6 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     (kriging believer) and weights the acquisition by the DEM cost learnt from
     the runs' timings (:func:`msmill.surrogate.active.plan_batch`).
     """
-    import numpy as np
 
     from msmill.machine import OperatingPoint
     from msmill.surrogate.active import CostModel, plan_batch
@@ -94,7 +93,7 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     # failed points count as pending too: re-proposing one would add nothing (the store keeps a point once)
     # and stall the campaign on a point its workers cannot finish
     pending = [r.design for r in store.runs(campaign=name) if r.status in ("planned", "running", "failed")]
-    pend = np.array([[d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg] for d in pending]).reshape(-1, 4)
+    pend = design_inputs(pending)
     model = StageSurrogate().fit(runs).gp_ if len(runs) >= 2 else None
     plan = plan_batch(model, n, space, n_existing=len(runs), pending=pend if len(pend) else None,
                       cost=CostModel.from_runs(runs, space), cost_power=cost_power, seed=seed)

@@ -146,7 +146,7 @@ def _done_points(store: Store, machine_hash: str) -> set[tuple[float, ...]]:
 
 
 def _key(d: DesignPoint) -> tuple[float, ...]:
-    return tuple(round(v, 6) for v in (d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg, *d.stage_speeds_rpm))
+    return tuple(round(v, 6) for v in (*d.inputs(), *d.stage_speeds_rpm))
 
 
 def restore_campaigns(store: Store, folder: str | Path, raw_dir: str | None = None) -> list[str]:

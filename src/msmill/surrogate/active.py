@@ -158,8 +158,7 @@ class CostModel:
         for r in runs:
             w = r.provenance.get("wall_s")
             if w is not None:
-                d = r.design
-                X.append([d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg])
+                X.append(r.design.inputs())
                 t.append(float(w))
         return cls.from_timings(np.array(X).reshape(-1, 4), t, design_space)
 

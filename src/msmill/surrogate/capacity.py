@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from msmill.errors import MsmillInputError
-from msmill.stageparams import RunStatistics
+from msmill.stageparams import DESIGN_INPUTS, RunStatistics, design_inputs
 
 __all__ = [
     "METHODS",
@@ -243,7 +243,7 @@ def _fit_classifier(points: list[EnvelopePoint], throughput_as_steady: bool, see
     rows, labels = [], []
     for p in points:
         if p.outcome in ("steady", "choked"):
-            rows.append((p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg))
+            rows.append(tuple(getattr(p, k) for k in DESIGN_INPUTS))
             labels.append(int(p.outcome == "steady"))
             if p.outcome == "choked" and throughput_as_steady and p.throughput_tph:
                 rows.append((p.size_mm, p.throughput_tph, p.speed_rpm, p.gate_deg))
@@ -332,13 +332,13 @@ class CapacityModel:
             raise MsmillInputError("method", method, " or ".join(METHODS))
         steady, choked = _split(points, need_choked=method != "demonstrated")
         if method == "demonstrated":
-            rows = np.array([[p.size_mm, p.feed_tph, p.speed_rpm, p.gate_deg] for p in steady], dtype=float)
+            rows = design_inputs(steady)
             dom = {k: [float(rows[:, j].min()), float(rows[:, j].max())]
-                   for j, k in enumerate(("size_mm", "feed_tph", "speed_rpm", "gate_deg"))}
+                   for j, k in enumerate(DESIGN_INPUTS)}
             return cls(method, _demonstrated_params(), len(steady), 0, dom, steady=rows)
         used = steady + choked
         dom = {k: [float(min(getattr(p, k) for p in used)), float(max(getattr(p, k) for p in used))]
-               for k in ("size_mm", "feed_tph", "speed_rpm", "gate_deg")}
+               for k in DESIGN_INPUTS}
         if method == "censored":
             return cls(method, _fit_censored(points, priors), len(steady), len(choked), dom)
         gpc, params = _fit_classifier(points, throughput_as_steady, seed, theta)

@@ -49,7 +49,7 @@ PAIR_RTOL = 1e-3
 
 def _inputs(run: RunStatistics) -> np.ndarray:
     d = run.design
-    return np.array([d.size_mm, d.feed_tph, d.speed_rpm, d.gate_deg, *d.stage_speeds_rpm], dtype=float)
+    return np.array([*d.inputs(), *d.stage_speeds_rpm], dtype=float)
 
 
 def match_pairs(slices: list[RunStatistics], fulls: list[RunStatistics]) -> list[tuple[RunStatistics, RunStatistics]]:

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from msmill.errors import MsmillInputError
+from msmill.stageparams import DESIGN_INPUTS
 
 #: Names of the four inputs, in column order.
-INPUTS = ("size_mm", "feed_tph", "speed_rpm", "gate_deg")
+INPUTS = DESIGN_INPUTS
 
 
 @dataclass(frozen=True)

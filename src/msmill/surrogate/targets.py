@@ -52,7 +52,7 @@ from scipy import optimize, special
 
 from msmill.errors import MsmillInputError
 from msmill.sampling import default_between_run, statistic_kind
-from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics
+from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics, design_inputs
 
 #: Number of quantile levels per velocity distribution.
 N_LEVELS = 28
@@ -671,7 +671,7 @@ class TrainingSet:
             with_destinations=all(r.inlet_destinations is not None and all(s.destinations is not None
                                                                              for s in r.stages) for r in runs))
         rows = [encode_run(r, layout) for r in runs]
-        X = np.array([[r.design.size_mm, r.design.feed_tph, r.design.speed_rpm, r.design.gate_deg] for r in runs])
+        X = design_inputs(r.design for r in runs)
         ids = tuple(str(r.provenance.get("run_id") or _design_label(r)) for r in runs)
         return cls(X, np.array([y for y, _ in rows]), np.array([v for _, v in rows]), layout,
                    factors.mean(axis=0), ids, runs)

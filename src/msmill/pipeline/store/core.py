@@ -49,7 +49,7 @@ from msmill.pipeline.store.schema import (
     SurrogateRunRow,
     utcnow,
 )
-from msmill.stageparams import DesignPoint, RunStatistics
+from msmill.stageparams import DESIGN_INPUTS, DesignPoint, RunStatistics
 
 __all__ = [
     "DEFAULT_DB_ENV",
@@ -66,7 +66,7 @@ __all__ = [
 
 DEFAULT_DB_ENV = "MSMILL_DB"
 #: design variables ``list``/``show``/``runs`` can filter on (columns of ``design_points``)
-DESIGN_FILTERS = ("size_mm", "feed_tph", "speed_rpm", "gate_deg")
+DESIGN_FILTERS = DESIGN_INPUTS
 _MIGRATIONS = Path(__file__).parent / "migrations"
 
 
