@@ -33,7 +33,7 @@ with the run's own figures:
   run (``RunStatistics.steady_state_time_s``) against the model's series
   judged by the criterion the run recorded in its ``run_settings`` (runs made
   before the mass-balance criterion: the count-only test
-  :func:`msmill.dem.mill.stats.detect_steady_state` with the recorded window
+  :func:`msmill.steadystate.count_only_onset` with the recorded window
   and tolerances).
 
 **Replicas** (``--replicas FILE``, default ``benchmarks/data/transport_replicas.json``
@@ -100,7 +100,6 @@ from msmill.dem.mill.run import (
     saved_run_filling_transport,
     saved_run_verdict,
 )
-from msmill.dem.mill.stats import detect_steady_state
 from msmill.machine import OperatingPoint
 from msmill.model import Mill
 from msmill.model.providers import RunProvider, TableProvider, default_table_path, pooled_filling
@@ -108,7 +107,7 @@ from msmill.model.result import time_to_steady_state
 from msmill.model.submodels import DEFAULTS, BreakageParameters, Transition
 from msmill.psd import PSD, SizeGrid
 from msmill.stageparams import FillingTransport, RunStatistics, StageParameterTable, chain_visits
-from msmill.steadystate import SteadyStateCriterion, first_steady
+from msmill.steadystate import SteadyStateCriterion, count_only_onset, first_steady
 
 #: Ore parameters are irrelevant with breakage="none"; any valid set.
 _ORE = BreakageParameters("unbreakable", A_pct=50.0, b_t_per_kwh=1.0, l_ref_mm=29.0)
@@ -351,7 +350,7 @@ def recorded_onset(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarr
         crit = SteadyStateCriterion(w, float(run_settings["balance_tol"]), trend, rel)
         found = first_steady(time_s, holdup, product_cum, feed_rate, crit)
     else:  # runs made before the mass-balance criterion: the count-only test
-        found = detect_steady_state(time_s, holdup, w, rel, trend)
+        found = count_only_onset(time_s, holdup, w, rel, trend)
     return found[0] if found else _NAN
 
 

@@ -10,6 +10,7 @@ from msmill.errors import MsmillInputError
 from msmill.steadystate import (
     SteadyStateCriterion,
     assess,
+    count_only_onset,
     expected_residence_time_s,
     fed_ratio,
     first_steady,
@@ -162,3 +163,23 @@ def test_fed_ratio_over_an_interval():
     assert fed_ratio(T, fed, F, 7.0, 8.0) == 1.0  # outside the record
     with pytest.raises(MsmillInputError, match="fed_cum"):
         fed_ratio(T, fed[:-1], F, 0.0, 1.0)
+
+
+def test_count_only_test_finds_the_onset_of_a_noisy_fill_and_never_that_of_a_ramp():
+    t = np.linspace(0, 4, 2001)
+    n = 1000 * (1 - np.exp(-t / 0.4)) + np.random.default_rng(0).normal(0, 5, t.size)
+    onset, detected = count_only_onset(t, n, window_s=0.4, rel_tol=0.03, trend_tol=0.05)
+    assert 0.9 < onset < 1.6 and detected == pytest.approx(onset + 0.8)
+    # noise-free, in the continuum (x = t0 / 0.4 s): the window means differ by 0.41 e^-x, under 3 % once
+    # t0 > 1.04 s; the least-squares slope over both windows times 2W is 0.81 e^-x, under 5 % once t0 > 1.12 s
+    y = 1000 * (1 - np.exp(-t / 0.4))
+    assert count_only_onset(t, y, window_s=0.4, rel_tol=0.03, trend_tol=10.0)[0] == pytest.approx(1.043, abs=0.03)
+    assert count_only_onset(t, y, window_s=0.4, rel_tol=1.0, trend_tol=0.05)[0] == pytest.approx(1.115, abs=0.03)
+    assert count_only_onset(t, 100 * t, window_s=0.4) is None
+
+
+def test_count_only_test_ignores_the_mass_balance_that_the_criterion_checks():
+    held = np.full(T.size, 3.0)  # a full mill that stopped putting rock out
+    onset = count_only_onset(T, held, window_s=0.65)
+    assert onset is not None and onset[0] == pytest.approx(0.0)
+    assert first_steady(T, held, np.zeros(T.size), F) is None

@@ -62,6 +62,7 @@ __all__ = [
     "SteadyStateCriterion",
     "SteadyStateVerdict",
     "assess",
+    "count_only_onset",
     "expected_residence_time_s",
     "fed_ratio",
     "first_steady",
@@ -193,20 +194,85 @@ def flow_windows(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray
     pa = (qg[i + m] - qg[i]) / window_s / feed_per_s
     pb = (qg[end] - qg[i + m]) / window_s / feed_per_s
     # window means (trapezoid-free: mean of the grid points of each half) and LS slope over 2m + 1 points
-    c = np.concatenate([[0.0], np.cumsum(y)])
-    ma = (c[i + m] - c[i]) / m
-    mb = (c[end + 1] - c[i + m + 1]) / m
-    k = np.arange(grid.size, dtype=float)
-    ck = np.concatenate([[0.0], np.cumsum(k * y)])
-    n2 = 2 * m + 1
-    sy = c[end + 1] - c[i]
-    sky = ck[end + 1] - ck[i] - i * sy
-    kbar = (n2 - 1) / 2
-    skk = n2 * (n2 * n2 - 1) / 12
-    slope = (sky - kbar * sy) / skk / step  # hold-up per s
+    sl = _Sliding(y)
+    ma, mb = sl.mean(i, m), sl.mean(i + m + 1, m)
+    slope = sl.slope(i, 2 * m + 1) / step  # hold-up per s
     with np.errstate(divide="ignore", invalid="ignore"):
         change = np.where(mb > 0, np.abs(mb - ma) / mb, np.inf)
     return FlowWindows(end_s=grid[end], product_a=pa, product_b=pb, trend=slope / feed_per_s, holdup_change=change)
+
+
+class _Sliding:
+    """Means and least-squares slopes of ``y`` over runs of ``n`` grid points, from cumulative sums."""
+
+    def __init__(self, y: np.ndarray) -> None:
+        self.c = np.concatenate([[0.0], np.cumsum(y)])
+        self.ck = np.concatenate([[0.0], np.cumsum(np.arange(y.size, dtype=float) * y)])
+
+    def sum(self, start: np.ndarray, n: int) -> np.ndarray:
+        """Sum of ``y[start : start + n]`` for every start."""
+        return self.c[start + n] - self.c[start]
+
+    def mean(self, start: np.ndarray, n: int) -> np.ndarray:
+        """Mean of ``y[start : start + n]`` for every start."""
+        return self.sum(start, n) / n
+
+    def slope(self, start: np.ndarray, n: int) -> np.ndarray:
+        """Least-squares slope (per grid step) of ``y[start : start + n]`` for every start."""
+        sy = self.sum(start, n)
+        sky = self.ck[start + n] - self.ck[start] - start * sy  # sum of local index * y
+        kbar = (n - 1) / 2
+        skk = n * (n * n - 1) / 12
+        return (sky - kbar * sy) / skk
+
+
+def count_only_onset(time_s: np.ndarray, count: np.ndarray, window_s: float = 0.4, rel_tol: float = 0.05,
+                     trend_tol: float = 0.05) -> tuple[float, float] | None:
+    """``(onset_s, detected_s)`` by the count-only test the DEM ran before the mass-balance criterion.
+
+    Kept to re-judge runs that recorded it (their ``run_settings`` have no
+    ``balance_tol``) by the test they were made with. The record is resampled
+    every ``window_s / 20`` from its first time; at the first start ``t0`` where
+    two consecutive windows ``[t0, t0 + W)`` and ``[t0 + W, t0 + 2W)`` have
+    means within ``rel_tol`` (relative to the second) and the least-squares
+    trend over both, times ``2W`` and over the mean, is within ``trend_tol``,
+    the onset is ``t0`` and the detection ``t0 + 2W``. Only condition 3 of the
+    module's criterion, on a trend relative to the hold-up instead of the feed.
+
+    Parameters
+    ----------
+    time_s : array
+        Times (s).
+    count : array
+        Particles (or mass) in the mill at each time.
+    window_s, rel_tol, trend_tol : float
+        Window length ``W`` (s) and the two tolerances.
+
+    Returns
+    -------
+    (onset_s, detected_s) or None
+        None if the record never passes or is shorter than ``2W``.
+    """
+    t = np.asarray(time_s, dtype=float)
+    n = np.asarray(count, dtype=float)
+    if t.size < 4 or t[-1] - t[0] < 2 * window_s:
+        return None
+    m = _POINTS_PER_WINDOW
+    grid = np.arange(t[0], t[-1] + 1e-12, window_s / m)
+    if grid.size < 2 * m:
+        return None
+    sl = _Sliding(np.interp(grid, t, n))
+    i = np.arange(grid.size - 2 * m + 1)
+    m1, m2 = sl.mean(i, m), sl.mean(i + m, m)
+    mean = sl.mean(i, 2 * m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.abs(m2 - m1) / m2
+        trend = np.abs(sl.slope(i, 2 * m) * (2 * m)) / mean
+    ok = (m2 > 0) & (rel < rel_tol) & (trend < trend_tol)
+    if not ok.any():
+        return None
+    j = int(np.argmax(ok))
+    return float(grid[j]), float(grid[j] + 2 * window_s)
 
 
 def first_steady(time_s: np.ndarray, holdup: np.ndarray, product_cum: np.ndarray, feed_per_s: float,

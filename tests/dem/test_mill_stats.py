@@ -7,7 +7,6 @@ import pytest
 from msmill.dem.mill.stats import (
     characteristic_time,
     compute_statistics,
-    detect_steady_state,
     identify_impacts,
     stage_of_z,
 )
@@ -106,14 +105,6 @@ def test_characteristic_time_from_centre_speed():
     # 0.45 m / 7.5 m/s = 0.06 s, a whole number of 0.01 s snapshot intervals
     assert st.mean_centre_velocity_m_s == pytest.approx(7.5)
     assert st.characteristic_time_s == pytest.approx(0.06)
-
-
-def test_steady_state_detection():
-    t = np.linspace(0, 4, 2001)
-    n = 1000 * (1 - np.exp(-t / 0.4)) + np.random.default_rng(0).normal(0, 5, t.size)
-    onset, detected = detect_steady_state(t, n, window_s=0.4, rel_tol=0.03, trend_tol=0.05)
-    assert 0.6 < onset < 2.0 and detected == pytest.approx(onset + 0.8)
-    assert detect_steady_state(t, 100 * t, window_s=0.4) is None
 
 
 def test_touches_are_dropped_as_events_but_blow_ups_drop_the_rock():

@@ -111,7 +111,6 @@ __all__ = [
     "characteristic_time",
     "compute_statistics",
     "destination_matrix",
-    "detect_steady_state",
     "filling_tags",
     "filling_transport",
     "identify_impacts",
@@ -236,59 +235,6 @@ def snapshots_frame(snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame) 
                                      "vx_m_s", "vy_m_s", "vz_m_s", "radius_m"])
     parts = [d.assign(time_s=t, snap=i) for i, (t, d) in enumerate(snapshots)]
     return pd.concat(parts, ignore_index=True)
-
-
-def detect_steady_state(
-    time_s: np.ndarray, n_particles: np.ndarray, window_s: float = 0.4, rel_tol: float = 0.05,
-    trend_tol: float = 0.05,
-) -> tuple[float, float] | None:
-    """Onset of steady state from the number of particles in the mill (paper Fig. 3).
-
-    The count is resampled on a uniform grid; for every start time ``t0`` two
-    consecutive windows ``[t0, t0 + W)`` and ``[t0 + W, t0 + 2W)`` are
-    compared. Steady state holds at the first ``t0`` where (i) the relative
-    change of the window means ``|m2 - m1| / m2`` is below ``rel_tol`` and
-    (ii) the least-squares trend over both windows, times ``2W`` and divided by
-    the mean, is below ``trend_tol`` in magnitude.
-
-    Returns
-    -------
-    (onset_s, detected_at_s) or None
-        ``onset_s = t0`` and ``detected_at_s = t0 + 2W`` (the earliest time the
-        test could be evaluated), or None if the record never passes.
-    """
-    t = np.asarray(time_s, dtype=float)
-    n = np.asarray(n_particles, dtype=float)
-    if t.size < 4 or t[-1] - t[0] < 2 * window_s:
-        return None
-    dt = window_s / 20
-    grid = np.arange(t[0], t[-1] + 1e-12, dt)
-    y = np.interp(grid, t, n)
-    m = 20
-    if grid.size < 2 * m:
-        return None
-    c = np.concatenate([[0.0], np.cumsum(y)])
-    i = np.arange(grid.size - 2 * m + 1)
-    m1 = (c[i + m] - c[i]) / m
-    m2 = (c[i + 2 * m] - c[i + m]) / m
-    # least-squares slope over 2m equally spaced points via cumulative sums
-    k = np.arange(grid.size, dtype=float)
-    ck = np.concatenate([[0.0], np.cumsum(k * y)])
-    n2 = 2 * m
-    sy = c[i + n2] - c[i]
-    sky = ck[i + n2] - ck[i] - i * sy  # sum of local index * y
-    kbar = (n2 - 1) / 2
-    skk = n2 * (n2 * n2 - 1) / 12
-    slope = (sky - kbar * sy) / skk  # per grid step
-    mean = sy / n2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.abs(m2 - m1) / m2
-        trend = np.abs(slope * n2) / mean
-    ok = (m2 > 0) & (rel < rel_tol) & (trend < trend_tol)
-    if not ok.any():
-        return None
-    j = int(np.argmax(ok))
-    return float(grid[j]), float(grid[j] + 2 * window_s)
 
 
 def characteristic_time(
