@@ -43,6 +43,7 @@ import pandas as pd
 from msmill.dem.mill.run import RunSettings, saved_run_feed_kg_s, saved_run_verdict
 from msmill.dem.mill.stats import destination_matrix, snapshot_lag, stage_of_z, tagged_moves
 from msmill.machine import Machine
+from msmill.stageparams import chain_residence_steps, chain_visits
 from msmill.steadystate import first_steady
 
 MODELS = ("one_lag", "fill", "inlet_fill", "split")
@@ -94,12 +95,6 @@ def print_exits_and_chute(r: dict) -> None:
               f"{float((stay <= 1.0).mean()):8.2f} {float(chute.median()):20.3f} {float(chute.mean()):7.3f}")
 
 
-def chain_residence_s(p: np.ndarray, tau: float) -> float:
-    """Mean residence (s) of rock fed to compartment 0 of the chain ``p`` (C, C+1)."""
-    q = p[:, :-1]
-    return float(np.linalg.solve(np.eye(q.shape[0]) - q, np.ones(q.shape[0]))[0] * tau)
-
-
 def fill_levels(r: dict, fill: pd.Series, bins: np.ndarray, rows: slice) -> tuple[np.ndarray, np.ndarray]:
     """Destinations measured at fill levels (bins below 1, tags before the window) and the window's at ``h = 1``."""
     mv = r["moves"]
@@ -125,7 +120,7 @@ def march(levels: tuple[np.ndarray, np.ndarray], tau: float, driver: str) -> tup
     """Single-class march from empty; the matrix is interpolated in the fill of ``driver`` ('mill' or 'inlet')."""
     hs, mats = levels
     q_ss = mats[-1][:, :-1]
-    x_ss = np.linalg.solve((np.eye(q_ss.shape[0]) - q_ss).T, np.eye(q_ss.shape[0])[0])
+    x_ss = chain_visits(mats[-1])
     steps = int(np.ceil(MARCH_S / tau))
     x = np.zeros(q_ss.shape[0])
     held, out = np.zeros(steps + 1), np.zeros(steps + 1)
@@ -172,7 +167,7 @@ def study(d: Path, bins: np.ndarray) -> dict[str, float]:
     t, _, _ = march(one, tau, "mill")
     q = one[1][-1][:, :-1]
     x, model_fill = np.zeros(n + 1), []
-    x_ss = np.linalg.solve((np.eye(n + 1) - q).T, np.eye(n + 1)[0])
+    x_ss = chain_visits(one[1][-1])
     for _ in range(1, t.size):
         x = x @ q
         x[0] += 1.0
@@ -185,7 +180,7 @@ def study(d: Path, bins: np.ndarray) -> dict[str, float]:
               "inlet_fill": (fill_levels(r, fill_c[0], bins, slice(0, 1)), "inlet"), "split": (split_levels(r), "mill")}
     hs, mats = levels["fill"][0]
     print("  mill fill h and chain residence of its destinations (s): "
-          + ", ".join(f"{h:.2f}: {chain_residence_s(p, tau):.2f}" for h, p in zip(hs, mats, strict=True)))
+          + ", ".join(f"{h:.2f}: {chain_residence_steps(p) * tau:.2f}" for h, p in zip(hs, mats, strict=True)))
     crit = RunSettings().criterion()
     v = saved_run_verdict(d, crit)
     dem_on = v.onset_s if v.onset_s is not None else np.nan

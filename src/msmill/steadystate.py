@@ -54,6 +54,7 @@ from typing import Literal
 import numpy as np
 
 from msmill.errors import MsmillInputError
+from msmill.stageparams import chain_residence_steps
 
 __all__ = [
     "OUTCOMES",
@@ -344,15 +345,16 @@ def expected_residence_time_s(kickback: np.ndarray, refeed: np.ndarray, pass_thr
     stage 1 back to the feed, which re-enters stage 1 at once), stays
     (``refeed``) or moves down (``pass_through``, from the bottom stage out).
     The expected number of steps to leave, ``N = (I - Q)^-1 1`` for the
-    transient-state matrix ``Q`` of this absorbing Markov chain, times ``step_s``.
+    transient-state matrix ``Q`` of this absorbing Markov chain, times ``step_s``
+    (:func:`msmill.stageparams.chain_residence_steps`; inf when some rock never leaves).
     """
     k = np.asarray(kickback, dtype=float)
     r = np.asarray(refeed, dtype=float)
     p = np.asarray(pass_through, dtype=float)
     n = k.size
-    q = np.diag(r)
-    q[np.arange(n - 1), np.arange(1, n)] = p[:-1]
-    q[np.arange(1, n), np.arange(n - 1)] = k[1:]
-    q[0, 0] += k[0]  # kickback from stage 1 is refed with the feed
-    steps = np.linalg.solve(np.eye(n) - q, np.ones(n))
-    return float(steps[0] * step_s)
+    chain = np.zeros((n, n + 1))  # destinations of stages 1..n, last column out of the bottom stage
+    chain[np.arange(n), np.arange(n)] = r
+    chain[np.arange(n), np.arange(1, n + 1)] = p
+    chain[np.arange(1, n), np.arange(n - 1)] = k[1:]
+    chain[0, 0] += k[0]  # kickback from stage 1 is refed with the feed
+    return chain_residence_steps(chain) * step_s
