@@ -1,20 +1,12 @@
-"""The replica analysis of benchmarks/transport_vs_dem.py on SYNTHETIC hold-up series (analytic fills)."""
-
-import importlib.util
-import sys
-from pathlib import Path
+"""The replica analysis of msmill.model.transport_check on SYNTHETIC hold-up series (analytic fills)."""
 
 import numpy as np
 import pytest
 
 from msmill.dem.mill.run import RunSettings
+from msmill.errors import MsmillInputError
+from msmill.model import transport_check as B
 from msmill.steadystate import first_steady
-
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "transport_vs_dem.py"
-_spec = importlib.util.spec_from_file_location("transport_vs_dem", _PATH)
-B = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = B  # dataclasses look their module up while the class is built
-_spec.loader.exec_module(B)
 
 FEED = 2.0  # kg/s
 
@@ -109,3 +101,30 @@ def test_independent_rocks_average_to_the_mean_field_march_when_there_are_many(f
     assert np.nanmedian(singles) == pytest.approx(mf, abs=0.15)
     if filling is not None:
         assert mf > _mean_field_onset(_two_compartments(None), 100.0, 0.05, crit) + 0.3
+
+
+def test_a_file_that_is_not_a_replicas_file_is_one_line_naming_it(tmp_path):
+    bad = tmp_path / "x.json"
+    for text in ("not json", '{"kind": "something_else", "replicas": []}', "[1, 2]"):
+        bad.write_text(text)
+        with pytest.raises(MsmillInputError, match=r"replicas.*x\.json"):
+            B.load_replicas(bad)
+    assert B.load_replicas(tmp_path / "missing.json") == []
+
+
+def test_the_approach_plot_draws_a_column_per_size_with_replicas():
+    from msmill.plots.validation import approach_plot
+
+    crit = RunSettings().criterion()
+    reps = [replica(1.0, seed=s) for s in range(3)]
+    t = np.linspace(0, 6, 61)
+    rows = [B.Row(20.0, 0.03, 1.0, 1.05, 2.0, 2.0, 2.0, 2.0, False, tss_model_today_s=2.5,
+                  model_series=(t, 1 - np.exp(-t), 1 - np.exp(-t))),
+            B.Row(14.0, 0.03, 1.0, 1.05, 2.0, 2.0, 2.0, 2.0, False)]
+    for r in rows:
+        B.attach_replicas(r, reps, crit)
+    fig = approach_plot(rows, reps)
+    assert len(fig.axes) == 2  # hold-up and product rate of the one size with replicas
+    assert "3 runs" in fig.axes[0].get_legend().get_texts()[0].get_text()
+    with pytest.raises(MsmillInputError, match="replicas"):
+        approach_plot(rows[1:], reps)

@@ -12,7 +12,7 @@ import numpy as np
 
 from msmill.plots.model import _figure, style_psd_axes
 
-__all__ = ["ks_swarm", "overlay", "pareto_plot", "sweep_plot"]
+__all__ = ["approach_plot", "ks_swarm", "overlay", "pareto_plot", "sweep_plot"]
 
 
 def _beeswarm_offsets(values: np.ndarray, width: float = 0.35, bin_frac: float = 0.02) -> np.ndarray:
@@ -110,4 +110,58 @@ def pareto_plot(table: Any, front: Any, best: Any = None, target_p80_mm: float |
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title("P80 against specific energy")
+    return fig
+
+
+def approach_plot(rows: list, reps: list[dict], smooth_s: float = 0.25) -> Any:
+    """Model against the DEM replicas while the mill fills, one column per size with replicas.
+
+    Top: hold-up over its steady value (DEM: each replica in grey and the
+    ensemble mean in black, over the ensemble's mean after 4 s; model: over
+    its steady solve). Bottom: product rate over the feed rate (DEM: the
+    ensemble's, a ``smooth_s`` running mean). Onsets are marked.
+
+    Parameters
+    ----------
+    rows : list of :class:`msmill.model.transport_check.Row`
+        Rows of :func:`~msmill.model.transport_check.compare` with their replicas attached.
+    reps : list of dict
+        The replica runs (:func:`~msmill.model.transport_check.load_replicas`).
+    smooth_s : float
+        Running-mean length of the DEM product rate (s).
+    """
+    from msmill.errors import MsmillInputError
+    from msmill.model.transport_check import replicas_on_grid
+
+    sel = [r for r in rows if r.n_replicas and r.model_series is not None]
+    if not sel:
+        raise MsmillInputError("replicas", len(reps), "replicas of at least one run's point to plot against")
+    fig = _figure(3.2 * len(sel), 5.6)
+    axs = fig.subplots(2, len(sel), sharex=True, squeeze=False)
+    for j, row in enumerate(sel):
+        mine = [r for r in reps if abs(float(r["size_mm"]) - row.size_mm) < 1e-6 * row.size_mm]
+        t, held, out, feed = replicas_on_grid(mine)
+        ref = held.mean(axis=0)[t >= 4.0].mean() if t[-1] > 4.5 else held.mean(axis=0)[-50:].mean()
+        tm, hm, pm = row.model_series
+        ax = axs[0, j]
+        ax.plot(t, held.T / ref, color="0.82", lw=0.5)
+        ax.plot(t, held.mean(axis=0) / ref, "k", lw=1.2, label=f"DEM, {len(mine)} run{'s' * (len(mine) != 1)}")
+        ax.plot(tm, hm, "C3", lw=1.2, label="model")
+        for v, c in ((row.tss_dem_rep_s, "k"), (row.tss_model_today_s, "C3")):
+            if np.isfinite(v):
+                ax.axvline(v, color=c, ls=":", lw=1)
+        ax.set_title(f"{row.size_mm:g} mm")
+        ax.set_ylim(0, 1.3)
+        ax = axs[1, j]
+        k = max(1, round(smooth_s / (t[1] - t[0])))
+        rate = np.gradient(out.mean(axis=0), t) / feed.mean()
+        ax.plot(t[k // 2: k // 2 + len(rate) - k + 1], np.convolve(rate, np.ones(k) / k, mode="valid"), "k", lw=1.2)
+        ax.plot(tm, pm, "C3", lw=1.2)
+        ax.set_ylim(0, 1.4)
+        ax.set_xlim(0, max(6.0, float(t[-1])))
+        ax.set_xlabel("time (s)")
+    axs[0, 0].set_ylabel("hold-up / steady")
+    axs[1, 0].set_ylabel(f"product / feed ({smooth_s:g} s mean)")
+    axs[0, 0].legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
     return fig
