@@ -28,30 +28,13 @@ import argparse
 import os
 import time
 
-import numpy as np
-
-
-def gas(n: int, phi: float, seed: int = 1):
-    """Positions on a jittered cubic lattice, box side (m), Gaussian velocities."""
-    r = 0.005
-    side = (n * 4.0 / 3.0 * np.pi * r**3 / phi) ** (1.0 / 3.0)
-    m = int(np.ceil(n ** (1.0 / 3.0)))
-    a = side / m
-    rng = np.random.default_rng(seed)
-    idx = np.stack(np.meshgrid(np.arange(m), np.arange(m), np.arange(m), indexing="ij"), -1)
-    idx = idx.reshape(-1, 3)[rng.permutation(m**3)[:n]]
-    jitter = (a - 2 * r) * 0.49 * rng.uniform(-1, 1, (n, 3))
-    pos = (idx + 0.5) * a + jitter
-    vel = rng.normal(0.0, 10.0, (n, 3))
-    vel -= vel.mean(axis=0)
-    return pos, vel, side, r
-
 
 def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None,
           chunks: int | None = None) -> dict:
     from msmill.dem import Simulation
+    from msmill.dem.reference import lattice_gas
 
-    pos, vel, side, r = gas(n, phi)
+    pos, vel, side, r = lattice_gas(n, phi)
     sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
                      gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin, n_chunks=chunks)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)

@@ -1,7 +1,8 @@
 """Benchmark: the engine's step passes against those of another kernels file, side by side.
 
-Builds the granular gas of ``benchmarks/dem_throughput.py`` (20,000 spheres,
-e = 0.5, mu = 0.4, no gravity) at each solid fraction, runs it 150 steps,
+Builds the granular gas of ``benchmarks/dem_throughput.py``
+(:func:`msmill.dem.reference.lattice_gas`: 20,000 spheres, e = 0.5, mu = 0.4,
+no gravity) at each solid fraction, runs it 150 steps,
 then calls the serial force pass, the serial integration pass and the
 neighbour build of this checkout's ``msmill.dem.kernels`` and of ``--other``
 (a ``kernels.py`` of another revision, e.g. ``git show REV:src/msmill/dem/kernels.py
@@ -37,8 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import msmill.dem  # noqa: F401  (chooses numba's threading layer first)
 from msmill.dem import kernels as this
 
@@ -55,10 +54,10 @@ def load_kernels(path: Path):
 
 def gas_state(phi: float, n: int):
     """A gas after 150 steps (the benchmark's case), serial kernels."""
-    from dem_throughput import gas
     from msmill.dem import Simulation
+    from msmill.dem.reference import lattice_gas
 
-    pos, vel, side, r = gas(n, phi)
+    pos, vel, side, r = lattice_gas(n, phi)
     sim = Simulation((0, 0, 0), (side,) * 3, periodic=(True,) * 3, gravity_m_s2=(0, 0, 0), parallel=False)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
     sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)

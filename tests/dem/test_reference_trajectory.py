@@ -11,31 +11,22 @@ regenerate the file and say so in its commit.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-REF = json.loads((ROOT / "tests" / "dem" / "data" / "trajectory_reference.json").read_text())
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("dem_reference_trajectory",
-                                                  ROOT / "scripts" / "dem_reference_trajectory.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+REF = json.loads((Path(__file__).parent / "data" / "trajectory_reference.json").read_text())
 
 
 @pytest.fixture(scope="module")
 def ref_script():
     """The reference script, on the toolchain and CPU the digests were written with (else skip: numba's
     generated code, and so the last bits of a trajectory, depend on its version, numpy's and the CPU)."""
-    mod = _script()
     import numba
     import numpy as np
+
+    from msmill.dem import reference as mod
 
     here = {"numba": numba.__version__, "numpy": np.__version__, "host_cpu": mod.host_cpu(),
             "host_cpu_features": mod.host_cpu_features()}
