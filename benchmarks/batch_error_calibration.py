@@ -28,34 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msmill.sampling import seed_error_ratios
 from msmill.stageparams import RunStatistics
-from training_run_cost import _by_name
-
-FAMILIES = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda",
-            "primary_velocity_mean_m_s", "secondary_velocity_mean_m_s")
-STREAMS = ("kickback", "refeed", "pass_through")
-
-
-def calibration(runs: list[RunStatistics]) -> dict[str, list[tuple[float, float]]]:
-    """Per statistic family: ``(between-seed variance, median reported error squared)`` of every stage."""
-    out: dict[str, list[tuple[float, float]]] = {f: [] for f in FAMILIES}
-    for name, (x, e) in _by_name(runs).items():
-        fam = name.split(" ", 2)[2]
-        if fam in out and np.isfinite(e).sum() >= 3:
-            out[fam].append((float(np.var(x, ddof=1)), float(np.nanmedian(e)) ** 2))
-    return out
-
-
-def calibration_ratios(runs: list[RunStatistics]) -> tuple[dict[str, list[float]], float, float]:
-    """Between-seed sd over the median reported error: ``(per family, one per stage; median over every
-    statistic; the streams' from the variance ratio pooled over stages and streams)`` (nan: none)."""
-    cal = calibration(runs)
-    per_family = {fam: [float(np.sqrt(v / e2)) for v, e2 in pairs if e2 > 0] for fam, pairs in cal.items()}
-    per_family = {fam: r for fam, r in per_family.items() if r}
-    every = [x for r in per_family.values() for x in r]
-    streams = [p for fam in STREAMS for p in cal[fam] if p[1] > 0]
-    pooled = float(np.sqrt(np.mean([v / e2 for v, e2 in streams]))) if streams else float("nan")
-    return per_family, float(np.median(every)) if every else float("nan"), pooled
 
 
 def main() -> None:
@@ -70,7 +44,7 @@ def main() -> None:
         if len(runs) < 3:
             print(f"{size:g} mm: {len(runs)} seeds of variant {args.variant!r}, at least 3 needed")
             continue
-        per_family, ratio_median, pooled = calibration_ratios(runs)
+        per_family, ratio_median, pooled = seed_error_ratios(runs)
         for fam, r in per_family.items():
             print(f"{size:g} mm {fam}: between-seed sd / batch-means error, median {np.median(r):.2f} "
                   f"over {len(r)} stages ({min(r):.2f}-{max(r):.2f})")

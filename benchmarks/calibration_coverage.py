@@ -2,8 +2,8 @@
 
     python benchmarks/calibration_coverage.py [--seeds 10] [--objective ssq]
 
-Makes the UG2 surveys of the example design (``scripts/make_example_experiments.py``:
-5 operating points, 9 surveys, true ``L_ref`` = 20 mm) with noise sigma = 0.05
+Makes the UG2 surveys of the example design (``msmill.model.synthetic.EXAMPLE_POINTS``, those of
+``scripts/make_example_experiments.py``: 5 operating points, 9 surveys, true ``L_ref`` = 20 mm) with noise sigma = 0.05
 on the retained masses for each seed, calibrates ``L_ref`` and reports
 ``z = (L_fit - 20) / s.e.`` for the jackknife and the Jacobian s.e.
 An honest s.e. gives mean(z) ~ 0 and sd(z) ~ 1. Last line: key=value.
@@ -12,14 +12,9 @@ An honest s.e. gives mean(z) ~ 0 and sd(z) ~ 1. Last line: key=value.
 from __future__ import annotations
 
 import argparse
-import sys
 import warnings
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
 
 
 def main() -> None:
@@ -27,18 +22,17 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--objective", default="ssq")
     args = ap.parse_args()
-    import make_example_experiments as mk
     from msmill.errors import OutOfDomainWarning
     from msmill.model.fitting import calibrate_surveys
-    from msmill.model.synthetic import model_surveys
+    from msmill.model.synthetic import EXAMPLE_FEEDS, EXAMPLE_POINTS, EXAMPLE_SIGMA, model_surveys
     from msmill.model.validation import SurveyModel
 
     warnings.simplefilter("ignore", OutOfDomainWarning)
-    specs = [(f"p{j}-{fk}", mk.FEEDS[fk], tph, {"speed_rpm": rpm, "gate_deg": gate})
-             for j, (tph, rpm, gate, feeds) in enumerate(mk.POINTS["UG2"]) for fk in feeds]
+    specs = [(f"p{j}-{fk}", EXAMPLE_FEEDS[fk], tph, {"speed_rpm": rpm, "gate_deg": gate})
+             for j, (tph, rpm, gate, feeds) in enumerate(EXAMPLE_POINTS["UG2"]) for fk in feeds]
     zj, zc = [], []
     for seed in range(args.seeds):
-        sv = model_surveys("UG2", specs, {"l_ref_mm": 20.0}, mk.SIGMA, np.random.default_rng(1000 + seed))
+        sv = model_surveys("UG2", specs, {"l_ref_mm": 20.0}, EXAMPLE_SIGMA, np.random.default_rng(1000 + seed))
         cal = calibrate_surveys(SurveyModel("UG2", sv), objective=args.objective)
         L = cal.params["l_ref_mm"]
         zj.append((L - 20.0) / cal.std_errors["l_ref_mm"])

@@ -59,6 +59,7 @@ from msmill.dem.mill.run import (
 from msmill.dem.mill.stats import StatsSettings
 from msmill.machine import Machine, OperatingPoint
 from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.sampling import seed_error_ratios
 
 #: the training-run benchmark's design point (benchmarks/training_run_cost.py)
 POINT = OperatingPoint(feed_tph=30.0, speed_rpm=1500.0, gate_deg=40.0)
@@ -148,8 +149,6 @@ def replay_stop(raw: dict, trace: np.ndarray, n_batches: int, rs: RunSettings, s
 
 def replay(dirs: list[Path], batches: list[int], settles: list[float | None]) -> None:
     """Print every run's stop per rule (batch count, window start) and the summary line per rule."""
-    from batch_error_calibration import calibration_ratios
-
     rs = RunSettings()
     rules = [(b, st) for st in settles for b in batches]
     stops: dict[tuple[int, float | None], list[Stop]] = {r: [] for r in rules}
@@ -161,7 +160,7 @@ def replay(dirs: list[Path], batches: list[int], settles: list[float | None]) ->
             print(f"{d.name} {_name(b, st)}: stop at {s.window_end_s:.2f} s{' (censored)' if s.censored else ''} "
                   f"after {s.checks} checks, CPU {s.cpu_s:.0f} s, wall {s.wall_s:.0f} s", flush=True)
     for (b, st), ss in stops.items():
-        per_family, ratio_median, pooled = calibration_ratios([s.stats for s in ss])
+        per_family, ratio_median, pooled = seed_error_ratios([s.stats for s in ss])
         for fam, r in per_family.items():
             print(f"{_name(b, st)} {fam}: between-seed sd / reported error, median {np.median(r):.2f} over "
                   f"{len(r)} stages ({min(r):.2f}-{max(r):.2f})")

@@ -4,8 +4,7 @@ Two slice runs of the same point and seed (default: 30 mm, 30 t/h, 1500 rpm uppe
 twice, gates 40 deg), one from an empty mill and one with ``RunSettings(start="table")``
 (:func:`msmill.dem.mill.warmstart.place_table_start`), same steady-state criterion and window rule.
 Prints the steady-state onset and detection, the window, the wall time, and the largest difference of
-the stage statistics in units of their sampling error (``deviations`` of
-``benchmarks/training_run_cost.py``; about 4.6 % of the comparisons exceed 2 sigma by chance).
+the stage statistics in units of their sampling error (:func:`msmill.sampling.paired_deviations`; about 4.6 % of the comparisons exceed 2 sigma by chance).
 
 Run: ``NUMBA_NUM_THREADS=1 python benchmarks/table_start_check.py [--size-mm 30] [--adaptive --max-measure-s 3]``.
 Last line: ``size_mm=<s> onset_cold=<t> onset_warm=<t> wall_ratio=<warm/cold> max_stat_dev_sigma=<x>``.
@@ -14,15 +13,12 @@ Last line: ``size_mm=<s> onset_cold=<t> onset_warm=<t> wall_ratio=<warm/cold> ma
 from __future__ import annotations
 
 import argparse
-import sys
 import warnings
 from pathlib import Path
 
 from msmill.dem.mill.run import RunSettings, run_mill
 from msmill.machine import Machine, OperatingPoint
-
-sys.path.insert(0, str(Path(__file__).parent))
-from training_run_cost import describe, deviations, timed
+from msmill.sampling import paired_deviations
 
 
 def main() -> None:
@@ -44,14 +40,14 @@ def main() -> None:
     for start in ("empty", "table"):
         rs = RunSettings(measure_s=args.measure_s, adaptive=args.adaptive, max_measure_s=args.max_measure_s,
                          seed=args.seed, start=start)
-        run, wall = timed(lambda rs=rs: run_mill(m, op, size_mm=args.size_mm, settings=rs))
+        run = run_mill(m, op, size_mm=args.size_mm, settings=rs)
         st = run.stats.run
-        res[start] = (st, wall, run.steady_state_time_s)
+        res[start] = (st, run.wall_s, run.steady_state_time_s)
         if args.out:
             args.out.mkdir(parents=True, exist_ok=True)
             st.to_json(args.out / f"{args.size_mm:g}mm_{start}.json")
-        print(f"{start}: {describe(run, wall)}")
-    devs = deviations(res["empty"][0], res["table"][0])
+        print(f"{start}: {run.summary()}")
+    devs = paired_deviations(res["empty"][0], res["table"][0])
     worst = max(devs)
     print(f"max deviation {worst[0]:.2f} sigma ({worst[1]}); {sum(d > 2 for d, _ in devs)} of {len(devs)} "
           f"beyond 2 sigma (about {0.046 * len(devs):.1f} by chance)")

@@ -83,60 +83,8 @@ from msmill.dem.mill.run import RunSettings, run_mill, stats_from_dir
 from msmill.dem.mill.warmstart import WarmStart
 from msmill.machine import Machine, OperatingPoint
 from msmill.pipeline.campaign import CAMPAIGN_RUN_DEFAULTS
+from msmill.sampling import paired_deviations, statistics_by_name
 from msmill.stageparams import RunStatistics
-
-KEYS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda")
-
-
-def _values(stage) -> dict[str, tuple[float, float | None]]:
-    se = stage.sampling_error
-    out = {k: (float(getattr(stage, k)), se.get(k)) for k in KEYS}
-    out["primary_velocity_mean_m_s"] = (stage.primary_velocity.mean(), se.get("primary_velocity_mean_m_s"))
-    out["secondary_velocity_mean_m_s"] = (stage.secondary_velocity.mean(), se.get("secondary_velocity_mean_m_s"))
-    return out
-
-
-def _paired(a, b):
-    """``(name, key, x, se_x, y, se_y)`` for every stage and statistic both runs have errors of."""
-    for sa, sb in zip(a.stages, b.stages, strict=True):
-        va, vb = _values(sa), _values(sb)
-        for k, (x, ex) in va.items():
-            y, ey = vb[k]
-            if ex and ey:
-                yield f"stage {sa.stage} {k}", k, x, ex, y, ey
-
-
-def deviations(a, b) -> list[tuple[float, str]]:
-    """``|a - b| / sqrt(se_a^2 + se_b^2)`` for every stage and statistic with both errors."""
-    return [(abs(x - y) / float(np.hypot(ex, ey)), name) for name, _k, x, ex, y, ey in _paired(a, b)]
-
-
-def _batches(run) -> int:
-    return int(((run.provenance or {}).get("stats") or {}).get("n_batches", 5))
-
-
-def normal_equivalent(a, b) -> list[tuple[float, str]]:
-    """:func:`deviations` as the normal deviate of the same two-sided p-value.
-
-    The errors of the streams, hit probability and lambda come from
-    ``n_batches`` (5) batches, so each is itself uncertain and the deviation is
-    Student-t distributed with the Welch-Satterthwaite degrees of freedom
-    (``n_batches - 1`` per run); with 5 batches |t| > 2 has a chance of about
-    0.1, not 0.046. The velocity means' deviations are taken as normal (their
-    errors were independent-sample ones of many impacts in runs before
-    2026-12-02; since then they are batch means too, and this overstates them).
-    """
-    from scipy import stats
-
-    na, nb = _batches(a) - 1, _batches(b) - 1
-    out = []
-    for name, k, x, ex, y, ey in _paired(a, b):
-        t = abs(x - y) / float(np.hypot(ex, ey))
-        if k in KEYS:
-            nu = (ex**2 + ey**2) ** 2 / (ex**4 / na + ey**4 / nb)
-            t = float(stats.norm.isf(stats.t.sf(t, nu)))
-        out.append((t, name))
-    return out
 
 
 def replica_pairs(dirs: list[Path], size_mm: float) -> list[tuple[RunStatistics, RunStatistics]]:
@@ -155,26 +103,14 @@ def replica_new_costs(dirs: list[Path], size_mm: float) -> list[tuple[float, flo
     return [(float(m["wall_s"]), m.get("cpu_s")) for m in metas]
 
 
-def _by_name(runs: list[RunStatistics]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``name -> (values over the runs, their batch-means errors)`` for every stage and statistic."""
-    out: dict[str, tuple[list[float], list[float]]] = {}
-    for r in runs:
-        for st in r.stages:
-            for k, (x, se) in _values(st).items():
-                v = out.setdefault(f"stage {st.stage} {k}", ([], []))
-                v[0].append(x)
-                v[1].append(np.nan if se is None else se)
-    return {k: (np.asarray(a), np.asarray(b)) for k, (a, b) in out.items()}
-
-
 def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistics]],
                     pair: tuple[RunStatistics, RunStatistics]) -> tuple[list[float], list[float]]:
     """Print the replicas' figures at one size; return (normal-equivalent Welch t of every statistic's
     old and new means, the main pair's deviations in units of the replicas' sd)."""
     from scipy import stats
 
-    old, new = _by_name([o for o, _ in reps]), _by_name([n for _, n in reps])
-    main_old, main_new = _by_name([pair[0]]), _by_name([pair[1]])
+    old, new = statistics_by_name([o for o, _ in reps]), statistics_by_name([n for _, n in reps])
+    main_old, main_new = statistics_by_name([pair[0]]), statistics_by_name([pair[1]])
     k = len(reps)
     zs, devs, rows = [], [], []
     by_variant: dict[str, list[float]] = {"old": [], "new": []}
@@ -208,29 +144,8 @@ def replica_summary(size_mm: float, reps: list[tuple[RunStatistics, RunStatistic
     return zs, devs
 
 
-def describe(run, wall_s: float) -> str:
-    """One line on a finished run: outcome, onset, window, wall, product / feed, warm placement, errors reached."""
-    st = run.stats.run
-    ws = run.extra.get("warm_start") or {}
-    return (f"{run.outcome}, onset {run.steady_state_time_s}, detected {run.steady_state_detected_s}, window "
-            f"{run.window_s[0]:.2f}-{run.window_s[1]:.2f} s, wall {wall_s:.1f} s, "
-            f"out {st.mass_out_rate_kg_s / run.scene.feed_kg_s:.2f} of feed, residence {st.residence_time_s:.2f} s, "
-            f"warm placed {ws.get('placed_fraction', 0.0):.2f}, errors reached "
-            + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None)
-            + _last_miss(run.extra.get("window_checks") or []))
-
-
-def _last_miss(checks: list[dict]) -> str:
-    """What the adaptive window's last failed check missed (the statistics that set the window)."""
-    missed = [c for c in checks if c["above_target"]]
-    if not missed:
-        return ""
-    c = missed[-1]
-    what = ", ".join(f"{k} {'-' if v is None else f'{v:.3f}'}" for k, v in c["above_target"].items())
-    return f"; {len(checks)} checks, the last miss at {c['window_end_s']:.2f} s: {what}"
-
-
 def timed(fn):
+    """``(fn(), wall seconds)``."""
     t0 = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t0
@@ -243,7 +158,7 @@ def measured(fn) -> tuple[RunStatistics, float, float, str]:
     cpu0 = time.process_time()
     run, wall = timed(fn)
     cpu = time.process_time() - cpu0
-    return run.stats.run, wall, cpu, f"{describe(run, wall)}, cpu {cpu:.1f} s"
+    return run.stats.run, wall, cpu, f"{run.summary(wall)}, cpu {cpu:.1f} s"
 
 
 def cached_or_run(results: Path | None, tag: str, measure) -> tuple[RunStatistics, float, float | None, str]:
@@ -389,15 +304,15 @@ def main() -> None:
         if old_name not in res or "new" not in res:
             continue
         res["old"] = res[old_name]
-        devs = deviations(res["old"][0], res["new"][0])
+        devs = paired_deviations(res["old"][0], res["new"][0])
         d_max = max(devs)
         n_dev += len(devs)
         n_over += sum(d > 2 for d, _ in devs)
         worst = max(worst, d_max)
-        zs = normal_equivalent(res["old"][0], res["new"][0])
+        zs = paired_deviations(res["old"][0], res["new"][0], normal_equivalent=True)
         z_all += [z for z, _ in zs]
         if "cold_adaptive" in res:  # the same error targets, empty mill, window from detection
-            dc = deviations(res["cold_adaptive"][0], res["new"][0])
+            dc = paired_deviations(res["cold_adaptive"][0], res["new"][0])
             ca = res["cold_adaptive"]
             cpu_ca = f", CPU time {res['new'][2] / ca[2]:.3f}" if res["new"][2] and ca[2] else ""
             print(f"{size:g} mm cold adaptive vs new: cost ratio new / cold adaptive {res['new'][1] / ca[1]:.3f}"

@@ -44,30 +44,23 @@ from msmill.model.experiments import experiment_from_dict, write_experiment
 from msmill.model.fitting import build_breakage, impact_grid, single_impact_product
 from msmill.model.mill import breakage_parameters
 from msmill.model.power import power_estimate
-from msmill.model.synthetic import SIEVES_MM, model_surveys, synthetic_impact_test
+from msmill.model.synthetic import (
+    EXAMPLE_FEEDS,
+    EXAMPLE_POINTS,
+    EXAMPLE_SIGMA,
+    EXAMPLE_TRUE_L_REF_MM,
+    SIEVES_MM,
+    model_surveys,
+    synthetic_impact_test,
+)
 from msmill.psd import PSD
 
 ROOT = Path(__file__).resolve().parents[1]
-SIGMA = 0.05
-TRUE_L_REF_MM = {"UG2": 20.0, "Platreef": 40.0}
 NO_LOAD_KW = 12.0
 #: Stage parameters of the surveys: the default provider (``msmill calibrate``'s default).
 STAGE_PARAMETERS = "default"
 SWEBREC_TRUE = {"A_pct": 59.0, "b_t_per_kwh": 0.5358, "e_min_kwh_t": 0.03, "swebrec_b": 2.2}  # L_ref: ore default 29 mm
 
-# ILLUSTRATIVE feeds (plausible crusher products), not measured.
-FEEDS = {
-    "coarse": {"size_mm": [2.36, 4.75, 9.5, 13.2, 19.0, 26.5, 31.5], "passing_pct": [2.0, 6.0, 18.0, 32.0, 58.0, 88.0, 100.0]},
-    "fine": {"size_mm": [1.18, 2.36, 4.75, 9.5, 13.2, 19.0, 26.5], "passing_pct": [3.0, 7.0, 16.0, 42.0, 63.0, 90.0, 100.0]},
-}
-# (feed_tph, upper speed rpm, gate deg, feeds)
-POINTS = {
-    "UG2": [(30.0, 1500.0, 40.0, ("coarse", "fine")), (30.0, 1300.0, 40.0, ("coarse", "fine")),
-            (40.0, 1700.0, 60.0, ("coarse", "fine")), (25.0, 1850.0, 50.0, ("coarse", "fine")),
-            (30.0, 2000.0, 40.0, ("coarse",))],  # the last one lies outside the design space on purpose
-    "Platreef": [(30.0, 1500.0, 40.0, ("coarse", "fine")), (45.0, 1400.0, 70.0, ("coarse", "fine")),
-                 (20.0, 1800.0, 40.0, ("coarse", "fine"))],
-}
 LAB_FEEDS = {"13x16": {"size_mm": [13.2, 16.0], "passing_pct": [0.0, 100.0]},
              "26x32": {"size_mm": [26.5, 31.5], "passing_pct": [0.0, 100.0]}}
 LAB_SPEEDS_M_S = (15.0, 25.0, 35.0, 45.0)
@@ -75,8 +68,8 @@ LAB_SPEEDS_M_S = (15.0, 25.0, 35.0, 45.0)
 
 def surveys(rng: np.random.Generator) -> list:
     out = []
-    for ore_name, points in POINTS.items():
-        specs = [(f"{ore_name.lower()}-p{j + 1}-{fk}", FEEDS[fk], tph,
+    for ore_name, points in EXAMPLE_POINTS.items():
+        specs = [(f"{ore_name.lower()}-p{j + 1}-{fk}", EXAMPLE_FEEDS[fk], tph,
                   {"speed_rpm": rpm, "bottom_speed_factor": 2.0, "gate_deg": gate})
                  for j, (tph, rpm, gate, feeds) in enumerate(points) for fk in feeds]
         power = None
@@ -84,11 +77,11 @@ def surveys(rng: np.random.Generator) -> list:
             def power(e, res):
                 return power_estimate(res).impact_kw + NO_LOAD_KW + rng.normal(0.0, 1.0)
         how = (f"msmill {__version__} expected-value model, default sub-models (jk_t10 breakage) with L_ref = "
-               f"{TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, the default stage parameters ({STAGE_PARAMETERS!r}: "
+               f"{EXAMPLE_TRUE_L_REF_MM[ore_name]:g} mm, tavares damage, the default stage parameters ({STAGE_PARAMETERS!r}: "
                "the shipped surrogate's posterior mean)"
                + (f"; power = predicted impact power + {NO_LOAD_KW:g} kW synthetic no-load + N(0, 1 kW)"
                   if power is not None else ""))
-        out += model_surveys(ore_name, specs, {"l_ref_mm": TRUE_L_REF_MM[ore_name]}, SIGMA, rng, how=how,
+        out += model_surveys(ore_name, specs, {"l_ref_mm": EXAMPLE_TRUE_L_REF_MM[ore_name]}, EXAMPLE_SIGMA, rng, how=how,
                              power=power, stage_parameters=STAGE_PARAMETERS)
     return out
 
@@ -98,7 +91,7 @@ def impact_tests(rng: np.random.Generator) -> list:
     for ore_name in ("UG2", "Platreef"):
         bp = breakage_parameters(ore_name)
         if ore_name == "UG2":
-            brk = build_breakage("ab_t10", dataclasses.replace(bp, l_ref_mm=TRUE_L_REF_MM["UG2"]), {})
+            brk = build_breakage("ab_t10", dataclasses.replace(bp, l_ref_mm=EXAMPLE_TRUE_L_REF_MM["UG2"]), {})
             how = "single impact, ab_t10 breakage, A = 71.8 %, b = 1.67 t/kWh, L_ref = 20 mm"
         else:
             brk = build_breakage("vogel_swebrec", bp, SWEBREC_TRUE)
@@ -113,7 +106,7 @@ def impact_tests(rng: np.random.Generator) -> list:
                 grid = impact_grid([draft])
                 frac = single_impact_product(brk, grid, draft.feed_psd.rebin(grid).fractions, v)
                 out.append(synthetic_impact_test(ident, ore_name, feed, v, PSD(grid, frac, validate=False),
-                                                 SIGMA, rng, f"msmill {__version__} model: {how}"))
+                                                 EXAMPLE_SIGMA, rng, f"msmill {__version__} model: {how}"))
     return out
 
 
@@ -138,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
             "command": "python scripts/make_example_experiments.py " + " ".join(argv or sys.argv[1:]),
             "msmill_version": __version__, "git_commit": commit,
             "date_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "seed": args.seed,
-            "noise_sigma": SIGMA, "true_l_ref_mm": TRUE_L_REF_MM, "synthetic_no_load_kw": NO_LOAD_KW,
+            "noise_sigma": EXAMPLE_SIGMA, "true_l_ref_mm": EXAMPLE_TRUE_L_REF_MM, "synthetic_no_load_kw": NO_LOAD_KW,
             "platreef_lab_vogel_swebrec_true": SWEBREC_TRUE, "ug2_lab_ab_t10_true": {"A_pct": 71.8, "l_ref_mm": 20.0},
             "stage_parameters": f"{STAGE_PARAMETERS} (the shipped surrogate's posterior mean)",
             "files": sorted(f"{e.id}.toml" for e in exps)}

@@ -28,6 +28,7 @@ from msmill.sampling import (
     slice_sums,
     t_quantile,
 )
+from msmill.stageparams import RunStatistics
 
 PHI, N, REPS = 0.6, 512, 300
 
@@ -190,3 +191,46 @@ def test_the_packaged_between_run_fit_is_read():
     assert set(fit.params) == {"streams", "hit", "velocity", "count", "holdup"}
     assert fit.provenance["within_estimator"] == RUN_ERROR_ESTIMATOR
     assert all(len(v) == 2 for v in fit.params.values())
+
+
+# --------------------------------------------------------------------------- run against run
+def _run_doc(kick: float, se: float | None, n_stages: int = 2) -> RunStatistics:
+    stages = [{"stage": i, "kickback": kick, "refeed": 0.5, "pass_through": 0.5 - kick,
+               "primary_hit_probability": 0.3, "secondary_lambda": 2.0,
+               "primary_velocity": {"weights": [1.0], "means_m_s": [30.0], "sigmas_m_s": [3.0]},
+               "secondary_velocity": {"weights": [1.0], "means_m_s": [5.0], "sigmas_m_s": [1.0]},
+               "sampling_error": {} if se is None else {"kickback": se, "primary_velocity_mean_m_s": 0.5}}
+              for i in range(1, n_stages + 1)]
+    return RunStatistics.from_dict({"design": {"size_mm": 10, "feed_tph": 30, "speed_rpm": 1500, "gate_deg": 40,
+                                               "stage_speeds_rpm": [1500] * n_stages},
+                                    "characteristic_time_s": 0.03, "stages": stages})
+
+
+def test_paired_deviation_is_the_difference_over_the_combined_error():
+    from msmill.sampling import paired_deviations
+
+    a, b = _run_doc(0.10, 0.003), _run_doc(0.14, 0.004)
+    devs = dict((name, d) for d, name in paired_deviations(a, b))
+    assert devs["stage 1 kickback"] == pytest.approx(0.04 / 0.005)
+    assert devs["stage 2 primary_velocity_mean_m_s"] == pytest.approx(0.0)
+    assert len(devs) == 4  # only statistics with both errors: kickback and the primary velocity per stage
+    assert paired_deviations(a, _run_doc(0.14, None)) == []
+    # with 5 batches a batch-means t is less surprising than a normal deviate of the same size
+    ne = dict((name, d) for d, name in paired_deviations(a, b, normal_equivalent=True))
+    assert 0 < ne["stage 1 kickback"] < devs["stage 1 kickback"]
+    assert ne["stage 1 primary_velocity_mean_m_s"] == devs["stage 1 primary_velocity_mean_m_s"]
+
+
+def test_seed_error_ratio_is_the_scatter_over_the_reported_error():
+    from msmill.sampling import seed_error_ratios, statistics_by_name
+
+    kicks = [0.10, 0.12, 0.14, 0.16]  # sd 0.0258 over the seeds
+    runs = [_run_doc(k, 0.0129) for k in kicks]
+    x, e = statistics_by_name(runs)["stage 2 kickback"]
+    assert x.tolist() == kicks and np.all(e == 0.0129)
+    per_family, median, pooled = seed_error_ratios(runs)
+    assert per_family["kickback"] == pytest.approx([np.std(kicks, ddof=1) / 0.0129] * 2)
+    assert pooled == pytest.approx(np.std(kicks, ddof=1) / 0.0129)
+    assert per_family["primary_velocity_mean_m_s"] == [0.0, 0.0]  # identical seeds: no scatter
+    assert median == pytest.approx(np.median([*per_family["kickback"], 0.0, 0.0]))
+    assert seed_error_ratios(runs[:2])[0] == {}  # fewer than three errors per statistic: nothing

@@ -56,11 +56,35 @@ import numpy as np
 
 from msmill.errors import MsmillInputError
 
-__all__ = ["ERROR_ESTIMATORS", "RELATIVE_KINDS", "RUN_ERROR_ESTIMATOR", "STATISTIC_KINDS", "AutocorrelationTime",
-           "BatchMeans", "BetweenRunVariance", "BlockBootstrap", "ErrorEstimator", "OverlappingBatchMeans",
-           "ReplicaSet", "SamplingError", "default_between_run", "error_estimator", "fit_between_run", "fit_variance_law",
-           "legacy_factors",
-           "replica_set_z_scores", "replica_sets", "replica_z_scores", "slice_sums", "statistic_kind", "t_quantile"]
+__all__ = [
+    "ERROR_ESTIMATORS",
+    "RELATIVE_KINDS",
+    "RUN_ERROR_ESTIMATOR",
+    "STATISTIC_KINDS",
+    "AutocorrelationTime",
+    "BatchMeans",
+    "BetweenRunVariance",
+    "BlockBootstrap",
+    "ErrorEstimator",
+    "OverlappingBatchMeans",
+    "ReplicaSet",
+    "SamplingError",
+    "default_between_run",
+    "error_estimator",
+    "fit_between_run",
+    "fit_variance_law",
+    "legacy_factors",
+    "paired_deviations",
+    "replica_set_z_scores",
+    "replica_sets",
+    "replica_z_scores",
+    "seed_error_ratios",
+    "slice_sums",
+    "stage_values",
+    "statistic_kind",
+    "statistics_by_name",
+    "t_quantile",
+]
 
 #: statistic name (``StageStatistics.sampling_error`` key, or ``"holdup"``) -> kind of statistic
 STATISTIC_KINDS: dict[str, str] = {
@@ -525,3 +549,106 @@ def error_estimator(name: str, **kwargs: object) -> ErrorEstimator:
     if name not in ERROR_ESTIMATORS:
         raise MsmillInputError("error_estimator", name, ", ".join(sorted(ERROR_ESTIMATORS)))
     return ERROR_ESTIMATORS[name](**kwargs)
+
+
+# --------------------------------------------------------------------------- run against run
+#: statistics of a stage whose errors come from the run's batches (the velocity means' are independent-sample
+#: ones in runs before 2026-12-02)
+BATCH_STATISTICS = ("kickback", "refeed", "pass_through", "primary_hit_probability", "secondary_lambda")
+
+
+def stage_values(stage: Any) -> dict[str, tuple[float, float | None]]:
+    """``name -> (value, reported sampling error or None)`` of a stage's seven error-carrying statistics.
+
+    ``stage`` is a :class:`~msmill.stageparams.StageStatistics`; the names are those of
+    :data:`STATISTIC_KINDS` without the hold-up (streams and hit probability as fractions,
+    lambda per rock, velocity means in m/s).
+    """
+    se = stage.sampling_error
+    out = {k: (float(getattr(stage, k)), se.get(k)) for k in BATCH_STATISTICS}
+    out["primary_velocity_mean_m_s"] = (stage.primary_velocity.mean(), se.get("primary_velocity_mean_m_s"))
+    out["secondary_velocity_mean_m_s"] = (stage.secondary_velocity.mean(), se.get("secondary_velocity_mean_m_s"))
+    return out
+
+
+def _paired(a: Any, b: Any):
+    """``(name, key, x, se_x, y, se_y)`` for every stage and statistic both runs have errors of."""
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        va, vb = stage_values(sa), stage_values(sb)
+        for k, (x, ex) in va.items():
+            y, ey = vb[k]
+            if ex and ey:
+                yield f"stage {sa.stage} {k}", k, x, ex, y, ey
+
+
+def _batches(run: Any) -> int:
+    return int(((run.provenance or {}).get("stats") or {}).get("n_batches", 5))
+
+
+def paired_deviations(a: Any, b: Any, normal_equivalent: bool = False) -> list[tuple[float, str]]:
+    """``(|a - b| / sqrt(se_a^2 + se_b^2), "stage s name")`` for every statistic both runs report an error of.
+
+    Parameters
+    ----------
+    a, b : RunStatistics
+        Two runs of the same machine (same stages).
+    normal_equivalent : bool
+        Give each deviation as the normal deviate of the same two-sided p-value. The errors of
+        :data:`BATCH_STATISTICS` come from ``n_batches`` (5) batches, so each is itself uncertain
+        and the deviation is Student-t distributed with the Welch-Satterthwaite degrees of freedom
+        (``n_batches - 1`` per run); with 5 batches ``|t| > 2`` has a chance of about 0.1, not
+        0.046. The velocity means' deviations are taken as normal.
+    """
+    if not normal_equivalent:
+        return [(abs(x - y) / float(np.hypot(ex, ey)), name) for name, _k, x, ex, y, ey in _paired(a, b)]
+    from scipy import stats
+
+    na, nb = _batches(a) - 1, _batches(b) - 1
+    out = []
+    for name, k, x, ex, y, ey in _paired(a, b):
+        t = abs(x - y) / float(np.hypot(ex, ey))
+        if k in BATCH_STATISTICS:
+            nu = (ex**2 + ey**2) ** 2 / (ex**4 / na + ey**4 / nb)
+            t = float(stats.norm.isf(stats.t.sf(t, nu)))
+        out.append((t, name))
+    return out
+
+
+def statistics_by_name(runs: Sequence[Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``"stage s name" -> (values over the runs, their reported errors, nan where none)``."""
+    out: dict[str, tuple[list[float], list[float]]] = {}
+    for r in runs:
+        for st in r.stages:
+            for k, (x, se) in stage_values(st).items():
+                v = out.setdefault(f"stage {st.stage} {k}", ([], []))
+                v[0].append(x)
+                v[1].append(np.nan if se is None else se)
+    return {k: (np.asarray(a), np.asarray(b)) for k, (a, b) in out.items()}
+
+
+def seed_error_ratios(runs: Sequence[Any]) -> tuple[dict[str, list[float]], float, float]:
+    """How the errors runs report compare with their scatter over feed seeds of one point.
+
+    Per statistic (at least three runs reporting an error): the between-seed standard deviation
+    over the median reported error.
+
+    Returns
+    -------
+    (per_family, median, streams_pooled)
+        ``per_family``: name (as in :func:`stage_values`) -> one ratio per stage; ``median``: over
+        every statistic; ``streams_pooled``: the square root of the variance ratio pooled over the
+        stages and the three streams. nan where there is none. Below 1 the reported errors
+        overstate the scatter, above 1 they understate it.
+    """
+    families = (*BATCH_STATISTICS, "primary_velocity_mean_m_s", "secondary_velocity_mean_m_s")
+    cal: dict[str, list[tuple[float, float]]] = {f: [] for f in families}
+    for name, (x, e) in statistics_by_name(runs).items():
+        fam = name.split(" ", 2)[2]
+        if np.isfinite(e).sum() >= 3:
+            cal[fam].append((float(np.var(x, ddof=1)), float(np.nanmedian(e)) ** 2))
+    per_family = {fam: [float(np.sqrt(v / e2)) for v, e2 in pairs if e2 > 0] for fam, pairs in cal.items()}
+    per_family = {fam: r for fam, r in per_family.items() if r}
+    every = [x for r in per_family.values() for x in r]
+    streams = [p for fam in ("kickback", "refeed", "pass_through") for p in cal[fam] if p[1] > 0]
+    pooled = float(np.sqrt(np.mean([v / e2 for v, e2 in streams]))) if streams else float("nan")
+    return per_family, float(np.median(every)) if every else float("nan"), pooled

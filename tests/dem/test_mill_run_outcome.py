@@ -52,3 +52,27 @@ def test_stage_table_refuses_not_steady_runs(limited_run):
     with pytest.raises(ValueError, match="refused"):
         StageParameterTable.model_validate(doc)
     assert StageParameterTable.model_validate({**doc, "allow_not_steady": True}).runs[0].outcome == st.outcome
+
+
+def test_run_summary_names_outcome_window_and_the_statistic_that_set_the_window():
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from msmill.dem.mill.run import MillRun
+
+    st = SimpleNamespace(mass_out_rate_kg_s=1.8, residence_time_s=1.25,
+                         sampling_error_reached={"streams": 0.0123, "velocity": None})
+    checks = [{"window_end_s": 3.0, "above_target": {"streams": 0.02, "velocity": None}},
+              {"window_end_s": 3.5, "above_target": {}}]
+    empty = pd.DataFrame()
+    run = MillRun(scene=SimpleNamespace(feed_kg_s=2.0), settings=RunSettings(), events=empty, removed=empty,
+                  timeseries=empty, snapshots=empty, steady_state_time_s=1.5, steady_state_detected_s=2.8,
+                  window_s=(2.5, 3.5), wall_s=61.0, stats=SimpleNamespace(run=st),
+                  extra={"window_checks": checks, "warm_start": {"placed_fraction": 0.97}}, outcome="steady")
+    line = run.summary()
+    assert line.startswith("steady, onset 1.5, detected 2.8, window 2.50-3.50 s, wall 61.0 s, out 0.90 of feed")
+    assert "residence 1.25 s, warm placed 0.97, errors reached streams 0.012" in line
+    assert "velocity" not in line.split("errors reached")[1].split(";")[0]  # not reached: left out
+    assert line.endswith("2 checks, the last miss at 3.00 s: streams 0.020, velocity -")
+    assert "wall 12.0 s" in run.summary(wall_s=12.0)

@@ -21,12 +21,32 @@ import numpy as np
 from msmill.model.experiments import Experiment, experiment_from_dict
 from msmill.psd import PSD
 
-__all__ = ["SIEVES_MM", "model_surveys", "noisy_passing", "synthetic_impact_test", "synthetic_survey"]
+__all__ = ["EXAMPLE_FEEDS", "EXAMPLE_POINTS", "EXAMPLE_SIGMA", "EXAMPLE_TRUE_L_REF_MM", "SIEVES_MM", "model_surveys", "noisy_passing", "synthetic_impact_test", "synthetic_survey"]
 
 #: Sieve series (mm) used for synthetic products: the sqrt(2) series up to 13.2 mm, then the
 #: 2^(1/4) series (16, 22.4, 31.5, 45 mm added) where the products' curves are steep.
 SIEVES_MM = (0.075, 0.106, 0.15, 0.212, 0.3, 0.425, 0.6, 0.85, 1.18, 1.7, 2.36, 3.35, 4.75, 6.7,
              9.5, 13.2, 16.0, 19.0, 22.4, 26.5, 31.5, 37.5, 45.0, 53.0)
+
+
+# The design of the SYNTHETIC example experiments (``scripts/make_example_experiments.py``).
+#: Noise of the example surveys and lab tests: multiplicative sigma on every retained sieve mass.
+EXAMPLE_SIGMA = 0.05
+#: The "true" L_ref (mm) the example surveys were made with (the ore default is 29 mm).
+EXAMPLE_TRUE_L_REF_MM = {"UG2": 20.0, "Platreef": 40.0}
+#: ILLUSTRATIVE feeds of the example experiments (plausible crusher products), not measured.
+EXAMPLE_FEEDS: dict[str, dict[str, list[float]]] = {
+    "coarse": {"size_mm": [2.36, 4.75, 9.5, 13.2, 19.0, 26.5, 31.5], "passing_pct": [2.0, 6.0, 18.0, 32.0, 58.0, 88.0, 100.0]},
+    "fine": {"size_mm": [1.18, 2.36, 4.75, 9.5, 13.2, 19.0, 26.5], "passing_pct": [3.0, 7.0, 16.0, 42.0, 63.0, 90.0, 100.0]},
+}
+#: Operating points of the example surveys per ore: (feed_tph, upper speed rpm, gate deg, feeds).
+EXAMPLE_POINTS: dict[str, list[tuple[float, float, float, tuple[str, ...]]]] = {
+    "UG2": [(30.0, 1500.0, 40.0, ("coarse", "fine")), (30.0, 1300.0, 40.0, ("coarse", "fine")),
+            (40.0, 1700.0, 60.0, ("coarse", "fine")), (25.0, 1850.0, 50.0, ("coarse", "fine")),
+            (30.0, 2000.0, 40.0, ("coarse",))],  # the last one lies outside the design space on purpose
+    "Platreef": [(30.0, 1500.0, 40.0, ("coarse", "fine")), (45.0, 1400.0, 70.0, ("coarse", "fine")),
+                 (20.0, 1800.0, 40.0, ("coarse", "fine"))],
+}
 
 
 def noisy_passing(psd: PSD, sieves_mm: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:

@@ -216,6 +216,29 @@ class MillRun:
     outcome: str = "steady"
     verdict: SteadyStateVerdict | None = None
 
+    def summary(self, wall_s: float | None = None) -> str:
+        """One line: outcome, onset, window, wall time (``wall_s``, default the run's), product over feed,
+        residence, warm-start placement, the sampling errors reached and the adaptive window's last miss."""
+        st = self.stats.run
+        ws = self.extra.get("warm_start") or {}
+        wall = self.wall_s if wall_s is None else wall_s
+        return (f"{self.outcome}, onset {self.steady_state_time_s}, detected {self.steady_state_detected_s}, window "
+                f"{self.window_s[0]:.2f}-{self.window_s[1]:.2f} s, wall {wall:.1f} s, "
+                f"out {st.mass_out_rate_kg_s / self.scene.feed_kg_s:.2f} of feed, residence "
+                f"{st.residence_time_s:.2f} s, warm placed {ws.get('placed_fraction', 0.0):.2f}, errors reached "
+                + ", ".join(f"{k} {v:.3f}" for k, v in st.sampling_error_reached.items() if v is not None)
+                + _last_miss(self.extra.get("window_checks") or []))
+
+
+def _last_miss(checks: list[dict]) -> str:
+    """What the adaptive window's last failed check missed (the statistics that set the window)."""
+    missed = [c for c in checks if c["above_target"]]
+    if not missed:
+        return ""
+    c = missed[-1]
+    what = ", ".join(f"{k} {'-' if v is None else f'{v:.3f}'}" for k, v in c["above_target"].items())
+    return f"; {len(checks)} checks, the last miss at {c['window_end_s']:.2f} s: {what}"
+
 
 def design_point(machine: Machine, op: OperatingPoint, size_mm: float) -> DesignPoint:
     """The :class:`DesignPoint` of a run."""
