@@ -7,6 +7,7 @@ the physics, the numerics and the checks.
 from __future__ import annotations
 
 import math
+import time as _time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -96,6 +97,57 @@ def _pos_number(name: str, value: Any, *, allow_zero: bool = False, allow_inf: b
         what = ">= 0" if allow_zero else "> 0"
         raise MsmillInputError(name, value, f"a finite number {what}")
     return v
+
+
+class _Schedule:
+    """When one :meth:`Simulation.run` samples the time series and takes snapshots (absolute times, s)."""
+
+    def __init__(self, next_ts: float, ts_every: float, next_snap: float, snap_every: float | None,
+                 snap_times: list[float]) -> None:
+        self.next_ts, self.ts_every = next_ts, ts_every
+        self.next_snap, self.snap_every = next_snap, snap_every
+        self.snap_times = snap_times
+
+    @classmethod
+    def start(cls, sim: Simulation, t_start: float, dt: float, duration: float, timeseries_every_s: float | None,
+              snapshot_every_s: float | None, snapshot_times_s: Any) -> _Schedule:
+        """The schedule of a run of ``duration`` from ``t_start`` (the arguments of :meth:`Simulation.run`)."""
+        # default sampling: 200 samples per run, but never more often than every 500 steps
+        # (each sample returns from the compiled loop)
+        ts_every = timeseries_every_s or max(duration / 200, 500 * dt)
+        next_ts = t_start if not sim._ts else t_start + ts_every
+        if snapshot_every_s is not None:
+            snapshot_every_s = _pos_number("snapshot_every_s", snapshot_every_s)
+        # snapshots on the absolute grid k * snapshot_every_s (regular across repeated runs)
+        next_snap = (math.ceil((t_start - 0.5 * dt) / snapshot_every_s) * snapshot_every_s
+                     if snapshot_every_s else math.inf)
+        try:
+            snap_times = sorted(float(x) for x in (snapshot_times_s or ()))
+        except (TypeError, ValueError):
+            raise MsmillInputError("snapshot_times_s", snapshot_times_s,
+                                   "a sequence of times (s)") from None
+        return cls(next_ts, ts_every, next_snap, snapshot_every_s, [x for x in snap_times if x >= t_start - 0.5 * dt])
+
+    def record_due(self, sim: Simulation, dt: float) -> None:
+        """Sample the time series and take the snapshots due at the simulation's time."""
+        t = sim._time
+        if t >= self.next_ts - 0.5 * dt:
+            sim._record_ts()
+            self.next_ts += self.ts_every
+        if t >= self.next_snap - 0.5 * dt:
+            sim._snaps.append((t, sim.snapshot()))
+            self.next_snap += self.snap_every
+        if self.snap_times and t >= self.snap_times[0] - 0.5 * dt:
+            sim._snaps.append((t, sim.snapshot()))
+            while self.snap_times and t >= self.snap_times[0] - 0.5 * dt:
+                self.snap_times.pop(0)
+
+    def steps_to_next(self, sim: Simulation, dt: float, limit: int) -> int:
+        """Steps (>= 1, <= ``limit``) until the next sample, snapshot or source insertion."""
+        for tnext in [self.next_ts, self.next_snap] + self.snap_times[:1] + [s["next"] for s in sim._sources]:
+            if math.isfinite(tnext):
+                limit = min(limit, max(1, math.ceil((tnext - sim._time) / dt - 1e-9)))
+        return limit
 
 
 class Simulation:
@@ -829,70 +881,15 @@ class Simulation:
             Number of steps run.
         """
         duration = _pos_number("duration_s", duration_s, allow_zero=True)
-        vrel = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
-        safety = _pos_number("safety", safety)
-        if safety > MAX_SAFETY:
-            raise MsmillInputError(
-                "safety", safety,
-                f"a number in (0, {MAX_SAFETY}] (fraction of the Hertz contact time; above it the "
-                "explicit step misses the damped contact: rebounds off rotating walls gain energy)")
         cb_every = int(callback_every)
         if cb_every < 1:
             raise MsmillInputError("callback_every", callback_every, "an integer >= 1")
-        if self._dirty:
-            self._pack()
-        rmin, rmax = self._r_min_max()
-        if not math.isfinite(rmin):
-            raise MsmillInputError("particles", 0, "at least one particle or source before run()")
-        if self._skin is None:
-            self._skin = 0.5 * rmin
-        self._check_periodic_spans(rmax + self._skin)
-        thin = min([g["thickness"] for g in self._geoms if g["thickness"] > 0] + [np.inf])
-        lmin = min(rmin, thin)
-        vcheck = max(vrel, self._wall_speed_max())
-        if dt_s is None:
-            dt = safety * self.contact_time_s(vrel)
-            dt = min(dt, travel_fraction * lmin / vcheck)
-        else:
-            dt = _pos_number("dt_s", dt_s)
-            tc = self.contact_time_s(vrel)
-            if dt > MAX_SAFETY * tc:
-                warnings.warn(
-                    f"dt_s = {dt:.3g} s is {dt / tc:.2g} of the Hertz contact time at "
-                    f"{vrel:.3g} m/s; above {MAX_SAFETY} the damped contact is integrated "
-                    "inaccurately (rebounds off rotating walls gain energy)", DemRuntimeWarning,
-                    stacklevel=2)
-            if vcheck * dt > travel_fraction * lmin:
-                warnings.warn(
-                    f"dt_s = {dt:.3g} s lets a body at {vcheck:.3g} m/s travel "
-                    f"{vcheck * dt:.3g} m per step, more than {travel_fraction} of the smallest "
-                    f"radius/plate ({lmin:.3g} m): risk of tunnelling", DemRuntimeWarning,
-                    stacklevel=2)
-        self._dt = dt
-        if not hasattr(self, "_rmax_cells"):
-            self._rmax_cells = 0.0
-        if rmax > self._rmax_cells:
-            self._rmax_cells = rmax
-            self._cells(rmax)
+        dt, lmin = self._prepare_run(max_relative_speed_m_s, safety, dt_s, travel_fraction)
         nsteps = round(duration / dt)
         t_start = self._time
-        # default sampling: 200 samples per run, but never more often than every 500 steps
-        # (each sample returns from the compiled loop)
-        ts_every = timeseries_every_s or max(duration / 200, 500 * dt)
-        next_ts = t_start if not self._ts else t_start + ts_every
-        if snapshot_every_s is not None:
-            snapshot_every_s = _pos_number("snapshot_every_s", snapshot_every_s)
-        # snapshots on the absolute grid k * snapshot_every_s (regular across repeated runs)
-        next_snap = (math.ceil((t_start - 0.5 * dt) / snapshot_every_s) * snapshot_every_s
-                     if snapshot_every_s else math.inf)
-        try:
-            snap_times = sorted(float(x) for x in (snapshot_times_s or ()))
-        except (TypeError, ValueError):
-            raise MsmillInputError("snapshot_times_s", snapshot_times_s,
-                                   "a sequence of times (s)") from None
-        snap_times = [x for x in snap_times if x >= t_start - 0.5 * dt]
+        sched = _Schedule.start(self, t_start, dt, duration, timeseries_every_s, snapshot_every_s, snapshot_times_s)
         wall_v = self._wall_speed_max()
-        bar = None
+        bar = task = None
         if progress:
             from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -900,8 +897,6 @@ class Simulation:
                            BarColumn(), TimeRemainingColumn())
             bar.start()
             task = bar.add_task("dem", total=nsteps, t=self._time, n=self.n_particles)
-        import time as _time
-
         done = 0
         diag = np.zeros((self._nch, K.N_DIAG))
         last_cb = 0
@@ -912,45 +907,11 @@ class Simulation:
                     self._insert_sources()
                 if self._need_rebuild:
                     self._rebuild()
-                if self._time >= next_ts - 0.5 * dt:
-                    self._record_ts()
-                    next_ts += ts_every
-                if self._time >= next_snap - 0.5 * dt:
-                    self._snaps.append((self._time, self.snapshot()))
-                    next_snap += snapshot_every_s
-                if snap_times and self._time >= snap_times[0] - 0.5 * dt:
-                    self._snaps.append((self._time, self.snapshot()))
-                    while snap_times and self._time >= snap_times[0] - 0.5 * dt:
-                        snap_times.pop(0)
-                limit = nsteps - done
-                for tnext in ([next_ts, next_snap] + snap_times[:1]
-                              + [s["next"] for s in self._sources]):
-                    if math.isfinite(tnext):
-                        limit = min(limit, max(1, math.ceil((tnext - self._time) / dt - 1e-9)))
+                sched.record_due(self, dt)
+                limit = sched.steps_to_next(self, dt, nsteps - done)
                 if callback is not None:
                     limit = min(limit, max(1, cb_every - (done - last_cb)))
-                p = self._p
-                diag[:] = 0.0
-                use_par = self._choose_parallel()
-                self._last_par = use_par  # the next rebuild follows the step kernels' choice
-                tic = _time.perf_counter()
-                k, reason = K.advance(
-                    self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
-                    p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
-                    *self._work, p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
-                    self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
-                    self._pair[1], self._pair[2],
-                    self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
-                    self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
-                    self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
-                    p["h_ds"], p["h_n"], p["h_tch"], p["g_gid"], p["g_st"], p["g_ev"],
-                    p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
-                    self._rec.evn, diag, use_par)
-                elapsed = _time.perf_counter() - tic
-                if k > 0:
-                    self._frc_stale = True  # see _settle_forces
-                self.stats["loop_time_s"] += elapsed
-                self._tune(use_par, elapsed, k)
+                k, reason = self._advance(dt, limit, diag)
                 self.stats["steps"] += k
                 self._stamp += k
                 done += k
@@ -972,9 +933,86 @@ class Simulation:
         finally:
             if bar is not None:
                 bar.stop()
-        if not stopped or self._time >= next_ts - 0.5 * dt:
+        if not stopped or self._time >= sched.next_ts - 0.5 * dt:
             self._record_ts()
         return done
+
+    def _prepare_run(self, max_relative_speed_m_s: float, safety: float, dt_s: float | None,
+                     travel_fraction: float) -> tuple[float, float]:
+        """Check the step arguments, pack the particles, size the cells; ``(dt_s, smallest radius/plate m)``."""
+        vrel = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
+        safety = _pos_number("safety", safety)
+        if safety > MAX_SAFETY:
+            raise MsmillInputError(
+                "safety", safety,
+                f"a number in (0, {MAX_SAFETY}] (fraction of the Hertz contact time; above it the "
+                "explicit step misses the damped contact: rebounds off rotating walls gain energy)")
+        if self._dirty:
+            self._pack()
+        rmin, rmax = self._r_min_max()
+        if not math.isfinite(rmin):
+            raise MsmillInputError("particles", 0, "at least one particle or source before run()")
+        if self._skin is None:
+            self._skin = 0.5 * rmin
+        self._check_periodic_spans(rmax + self._skin)
+        thin = min([g["thickness"] for g in self._geoms if g["thickness"] > 0] + [np.inf])
+        lmin = min(rmin, thin)
+        vcheck = max(vrel, self._wall_speed_max())
+        if dt_s is None:
+            dt = safety * self.contact_time_s(vrel)
+            dt = min(dt, travel_fraction * lmin / vcheck)
+        else:
+            dt = _pos_number("dt_s", dt_s)
+            self._warn_step(dt, vrel, vcheck, travel_fraction, lmin)
+        self._dt = dt
+        if not hasattr(self, "_rmax_cells"):
+            self._rmax_cells = 0.0
+        if rmax > self._rmax_cells:
+            self._rmax_cells = rmax
+            self._cells(rmax)
+        return dt, lmin
+
+    def _warn_step(self, dt: float, vrel: float, vcheck: float, travel_fraction: float, lmin: float) -> None:
+        """Warn when a given step is too long for the contact time or lets a body tunnel."""
+        tc = self.contact_time_s(vrel)
+        if dt > MAX_SAFETY * tc:
+            warnings.warn(
+                f"dt_s = {dt:.3g} s is {dt / tc:.2g} of the Hertz contact time at "
+                f"{vrel:.3g} m/s; above {MAX_SAFETY} the damped contact is integrated "
+                "inaccurately (rebounds off rotating walls gain energy)", DemRuntimeWarning,
+                stacklevel=4)
+        if vcheck * dt > travel_fraction * lmin:
+            warnings.warn(
+                f"dt_s = {dt:.3g} s lets a body at {vcheck:.3g} m/s travel "
+                f"{vcheck * dt:.3g} m per step, more than {travel_fraction} of the smallest "
+                f"radius/plate ({lmin:.3g} m): risk of tunnelling", DemRuntimeWarning,
+                stacklevel=4)
+
+    def _advance(self, dt: float, limit: int, diag: np.ndarray) -> tuple[int, int]:
+        """Up to ``limit`` steps in the compiled loop (threaded or serial, as tuned); ``(steps, reason)``."""
+        p = self._p
+        diag[:] = 0.0
+        use_par = self._choose_parallel()
+        self._last_par = use_par  # the next rebuild follows the step kernels' choice
+        tic = _time.perf_counter()
+        k, reason = K.advance(
+            self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
+            p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
+            *self._work, p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
+            self._nb[3], self._nb[4], self._stamp + 1, self._pair[0], self._pair[3],
+            self._pair[1], self._pair[2],
+            self._box_len, self._gc[0], self._gc[1], self._gref, self._gcur, self._grot,
+            self._gkind, self._gmat, self._ptab, self._gravity, self._lo, self._hi,
+            self._periodic, self._sinkbox, p["h_pid"], p["h_st"], p["h_ev"], p["h_pk"],
+            p["h_ds"], p["h_n"], p["h_tch"], p["g_gid"], p["g_st"], p["g_ev"],
+            p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
+            self._rec.evn, diag, use_par)
+        elapsed = _time.perf_counter() - tic
+        if k > 0:
+            self._frc_stale = True  # see _settle_forces
+        self.stats["loop_time_s"] += elapsed
+        self._tune(use_par, elapsed, k)
+        return k, reason
 
     def _check_periodic_spans(self, pad: float) -> None:
         """Warn about primitives taken as continuous along a periodic axis that end too close to it."""
