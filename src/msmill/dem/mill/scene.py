@@ -244,24 +244,11 @@ def build_scene(
     seed : int
         Seed of the feed source.
     """
-    from msmill.dem import Rotation, Simulation
+    from msmill.dem import Simulation
 
     if mode not in ("slice", "full"):
         raise MsmillInputError("mode", mode, "'slice' or 'full'")
-    if (size_mm is None) == (feed_psd is None):
-        raise MsmillInputError("size_mm/feed_psd", (size_mm, feed_psd), "exactly one of the two")
-    if feed_psd is not None:
-        sizes = np.asarray(feed_psd[0], dtype=float)
-        mfrac = np.asarray(feed_psd[1], dtype=float)
-        if sizes.ndim != 1 or sizes.shape != mfrac.shape or np.any(sizes <= 0) or np.any(mfrac < 0) or mfrac.sum() <= 0:
-            raise MsmillInputError("feed_psd", feed_psd, "(sizes_mm, mass_fractions) of equal length, sizes > 0")
-        mfrac = mfrac / mfrac.sum()
-    else:
-        if not (size_mm and size_mm > 0):
-            raise MsmillInputError("size_mm", size_mm, "a rock diameter > 0 mm")
-        sizes, mfrac = np.array([float(size_mm)]), np.array([1.0])
-    for s in sizes:
-        check_size_mm(s)
+    sizes, mfrac = _feed_sizes(size_mm, feed_psd)
     d50 = float(np.exp(np.sum(mfrac * np.log(sizes))))
     if rock is None:
         rock = _rock_from_ore(ore) if ore else RockMaterial()
@@ -276,9 +263,7 @@ def build_scene(
     y0, y1, rows, scale = scene_extent(machine, sizes, mode)
     skin = mill_skin_m(sizes, y1 - y0 if mode == "slice" else math.inf)
     ext = 0.05 if mode == "slice" else 0.0  # liners, hubs, gates overhang a periodic slice
-    roof = machine.roof_z_m
-    chute_h = 0.4
-    top = roof + chute_h
+    top = machine.roof_z_m + _CHUTE_HEIGHT_M
     sim = Simulation(
         domain_min_m=(-hw - 0.02, y0, -0.15), domain_max_m=(hw + 0.02, y1, top + 0.02),
         periodic=(False, mode == "slice", False), gravity_m_s2=(0.0, 0.0, -9.81), neighbor_skin_m=skin,
@@ -289,75 +274,11 @@ def build_scene(
                      density_kg_m3=STEEL.density_kg_m3)
     sim.set_interaction("rock", "rock", **ROCK_ROCK)
     sim.set_interaction("rock", "steel", **ROCK_STEEL)
-
-    # casing
-    sim.add_plane((-hw, 0, 0), (1, 0, 0), material="steel", tag="liner", group=0)
-    sim.add_plane((hw, 0, 0), (-1, 0, 0), material="steel", tag="liner", group=1)
-    if mode == "full":
-        sim.add_plane((0, 0, 0), (0, 1, 0), material="steel", tag="liner", group=2)
-        sim.add_plane((0, y1, 0), (0, -1, 0), material="steel", tag="liner", group=3)
-    yc, yh = (y0 + y1) / 2, (y1 - y0) / 2 + ext
-    cw = machine.chute_width_m / 2
-    roof_half = (hw - cw) / 2
-    # roof, chute walls and lid are solid slabs on their outer side (a rock pressed against a plate of
-    # zero thickness by a flinger could be pushed through it; a 50 mm slab cannot be crossed)
-    slab = 0.05
-    for side in (-1, 1):
-        sim.add_box((side * (cw + roof_half), yc, roof + slab), (roof_half, yh, slab), material="steel",
-                    tag="liner", group=4)
-        sim.add_box((side * (cw + slab), yc, roof + chute_h / 2), (slab, yh, chute_h / 2), material="steel",
-                    tag="chute", group=0)
-    sim.add_box((0.0, yc, top + slab), (cw + 2 * slab, yh, slab), material="steel", tag="chute", group=1)
-
-    # rotors
-    r_in, r_out = machine.hub_radius_m, machine.tip_radius_m
-    r_mid, half_len = (r_in + r_out) / 2, (r_out - r_in) / 2
-    omegas = {}
-    for stage in range(1, machine.n_stages + 1):
-        z = machine.stage_axis_z_m(stage)
-        w = rpm_to_rad_s(speeds[stage - 1])
-        for side in (0, 1):
-            x = machine.rotor_x_m(side)
-            g = machine.rotor_index(stage, side)
-            om = machine.omega_sign(stage, side) * w
-            omegas[g] = om
-            rot = Rotation(axis_point_m=(x, 0.0, z), axis_dir=(0.0, 1.0, 0.0), omega_rad_s=om)
-            sim.add_cylinder((x, y0 - ext, z), (x, y1 + ext, z), r_in, material="steel", tag="hub", group=g,
-                             rotation=rot, inside=False)
-            plates = [(j, machine.row_y_m(j), machine.flinger_width_m / 2) for j in rows]
-            for j, yr, hy in plates:
-                for k in range(machine.flingers_per_row):
-                    th = math.radians(machine.flinger_phase_deg(j, k))
-                    d = np.array([math.cos(th), 0.0, math.sin(th)])
-                    if side == 1:
-                        d[0] = -d[0]
-                    centre = (x + r_mid * d[0], yr, z + r_mid * d[2])
-                    sim.add_box(centre, (half_len, hy, machine.flinger_thickness_m / 2),
-                                axes=_plate_axes(d), material="steel", tag="flinger", group=g, rotation=rot)
-
-    # gates and deflectors
-    zh = machine.gate_hinge_z_m
-    for side in (0, 1):
-        hx = -hw if side == 0 else hw
-        _sloped_plate(sim, (hx, zh), machine.gate_tip_m(op.gate_deg, side), y0 - ext, y1 + ext, "gate", side)
-    for d in machine.deflectors:
-        zd = machine.stage_axis_z_m(d.stage) + d.height_above_axis_m
-        for sgn in (-1, 1):
-            tip = (sgn * (hw - d.inner_edge_offset_m()), zd - d.drop_m())
-            _sloped_plate(sim, (sgn * hw, zd), tip, y0 - ext, y1 + ext, "deflector", d.stage)
-
-    # feed and outlet
+    _add_casing(sim, machine, mode, (y0, y1), ext)
+    omegas = _add_rotors(sim, machine, speeds, rows, (y0, y1), ext)
+    _add_gates_and_deflectors(sim, machine, op.gate_deg, (y0, y1), ext)
     feed_kg_s = op.feed_tph * 1000.0 / 3600.0 * scale
-    radii = size_mm_to_radius_m(sizes)
-    nweights = mfrac / radii**3
-    nweights = nweights / nweights.sum()
-    rm = float(radii.max())
-    lo = (-cw + 1.2 * rm, y0 + (rm if mode == "full" else 0.0), roof + 0.12)
-    hi = (cw - 1.2 * rm, y1 - (rm if mode == "full" else 0.0), top - 1.2 * rm - 0.02)
-    radii_arg: Any = (radii, nweights) if radii.size > 1 else radii
-    sim.add_source(lo, hi, feed_kg_s, radii_m=radii_arg, velocity_m_s=(0.0, 0.0, -feed_speed_m_s),
-                   material="rock", start_s=0.0, stop_s=None, seed=seed)
-    sim.add_sink((-hw - 1.0, y0 - 1.0, -10.0), (hw + 1.0, y1 + 1.0, 0.0), tag="outlet")
+    _add_feed_and_outlet(sim, machine, feed_kg_s, sizes, mfrac, mode, (y0, y1), feed_speed_m_s, seed)
 
     info = {
         "mode": mode,
@@ -384,6 +305,119 @@ def build_scene(
     return MillScene(sim=sim, machine=machine, op=op, mode=mode, size_mm=d50, sizes_mm=sizes, mass_fractions=mfrac,
                      y_range_m=(y0, y1), feed_kg_s=feed_kg_s, rock=rock, rock_used=rock_used,
                      max_impact_speed_m_s=v_max, info=info)
+
+
+#: Height of the feed chute above the roof (m).
+_CHUTE_HEIGHT_M = 0.4
+
+
+def _feed_sizes(size_mm: float | None, feed_psd: tuple[Any, Any] | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(sphere diameters mm, mass fractions summing to 1)`` of mono-size rock or a discrete feed."""
+    if (size_mm is None) == (feed_psd is None):
+        raise MsmillInputError("size_mm/feed_psd", (size_mm, feed_psd), "exactly one of the two")
+    if feed_psd is not None:
+        sizes = np.asarray(feed_psd[0], dtype=float)
+        mfrac = np.asarray(feed_psd[1], dtype=float)
+        if sizes.ndim != 1 or sizes.shape != mfrac.shape or np.any(sizes <= 0) or np.any(mfrac < 0) or mfrac.sum() <= 0:
+            raise MsmillInputError("feed_psd", feed_psd, "(sizes_mm, mass_fractions) of equal length, sizes > 0")
+        mfrac = mfrac / mfrac.sum()
+    else:
+        if not (size_mm and size_mm > 0):
+            raise MsmillInputError("size_mm", size_mm, "a rock diameter > 0 mm")
+        sizes, mfrac = np.array([float(size_mm)]), np.array([1.0])
+    for s in sizes:
+        check_size_mm(s)
+    return sizes, mfrac
+
+
+def _add_casing(sim: Any, machine: Machine, mode: str, y_m: tuple[float, float], ext: float) -> None:
+    """Side liners (and the end walls of a full mill), the roof and the feed chute with its lid."""
+    y0, y1 = y_m
+    hw, roof, chute_h = machine.half_width_m, machine.roof_z_m, _CHUTE_HEIGHT_M
+    top = roof + chute_h
+    sim.add_plane((-hw, 0, 0), (1, 0, 0), material="steel", tag="liner", group=0)
+    sim.add_plane((hw, 0, 0), (-1, 0, 0), material="steel", tag="liner", group=1)
+    if mode == "full":
+        sim.add_plane((0, 0, 0), (0, 1, 0), material="steel", tag="liner", group=2)
+        sim.add_plane((0, y1, 0), (0, -1, 0), material="steel", tag="liner", group=3)
+    yc, yh = (y0 + y1) / 2, (y1 - y0) / 2 + ext
+    cw = machine.chute_width_m / 2
+    roof_half = (hw - cw) / 2
+    # roof, chute walls and lid are solid slabs on their outer side (a rock pressed against a plate of
+    # zero thickness by a flinger could be pushed through it; a 50 mm slab cannot be crossed)
+    slab = 0.05
+    for side in (-1, 1):
+        sim.add_box((side * (cw + roof_half), yc, roof + slab), (roof_half, yh, slab), material="steel",
+                    tag="liner", group=4)
+        sim.add_box((side * (cw + slab), yc, roof + chute_h / 2), (slab, yh, chute_h / 2), material="steel",
+                    tag="chute", group=0)
+    sim.add_box((0.0, yc, top + slab), (cw + 2 * slab, yh, slab), material="steel", tag="chute", group=1)
+
+
+def _add_rotors(sim: Any, machine: Machine, speeds: list[float], rows: Any, y_m: tuple[float, float],
+                ext: float) -> dict[int, float]:
+    """Hubs and flinger plates of every rotor, rotating; ``{rotor group: angular velocity rad/s}``."""
+    from msmill.dem import Rotation
+
+    y0, y1 = y_m
+    r_in, r_out = machine.hub_radius_m, machine.tip_radius_m
+    r_mid, half_len = (r_in + r_out) / 2, (r_out - r_in) / 2
+    omegas = {}
+    for stage in range(1, machine.n_stages + 1):
+        z = machine.stage_axis_z_m(stage)
+        w = rpm_to_rad_s(speeds[stage - 1])
+        for side in (0, 1):
+            x = machine.rotor_x_m(side)
+            g = machine.rotor_index(stage, side)
+            om = machine.omega_sign(stage, side) * w
+            omegas[g] = om
+            rot = Rotation(axis_point_m=(x, 0.0, z), axis_dir=(0.0, 1.0, 0.0), omega_rad_s=om)
+            sim.add_cylinder((x, y0 - ext, z), (x, y1 + ext, z), r_in, material="steel", tag="hub", group=g,
+                             rotation=rot, inside=False)
+            for j in rows:
+                yr, hy = machine.row_y_m(j), machine.flinger_width_m / 2
+                for k in range(machine.flingers_per_row):
+                    th = math.radians(machine.flinger_phase_deg(j, k))
+                    d = np.array([math.cos(th), 0.0, math.sin(th)])
+                    if side == 1:
+                        d[0] = -d[0]
+                    centre = (x + r_mid * d[0], yr, z + r_mid * d[2])
+                    sim.add_box(centre, (half_len, hy, machine.flinger_thickness_m / 2),
+                                axes=_plate_axes(d), material="steel", tag="flinger", group=g, rotation=rot)
+    return omegas
+
+
+def _add_gates_and_deflectors(sim: Any, machine: Machine, gate_deg: float, y_m: tuple[float, float],
+                              ext: float) -> None:
+    """The two outlet gates at ``gate_deg`` and the machine's deflectors, as sloped plates."""
+    y0, y1 = y_m
+    hw, zh = machine.half_width_m, machine.gate_hinge_z_m
+    for side in (0, 1):
+        hx = -hw if side == 0 else hw
+        _sloped_plate(sim, (hx, zh), machine.gate_tip_m(gate_deg, side), y0 - ext, y1 + ext, "gate", side)
+    for d in machine.deflectors:
+        zd = machine.stage_axis_z_m(d.stage) + d.height_above_axis_m
+        for sgn in (-1, 1):
+            tip = (sgn * (hw - d.inner_edge_offset_m()), zd - d.drop_m())
+            _sloped_plate(sim, (sgn * hw, zd), tip, y0 - ext, y1 + ext, "deflector", d.stage)
+
+
+def _add_feed_and_outlet(sim: Any, machine: Machine, feed_kg_s: float, sizes: np.ndarray, mfrac: np.ndarray,
+                         mode: str, y_m: tuple[float, float], feed_speed_m_s: float, seed: int) -> None:
+    """The feed source in the chute (``feed_kg_s`` of the sizes' number mix) and the outlet sink below."""
+    y0, y1 = y_m
+    hw, cw = machine.half_width_m, machine.chute_width_m / 2
+    roof, top = machine.roof_z_m, machine.roof_z_m + _CHUTE_HEIGHT_M
+    radii = size_mm_to_radius_m(sizes)
+    nweights = mfrac / radii**3
+    nweights = nweights / nweights.sum()
+    rm = float(radii.max())
+    lo = (-cw + 1.2 * rm, y0 + (rm if mode == "full" else 0.0), roof + 0.12)
+    hi = (cw - 1.2 * rm, y1 - (rm if mode == "full" else 0.0), top - 1.2 * rm - 0.02)
+    radii_arg: Any = (radii, nweights) if radii.size > 1 else radii
+    sim.add_source(lo, hi, feed_kg_s, radii_m=radii_arg, velocity_m_s=(0.0, 0.0, -feed_speed_m_s),
+                   material="rock", start_s=0.0, stop_s=None, seed=seed)
+    sim.add_sink((-hw - 1.0, y0 - 1.0, -10.0), (hw + 1.0, y1 + 1.0, 0.0), tag="outlet")
 
 
 def _rock_from_ore(ore: str) -> RockMaterial:
