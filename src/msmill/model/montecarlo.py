@@ -102,6 +102,93 @@ def _sample_class(rng: np.random.Generator, cols: np.ndarray) -> np.ndarray:
     return np.minimum((c < u).sum(axis=1), cols.shape[1] - 1)
 
 
+class _Parcels:
+    """The parcels in the mill: compartment, size class, damage and mass (t) of each, as arrays."""
+
+    def __init__(self) -> None:
+        self.comp = np.zeros(0, dtype=np.int64)
+        self.cls = np.zeros(0, dtype=np.int64)
+        self.dmg = np.zeros(0)
+        self.mass = np.zeros(0)
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep only the parcels of ``mask``."""
+        self.comp, self.cls, self.dmg, self.mass = self.comp[mask], self.cls[mask], self.dmg[mask], self.mass[mask]
+
+    def add(self, compartment: int, classes: np.ndarray, mass_t: float) -> None:
+        """Add undamaged parcels of ``mass_t`` each, of size ``classes``, in ``compartment``."""
+        self.comp = np.concatenate([self.comp, np.full(classes.size, compartment, dtype=np.int64)])
+        self.cls = np.concatenate([self.cls, classes])
+        self.dmg = np.concatenate([self.dmg, np.zeros(classes.size)])
+        self.mass = np.concatenate([self.mass, np.full(classes.size, mass_t)])
+
+
+class _Impacts:
+    """The primary and secondary impacts of parcels in the stages (updates their class and damage)."""
+
+    def __init__(self, rng: np.random.Generator, parcels: _Parcels, edges: np.ndarray, stats: ImpactStatistics,
+                 breakage, damage, damage_classes: int | None, n_stages: int) -> None:
+        self.rng, self.pc, self.edges, self.stats = rng, parcels, edges, stats
+        self.mids = np.sqrt(edges[:-1] * edges[1:])
+        self.breakage, self.damage, self.damage_classes = breakage, damage, damage_classes
+        self.threshold = float(damage.threshold)
+        self.count_mix = stats.count_mixture()
+        #: mass impacted (t) and impact energy (kWh) per stage, primary and secondary, while collecting
+        self.counts = {k: np.zeros(n_stages) for k in ("primary_t", "primary_kwh", "secondary_t", "secondary_kwh")}
+
+    def impact(self, idx: np.ndarray, mix: MixtureArrays, collect: bool, kind: str) -> np.ndarray:
+        """One impact on parcels ``idx``; returns the mask of those that broke."""
+        pc, rng, th = self.pc, self.rng, self.threshold
+        st = pc.comp[idx] - 1
+        c = pc.cls[idx]
+        v = _sample_mixture(rng, mix, st, c)
+        e = specific_energy_kwh_t(v)
+        L = self.mids[c]
+        d0 = pc.dmg[idx]
+        pb = self.breakage.probability(e, L, d0)
+        broke = rng.random(idx.size) < pb
+        d_new = self.damage.after_impact(e, L, d0)
+        broke |= d_new >= th
+        if collect:
+            np.add.at(self.counts[f"{kind}_t"], st, pc.mass[idx])
+            np.add.at(self.counts[f"{kind}_kwh"], st, pc.mass[idx] * e)
+        b = idx[broke]
+        if b.size:
+            u = fragment_index(self.breakage, e[broke], L[broke], d0[broke], pb[broke])
+            cols = self.breakage.fragments(self.edges, pc.cls[b], u)
+            pc.cls[b] = _sample_class(rng, cols)
+            pc.dmg[b] = 0.0
+        s = idx[~broke]
+        ds = d_new[~broke]
+        if self.damage_classes is not None and s.size:
+            lo, frac = split_damage(ds, self.damage_classes, th)
+            up = rng.random(s.size) < frac
+            ds = (lo + up) * (th / self.damage_classes)
+        pc.dmg[s] = ds
+        return broke
+
+    def impacts(self, idx: np.ndarray, collect: bool) -> None:
+        """Parcels ``idx`` hit (by the hit probability), then their secondary impacts until they break."""
+        pc = self.pc
+        st = pc.comp[idx] - 1
+        hit = self.rng.random(idx.size) < self.stats.hit_probability[st, pc.cls[idx]]
+        h = idx[hit]
+        if h.size == 0:
+            return
+        broke = self.impact(h, self.stats.primary_velocity, collect, "primary")
+        alive = h[~broke]
+        k = _sample_count(self.rng, self.count_mix, pc.comp[alive] - 1, pc.cls[alive])
+        j = 0
+        while alive.size:
+            sel = k > j
+            alive, k = alive[sel], k[sel]
+            if alive.size == 0:
+                break
+            broke = self.impact(alive, self.stats.secondary_velocity, collect, "secondary")
+            alive, k = alive[~broke], k[~broke]
+            j += 1
+
+
 class MonteCarloSolver:
     """Parcel Monte-Carlo of the mill (see the module docstring).
 
@@ -133,116 +220,53 @@ class MonteCarloSolver:
         """March ``n_steps`` steps from an empty mill; statistics from step ``collect_from``."""
         rng = np.random.default_rng(self.seed)
         edges = np.asarray(edges_mm, dtype=float)
-        mids = np.sqrt(edges[:-1] * edges[1:])
-        n = mids.size
+        n = edges.size - 1
         tr = as_transition(streams)
         n_st = tr.n_stages
-        th = float(damage.threshold)
         cum_dest = np.cumsum(tr.matrix, axis=-1)  # (S+1, N, S+2)
         feed_cdf = np.cumsum(np.asarray(feed_fractions, dtype=float))
         feed_cdf /= feed_cdf[-1]
         m0 = tonnes_per_step / self.parcels_per_step
-
-        comp = np.zeros(0, dtype=np.int64)
-        cls = np.zeros(0, dtype=np.int64)
-        dmg = np.zeros(0)
-        mass = np.zeros(0)
+        pc = _Parcels()
+        hits = _Impacts(rng, pc, edges, stats, breakage, damage, self.damage_classes, n_st)
         product = np.zeros((n_steps, n))
         holdup = np.zeros(n_steps)
         fed = np.full(n_steps, tonnes_per_step)
         err = np.zeros(n_steps)
         stage_mass = np.zeros((n_st, n))
-        keys = ("primary_t", "primary_kwh", "secondary_t", "secondary_kwh")
-        counts = {k: np.zeros(n_st) for k in keys}
         total_fed = total_out = 0.0
         n_max = 0
-
-        def impact(idx: np.ndarray, mix: MixtureArrays, collect: bool, kind: str) -> np.ndarray:
-            """One impact on parcels ``idx``; returns the mask of those that broke."""
-            st = comp[idx] - 1
-            c = cls[idx]
-            v = _sample_mixture(rng, mix, st, c)
-            e = specific_energy_kwh_t(v)
-            L = mids[c]
-            d0 = dmg[idx]
-            pb = breakage.probability(e, L, d0)
-            broke = rng.random(idx.size) < pb
-            d_new = damage.after_impact(e, L, d0)
-            broke |= d_new >= th
-            if collect:
-                np.add.at(counts[f"{kind}_t"], st, mass[idx])
-                np.add.at(counts[f"{kind}_kwh"], st, mass[idx] * e)
-            b = idx[broke]
-            if b.size:
-                u = fragment_index(breakage, e[broke], L[broke], d0[broke], pb[broke])
-                cols = breakage.fragments(edges, cls[b], u)
-                cls[b] = _sample_class(rng, cols)
-                dmg[b] = 0.0
-            s = idx[~broke]
-            ds = d_new[~broke]
-            if self.damage_classes is not None and s.size:
-                lo, frac = split_damage(ds, self.damage_classes, th)
-                up = rng.random(s.size) < frac
-                ds = (lo + up) * (th / self.damage_classes)
-            dmg[s] = ds
-            return broke
-
-        count_mix = stats.count_mixture()
-
-        def impacts(idx: np.ndarray, collect: bool) -> None:
-            st = comp[idx] - 1
-            hit = rng.random(idx.size) < stats.hit_probability[st, cls[idx]]
-            h = idx[hit]
-            if h.size == 0:
-                return
-            broke = impact(h, stats.primary_velocity, collect, "primary")
-            alive = h[~broke]
-            k = _sample_count(rng, count_mix, comp[alive] - 1, cls[alive])
-            j = 0
-            while alive.size:
-                sel = k > j
-                alive, k = alive[sel], k[sel]
-                if alive.size == 0:
-                    break
-                broke = impact(alive, stats.secondary_velocity, collect, "secondary")
-                alive, k = alive[~broke], k[~broke]
-                j += 1
-
         for t in range(n_steps):
             collect = t >= collect_from
-            in_stage = comp >= 1
+            in_stage = pc.comp >= 1
             if impacted == "all":
-                impacts(np.flatnonzero(in_stage), collect)
+                hits.impacts(np.flatnonzero(in_stage), collect)
             # transport draw (post-impact size class when impacts come first)
-            cs = cum_dest[comp, cls]  # (m, S+2)
-            u = rng.random(comp.size) * cs[:, -1]
+            cs = cum_dest[pc.comp, pc.cls]  # (m, S+2)
+            u = rng.random(pc.comp.size) * cs[:, -1]
             dest = np.minimum((cs <= u[:, None]).sum(axis=1), n_st + 1)
             if impacted == "refeed":
-                impacts(np.flatnonzero(in_stage & (dest == comp)), collect)
-            comp = dest
-            out = comp > n_st
+                hits.impacts(np.flatnonzero(in_stage & (dest == pc.comp)), collect)
+            pc.comp = dest
+            out = pc.comp > n_st
             if np.any(out):
-                np.add.at(product[t], cls[out], mass[out])
-                total_out += mass[out].sum()
-                keep = ~out
-                comp, cls, dmg, mass = comp[keep], cls[keep], dmg[keep], mass[keep]
+                np.add.at(product[t], pc.cls[out], pc.mass[out])
+                total_out += pc.mass[out].sum()
+                pc.keep(~out)
             # fresh feed: stratified over the feed PSD, equal mass, undamaged, into the feed compartment
             u = (np.arange(self.parcels_per_step) + rng.random()) / self.parcels_per_step
-            new_cls = np.minimum(np.searchsorted(feed_cdf, u, side="right"), n - 1)
-            comp = np.concatenate([comp, np.full(new_cls.size, tr.feed_compartment, dtype=np.int64)])
-            cls = np.concatenate([cls, new_cls])
-            dmg = np.concatenate([dmg, np.zeros(new_cls.size)])
-            mass = np.concatenate([mass, np.full(new_cls.size, m0)])
+            pc.add(tr.feed_compartment, np.minimum(np.searchsorted(feed_cdf, u, side="right"), n - 1), m0)
             total_fed += tonnes_per_step
-            held = mass.sum()
+            held = pc.mass.sum()
             holdup[t] = held
             err[t] = abs(total_fed - held - total_out) / total_fed
-            n_max = max(n_max, comp.size)
+            n_max = max(n_max, pc.comp.size)
             if collect:
-                sel = comp >= 1
-                np.add.at(stage_mass, (comp[sel] - 1, cls[sel]), mass[sel])
-            if comp.size > 200 * self.parcels_per_step * max(n_st, 1):
+                sel = pc.comp >= 1
+                np.add.at(stage_mass, (pc.comp[sel] - 1, pc.cls[sel]), pc.mass[sel])
+            if pc.comp.size > 200 * self.parcels_per_step * max(n_st, 1):
                 raise MsmillError("Monte-Carlo parcels keep accumulating: the mill does not empty")
+        counts = hits.counts
         n_collect = max(n_steps - collect_from, 1)
         return MonteCarloRun(product=product, holdup=holdup, fed=fed, mass_balance_error=err,
                              stage_mass=stage_mass / n_collect, counts=counts, n_parcels_max=n_max)
