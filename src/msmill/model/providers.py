@@ -275,86 +275,102 @@ def _trend_slope(xr: np.ndarray, arr: np.ndarray) -> np.ndarray:
     return np.sum(dx.reshape(shape) * (arr - arr.mean(axis=0)), axis=0) / np.sum(dx * dx)
 
 
-def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
-    run_sizes = np.array([r.design.size_mm for r in runs])
-    sizes = np.asarray(sizes_mm, dtype=float)
-    lo, hi = run_sizes[0], run_sizes[-1]
-    outside = (sizes < lo * (1 - 1e-9)) | (sizes > hi * (1 + 1e-9))
-    a = _run_arrays(runs)
-    _check_velocities(runs, source)
-    x = np.log(np.clip(sizes, lo, hi))
-    xr = np.log(run_sizes)
-    # outside the sizes covered: the end run's value plus the table's ln-size trend (least squares over
-    # all runs) times the distance, the distance capped at EXTRAPOLATION_SPANS x the covered span
-    reach = EXTRAPOLATION_SPANS * (xr[-1] - xr[0])
-    x_out = np.clip(np.log(sizes), xr[0] - reach, xr[-1] + reach)
-    dx_out = np.where(outside, x_out - x, 0.0)  # 0 inside; one run: reach 0, i.e. clamped
-    if len(runs) == 1:
-        j = np.zeros(sizes.size, dtype=int)
-        w = np.zeros(sizes.size)
-        j1 = j
-    else:
-        j = np.clip(np.searchsorted(xr, x, side="right") - 1, 0, len(runs) - 2)
-        w = np.clip((x - xr[j]) / (xr[j + 1] - xr[j]), 0.0, 1.0)
-        j1 = j + 1
+class _SizeInterpolation:
+    """Linear interpolation in ln(size) between a table's neighbouring runs, with its trend outside them.
 
-    def lin(arr: np.ndarray) -> np.ndarray:
-        # arr (R, S, ...) -> (S, N, ...)
-        a0 = np.moveaxis(arr[j], 0, 1)
-        a1 = np.moveaxis(arr[j1], 0, 1)
-        ww = w.reshape((1, -1) + (1,) * (a0.ndim - 2))
+    Outside the sizes covered: the end run's value plus the table's ln-size trend (least squares over
+    all runs) times the distance, the distance capped at ``EXTRAPOLATION_SPANS`` x the covered span.
+    """
+
+    def __init__(self, run_sizes_mm: np.ndarray, sizes_mm: np.ndarray) -> None:
+        lo, hi = run_sizes_mm[0], run_sizes_mm[-1]
+        self.outside = (sizes_mm < lo * (1 - 1e-9)) | (sizes_mm > hi * (1 + 1e-9))
+        x = np.log(np.clip(sizes_mm, lo, hi))
+        self.xr = xr = np.log(run_sizes_mm)
+        self.n_runs = len(run_sizes_mm)
+        reach = EXTRAPOLATION_SPANS * (xr[-1] - xr[0])
+        x_out = np.clip(np.log(sizes_mm), xr[0] - reach, xr[-1] + reach)
+        self.dx_out = np.where(self.outside, x_out - x, 0.0)  # 0 inside; one run: reach 0, i.e. clamped
+        if self.n_runs == 1:
+            self.j = np.zeros(sizes_mm.size, dtype=int)
+            self.w = np.zeros(sizes_mm.size)
+            self.j1 = self.j
+        else:
+            self.j = np.clip(np.searchsorted(xr, x, side="right") - 1, 0, self.n_runs - 2)
+            self.w = np.clip((x - xr[self.j]) / (xr[self.j + 1] - xr[self.j]), 0.0, 1.0)
+            self.j1 = self.j + 1
+
+    @property
+    def _trended(self) -> bool:
+        return self.n_runs > 1 and bool(np.any(self.outside))
+
+    def lin(self, arr: np.ndarray) -> np.ndarray:
+        """``arr`` (R, S, ...) of the runs at the sizes: (S, N, ...)."""
+        a0 = np.moveaxis(arr[self.j], 0, 1)
+        a1 = np.moveaxis(arr[self.j1], 0, 1)
+        ww = self.w.reshape((1, -1) + (1,) * (a0.ndim - 2))
         out = (1 - ww) * a0 + ww * a1
-        if len(runs) > 1 and np.any(outside):
-            slope = _trend_slope(xr, arr)[:, None]  # (S, 1, ...)
-            out = out + slope * dx_out.reshape((1, -1) + (1,) * (a0.ndim - 2))
+        if self._trended:
+            slope = _trend_slope(self.xr, arr)[:, None]  # (S, 1, ...)
+            out = out + slope * self.dx_out.reshape((1, -1) + (1,) * (a0.ndim - 2))
         return out
 
-    def mix(arr: np.ndarray) -> MixtureArrays:
-        # arr (3, R, S, K): concatenate neighbours' components with weights (1-w), w
-        p0 = np.moveaxis(arr[:, j], 1, 2)  # (3, S, N, K)
-        p1 = np.moveaxis(arr[:, j1], 1, 2)
+    def shares(self, arr: np.ndarray) -> np.ndarray:
+        """:meth:`lin` of shares (last axis sums to 1), clipped at 0 and renormalised."""
+        out = np.maximum(self.lin(arr), 0.0)
+        out /= out.sum(axis=-1, keepdims=True)
+        return out
+
+    def mix(self, arr: np.ndarray) -> MixtureArrays:
+        """Velocity mixtures ``arr`` (3, R, S, K): the neighbours' components with weights (1-w), w."""
+        w = self.w
+        p0 = np.moveaxis(arr[:, self.j], 1, 2)  # (3, S, N, K)
+        p1 = np.moveaxis(arr[:, self.j1], 1, 2)
         ww = w[None, :, None]
         weights = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
         means = np.concatenate([p0[1], p1[1]], axis=-1)
         sig = np.concatenate([p0[2], p1[2]], axis=-1)
-        if len(runs) > 1 and np.any(outside):
+        if self._trended:
             # velocities scale with the trend of ln(mean velocity) in ln(size)
             ln_mean = np.log(np.maximum(np.sum(arr[0] * arr[1], axis=-1), 1e-6))  # (R, S)
-            f = np.exp(_trend_slope(xr, ln_mean)[:, None, None] * dx_out[None, :, None])
+            f = np.exp(_trend_slope(self.xr, ln_mean)[:, None, None] * self.dx_out[None, :, None])
             means, sig = means * f, sig * f
         return MixtureArrays(weights, means, sig)
 
-    def count_mix(arr: np.ndarray, lam: np.ndarray) -> CountArrays:
-        # arr (2, R, S, C): as for velocities, the interpolated pmf is the (1-w, w) mixture of the
-        # neighbours' pmfs, so its mean is the interpolated secondary_lambda; outside the sizes
-        # covered the end run's shape is kept and its means scaled to the extrapolated lambda
-        p0 = np.moveaxis(arr[:, j], 1, 2)  # (2, S, N, C)
-        p1 = np.moveaxis(arr[:, j1], 1, 2)
-        ww = w[None, :, None]
+    def count_mix(self, arr: np.ndarray, lam: np.ndarray) -> CountArrays:
+        """Secondary-count pmfs ``arr`` (2, R, S, C) as the (1-w, w) mixture of the neighbours' pmfs.
+
+        Its mean is the interpolated ``lam``; outside the sizes covered the end run's shape is
+        kept and its means scaled to the extrapolated ``lam``.
+        """
+        p0 = np.moveaxis(arr[:, self.j], 1, 2)  # (2, S, N, C)
+        p1 = np.moveaxis(arr[:, self.j1], 1, 2)
+        ww = self.w[None, :, None]
         cw = np.concatenate([p0[0] * (1 - ww), p1[0] * ww], axis=-1)
         cm = np.concatenate([p0[1], p1[1]], axis=-1)
         own = np.sum(cw * cm, axis=-1)
-        scale = np.where(outside[None, :] & (own > 0), lam / np.where(own > 0, own, 1.0), 1.0)
+        scale = np.where(self.outside[None, :] & (own > 0), lam / np.where(own > 0, own, 1.0), 1.0)
         return CountArrays(cw, cm * scale[..., None])
 
-    streams = np.maximum(lin(a["streams"]), 0.0)
-    streams /= streams.sum(axis=-1, keepdims=True)
+
+def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -> StageParameters:
+    sizes = np.asarray(sizes_mm, dtype=float)
+    a = _run_arrays(runs)
+    _check_velocities(runs, source)
+    ip = _SizeInterpolation(np.array([r.design.size_mm for r in runs]), sizes)
+    j, j1, w = ip.j, ip.j1, ip.w
     rw = rs = tr = None
     if "rw" in a:
-        rw = np.maximum(lin(a["rw"]), 0.0)
-        rw /= rw.sum(axis=-1, keepdims=True)
-        rs = np.maximum(lin(a["rs"]), 0.0)
-        rs /= rs.sum(axis=-1, keepdims=True)
+        rw, rs = ip.shares(a["rw"]), ip.shares(a["rs"])
     if "tr" in a:
-        tr = np.maximum(lin(a["tr"]), 0.0)
-        tr /= tr.sum(axis=-1, keepdims=True)
+        tr = ip.shares(a["tr"])
     times = np.array([r.characteristic_time_s for r in runs])
     if np.ptp(times) > _REL_TOL * times.mean():
         warnings.warn(f"characteristic times of {source} differ ({times.min():g}-{times.max():g} s); "
                       f"using their mean {times.mean():g} s as the time step", SummaryNote,
                       stacklevel=3)
     d = runs[0].design
-    lam = np.maximum(lin(a["lam"]), 0.0)
+    lam = np.maximum(ip.lin(a["lam"]), 0.0)
     filling = filling_curves(runs)
     if filling is not None:  # per class, between the neighbouring runs in log size; held outside them
         ww = w[:, None]
@@ -362,20 +378,20 @@ def _interpolate(runs: list[RunStatistics], sizes_mm: np.ndarray, source: str) -
     return StageParameters(
         sizes_mm=sizes.copy(),
         characteristic_time_s=float(times.mean()),
-        streams=streams,
-        hit_probability=np.clip(lin(a["hit"]), 0.0, 1.0),
-        primary_velocity=mix(a["pv"]),
+        streams=ip.shares(a["streams"]),
+        hit_probability=np.clip(ip.lin(a["hit"]), 0.0, 1.0),
+        primary_velocity=ip.mix(a["pv"]),
         secondary_lambda=lam,
-        secondary_velocity=mix(a["sv"]),
+        secondary_velocity=ip.mix(a["sv"]),
         design_stage_speeds_rpm=np.asarray(d.stage_speeds_rpm, dtype=float),
         design_feed_tph=d.feed_tph,
         design_gate_deg=d.gate_deg,
         region_weights=rw,
         region_streams=rs,
         source=source,
-        secondary_count=count_mix(a["sc"], lam),
+        secondary_count=ip.count_mix(a["sc"], lam),
         transition=tr,
-        extrapolated=outside,
+        extrapolated=ip.outside,
         transition_lag_s=None if tr is None else (1 - w) * times[j] + w * times[j1],
         filling_fill=None if filling is None else filling[0],
         filling_residence_ratio=None if filling is None else filling[1],
