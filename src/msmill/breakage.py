@@ -439,7 +439,13 @@ def appearance_matrix(
         )
     t10 = np.broadcast_to(t10, (*t10.shape[:-1], n))
 
-    # passing at the knots, shape (..., n, 7), ordered fine -> coarse
+    y = _knot_log_passing(consts, t10)
+    cum = _passing_at_edges(grid, y)
+    return _class_fractions(cum, t10, n)
+
+
+def _knot_log_passing(consts: Any, t10: np.ndarray) -> np.ndarray:
+    """ln(% passing) at the seven knots (t75, t50, t25, t10, t4, t2, 100 %), fine -> coarse, monotone."""
     tn_vals = consts.tn_pct(t10)  # (..., n, 5) for n = 2, 4, 25, 50, 75
     p = np.empty((*t10.shape, 7))
     p[..., 0] = tn_vals[..., 4]  # t75
@@ -452,18 +458,24 @@ def appearance_matrix(
     np.clip(p, _P_FLOOR, 100.0, out=p)
     # non-decreasing with size: running minimum from the coarse end
     p = np.minimum.accumulate(p[..., ::-1], axis=-1)[..., ::-1]
-    y = np.log(p)
+    return np.log(p)
+
+
+def _passing_at_edges(grid: SizeGrid, y: np.ndarray) -> np.ndarray:
+    """% passing each class edge (rows) of each parent class (columns): the PCHIP through the knots ``y``.
+
+    Below parent/75 a power-law tail with the secant slope of the last segment; 100 % at and
+    above the parent size; monotone in size.
+    """
+    n = grid.n_classes
     h = np.diff(_KNOT_U)
     d = _pchip_slopes(h, y)
-
     # query points: u[i, j] = ln(edges[i] / mids[j]) for the n+1 edges
-    edges = grid.edges_mm
-    u = np.log(edges)[:, None] - np.log(grid.mids_mm)[None, :]  # (n+1, n)
+    u = np.log(grid.edges_mm)[:, None] - np.log(grid.mids_mm)[None, :]  # (n+1, n)
     k = np.clip(np.searchsorted(_KNOT_U, u, side="right") - 1, 0, _KNOT_U.size - 2)
     cols = np.arange(n)[None, :]
-    x0 = _KNOT_U[k]
     hk = h[k]
-    t = (u - x0) / hk
+    t = (u - _KNOT_U[k]) / hk
     # gather y and slopes at (..., j, k) and (..., j, k+1) -> (..., n+1, n)
     y0 = y[..., cols, k]
     y1 = y[..., cols, k + 1]
@@ -477,15 +489,19 @@ def appearance_matrix(
         + (-2 * t3 + 3 * t2) * y1
         + (t3 - t2) * hk * d1
     )
-    # below parent/75: power-law tail with the secant slope of the last segment
     tail_slope = np.maximum((y[..., 1] - y[..., 0]) / h[0], 0.0)  # (..., n)
     below = u < _KNOT_U[0]
     tail = y[..., 0][..., None, :] + tail_slope[..., None, :] * (u - _KNOT_U[0])
     lnp = np.where(below, tail, lnp)
     cum = np.exp(np.minimum(lnp, math.log(100.0)))
     cum = np.where(u >= 0.0, 100.0, cum)  # at and above the parent size
-    # monotone in size (guards round-off), pan below edges[0]: class 0 takes it all
-    cum = np.maximum.accumulate(cum, axis=-2)
+    # monotone in size (guards round-off)
+    return np.maximum.accumulate(cum, axis=-2)
+
+
+def _class_fractions(cum: np.ndarray, t10: np.ndarray, n: int) -> np.ndarray:
+    """The appearance matrix from % passing the edges: exact zeros above the parent, columns summing to 1."""
+    # pan below edges[0]: class 0 takes it all
     cum[..., -1, :] = 100.0
     cum[..., 0, :] = 0.0  # cumulative "at edges[0]" is replaced by the pan convention
     # class i gets passing(edges[i+1]) - passing(edges[i]); class 0 includes the pan
