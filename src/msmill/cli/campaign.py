@@ -226,3 +226,24 @@ def status_cmd(name: NameArg, db: DbOpt = None) -> None:
             typer.echo(f"run {r.id} {r.status} attempts {r.attempts} worker {r.worker or '-'}: {last[0][:160]}")
         elif r.note:
             typer.echo(f"run {r.id} {r.status}: {r.note[:160]}")
+
+
+@app.command("report")
+def report_cmd(
+    export: Annotated[Path | None, typer.Option(
+        "--export", help="Campaign export folder (default: the packaged msmill/data/campaigns/default).")] = None,
+    surrogate: Annotated[Path | None, typer.Option("--surrogate", help="Surrogate JSON (default: the shipped one).")]
+    = None,
+    envelope: Annotated[Path | None, typer.Option("--envelope", help="Envelope JSON (default: the shipped one).")]
+    = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="Markdown file (default: docs/campaign-results.md of the checkout); figures go to img/ "
+                      "beside it.")] = None,
+    no_learning_curve: Annotated[bool, typer.Option(
+        "--no-learning-curve", help="Skip the learning curve (ten surrogate fits: minutes; the rest takes "
+                                    "seconds).")] = False,
+) -> None:
+    """Write the campaign's results page (docs/campaign-results.md) and its figures from the export."""
+    from msmill.cli.campaign_report import write_campaign_report
+
+    write_campaign_report(export, surrogate, envelope, out, echo=typer.echo, with_learning_curve=not no_learning_curve)
