@@ -12,7 +12,9 @@ them per stage. The paper's figure: mean KL 0.012 after 177 runs.
 The line before the last: the closed-form leave-one-out coverage of the 90 % predictive interval per
 kind of target (``coverage90_streams=... coverage90_hit=... coverage90_count=... coverage90_velocity=...``,
 :func:`msmill.surrogate.accuracy.loo_coverage`). Last line: ``runs=<n> domain_size_mm=<lo>-<hi>
-loo_kl_velocity_mean=<x> loo_kl_count_mean=<y> stream_mae=<z> hit_prob_mae=<w>``.
+loo_kl_velocity_mean=<x> loo_kl_count_mean=<y> stream_mae=<z> hit_prob_mae=<w> runs_fine=<m>
+loo_kl_velocity_mean_fine=<v>``, the last two over the runs of rock finer than 6.4 mm (the size the
+first campaign stopped at; ``nan`` when there are none).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ def main(argv: list[str] | None = None) -> None:
     """Command line entry point."""
     from msmill.model.providers import default_surrogate_path
     from msmill.pipeline.export import default_export_dir, read_export, split_runs
-    from msmill.surrogate.accuracy import loo_coverage, loo_scores
+    from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_coverage, loo_scores
     from msmill.surrogate.persist import load
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -57,6 +59,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{d['lambda_factor']:.2f}+-{d['lambda_factor_sd']:.2f}"
             for d in bias.lambda_factors(model.training_.layout)) + f" ({bias.n_pairs} pairs)")
     s = rep.summary()
+    fine = rep.summary(below_size_mm=FINE_SIZE_MM)
     sizes = model.training_.X[:, 0]
     print(f"paper: mean KL 0.012 after 177 runs; here {s['mean_kl_velocity']:.4f} after {s['n_runs']} runs")
     cov = loo_coverage(model, 0.9)
@@ -64,7 +67,8 @@ def main(argv: list[str] | None = None) -> None:
           + " ".join(f"coverage90_{k}={v:.3f}" for k, v in cov.items()))
     print(f"runs={s['n_runs']} domain_size_mm={sizes.min():g}-{sizes.max():g} "
           f"loo_kl_velocity_mean={s['mean_kl_velocity']:.4f} loo_kl_count_mean={s['mean_kl_count']:.4f} "
-          f"stream_mae={s['stream_mae']:.4f} hit_prob_mae={s['hit_probability_mae']:.4f}")
+          f"stream_mae={s['stream_mae']:.4f} hit_prob_mae={s['hit_probability_mae']:.4f} "
+          f"runs_fine={fine['n_runs']} loo_kl_velocity_mean_fine={fine['mean_kl_velocity']:.4f}")
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
           groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table"):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
     from msmill.pipeline.export import read_export, split_runs
-    from msmill.surrogate.accuracy import loo_scores
+    from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
     from msmill.surrogate.fidelity import SliceToFullBias, match_pairs
     from msmill.surrogate.stage_model import StageSurrogate
 
@@ -80,6 +80,7 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
                   "feed_tph": r.statistics.design.feed_tph, "speed_rpm": r.statistics.design.speed_rpm,
                   "gate_deg": r.statistics.design.gate_deg, "wall_s": r.wall_s} for r in slices],
         "loo": {"method": report.method, **report.summary(),
+                "fine": {"below_size_mm": FINE_SIZE_MM, **report.summary(below_size_mm=FINE_SIZE_MM)},
                 "per_stage": report.per_stage.reset_index().to_dict(orient="list")},
         "domain": {k: [float(v) for v in dom[i]] for i, k in
                    enumerate(("size_mm", "feed_tph", "speed_rpm", "gate_deg"))},
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> None:
     prov["cpu_s"] = round(time.process_time() - t0, 1)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     save(model, a.out, provenance=prov)
-    s = report.summary()
+    s, fine = report.summary(), prov["loo"]["fine"]
     print(f"wrote {a.out} ({a.out.stat().st_size / 1e3:.0f} kB): {s['n_runs']} runs, {report.method}")
     print(report.per_stage.round(4).to_string())
     for k, (lo, hi) in prov["domain"].items():
@@ -155,7 +156,8 @@ def main(argv: list[str] | None = None) -> None:
             f"{d['lambda_factor']:.2f}+-{d['lambda_factor_sd']:.2f}" for d in prov["slice_to_full"]))
     print(f"runs={s['n_runs']} loo_kl_velocity_mean={s['mean_kl_velocity']:.4f} "
           f"loo_kl_count_mean={s['mean_kl_count']:.4f} stream_mae={s['stream_mae']:.4f} "
-          f"hit_prob_mae={s['hit_probability_mae']:.4f} cpu_s={prov['cpu_s']} "
+          f"hit_prob_mae={s['hit_probability_mae']:.4f} runs_fine={fine['n_runs']} "
+          f"loo_kl_velocity_mean_fine={fine['mean_kl_velocity']:.4f} cpu_s={prov['cpu_s']} "
           f"size_mm={np.min(model.training_.X[:, 0]):g}-{np.max(model.training_.X[:, 0]):g}")
 
 

@@ -69,17 +69,17 @@ def prepare(st, a) -> None:
 
 def progress_state(st, campaign: str) -> dict[str, float]:
     """Steady slice runs of the campaign's machine, their DEM wall hours and the closed-form LOO velocity KL."""
-    from msmill.surrogate.accuracy import loo_scores
+    from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
     from msmill.surrogate.stage_model import StageSurrogate
 
     info = st.campaign(campaign)
     pairs = [(r, s) for r, s in st.training_runs(machine_hash=info.machine_hash) if r.mode == "slice"]
     hours = sum(r.wall_s or 0.0 for r, _ in pairs) / 3600.0
-    kl = float("nan")
+    kl = kl_fine = float("nan")
     if len(pairs) >= 3:
-        model = StageSurrogate(n_restarts=0).fit([s for _, s in pairs])
-        kl = loo_scores(model).summary()["mean_kl_velocity"]
-    return {"runs": len(pairs), "dem_hours": hours, "kl": kl}
+        rep = loo_scores(StageSurrogate(n_restarts=0).fit([s for _, s in pairs]))
+        kl, kl_fine = (rep.summary(below_size_mm=b)["mean_kl_velocity"] for b in (None, FINE_SIZE_MM))
+    return {"runs": len(pairs), "dem_hours": hours, "kl": kl, "kl_fine": kl_fine}
 
 
 def stop_reason(state: dict[str, float], a) -> str | None:
@@ -110,6 +110,7 @@ def export(st, a) -> None:
 def one_round(st, a) -> str | None:
     """Run the planned runs, export, check the stop criteria, plan the next batch; the stop reason or None."""
     from msmill.pipeline.campaign import PLANNERS, run_campaign
+    from msmill.surrogate.accuracy import FINE_SIZE_MM
 
     if not a.no_run and (st.counts(a.campaign)["planned"] or st.counts(a.campaign)["running"]):
         rep = run_campaign(st, a.campaign, scheduler=a.scheduler, n_workers=a.workers, stale_s=a.stale_s)
@@ -117,7 +118,7 @@ def one_round(st, a) -> str | None:
         export(st, a)
     state = progress_state(st, a.campaign)
     print(f"state: {state['runs']} steady slice runs, {state['dem_hours']:.2f} DEM hours, "
-          f"LOO KL velocity {state['kl']:.4f}")
+          f"LOO KL velocity {state['kl']:.4f} (runs below {FINE_SIZE_MM:g} mm: {state['kl_fine']:.4f})")
     a.state = state
     why = stop_reason(state, a)
     if why:

@@ -12,6 +12,7 @@ import pytest
 from msmill.errors import MsmillInputError
 from msmill.pipeline import results as R
 from msmill.stageparams import RunStatistics
+from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
 from msmill.surrogate.capacity import CapacityModel, EnvelopePoint
 
 
@@ -74,11 +75,28 @@ def test_learning_curve_uses_the_first_n_runs_in_the_given_order(campaign):
     fwd = R.learning_curve(slices, order, n_points=3)
     rev = R.learning_curve(slices, order[::-1], n_points=3)
     assert list(fwd["runs"]) == [4, 6, 8] == list(rev["runs"])
-    assert set(fwd.columns) == {"runs", "kl_velocity", "kl_count", "stream_mae", "hit_mae", "representation_kl"}
+    assert set(fwd.columns) == {"runs", "kl_velocity", "kl_count", "stream_mae", "hit_mae", "representation_kl",
+                                "runs_fine", "kl_velocity_fine"}
+    fine = [r.statistics.design.size_mm < FINE_SIZE_MM for r in slices]
+    assert list(fwd["runs_fine"]) == [sum(fine[:n]) for n in (4, 6, 8)]
     # all 8 runs: the same whatever the order; the first 4 differ between the two orders
     pd.testing.assert_series_equal(fwd.iloc[-1], rev.iloc[-1], rtol=1e-6)
     assert fwd["kl_velocity"].iloc[0] != pytest.approx(rev["kl_velocity"].iloc[0], rel=1e-6)
     assert (fwd[["kl_velocity", "kl_count", "representation_kl"]] > 0).all().all()
+
+
+def test_loo_summary_below_a_size_scores_only_the_finer_runs(fitted):
+    rep = loo_scores(fitted)
+    sizes = np.array(sorted({r.design.size_mm for r in fitted.training_.runs}))
+    cut = float(sizes[len(sizes) // 2])
+    fine = rep.summary(below_size_mm=cut)
+    d = rep.per_point[rep.per_point["size_mm"] < cut]
+    assert fine["n_runs"] == int((sizes < cut).sum()) > 0
+    assert fine["mean_kl_velocity"] == pytest.approx(np.mean(np.r_[d["kl_primary_velocity"],
+                                                                   d["kl_secondary_velocity"]]))
+    assert fine["mean_kl_velocity"] != pytest.approx(rep.summary()["mean_kl_velocity"])
+    none = rep.summary(below_size_mm=float(sizes[0]))  # no run is finer than the finest
+    assert none["n_runs"] == 0 and np.isnan(none["mean_kl_velocity"])
 
 
 def test_kl_by_sample_size_counts_every_held_out_distribution(fitted):

@@ -472,6 +472,7 @@ def _header(r: CampaignReport) -> list[str]:
 def _learning(r: CampaignReport) -> list[str]:
     """Learning curve (unless skipped) and KL against sample size."""
     from msmill.pipeline.results import PAPER_KL
+    from msmill.surrogate.accuracy import FINE_SIZE_MM
     from msmill.surrogate.targets import N_LEVELS
 
     curve = r.curve
@@ -483,7 +484,8 @@ def _learning(r: CampaignReport) -> list[str]:
         "Closed-form leave-one-out (fixed hyperparameters, `msmill.surrogate.accuracy`) on the first *n* runs "
         f"in the order they were computed. The velocity KL cannot fall below the {N_LEVELS}-quantile representation's "
         f"own KL (dotted: {curve['representation_kl'].iloc[-1]:.4f} on these runs; the paper's figure is "
-        f"{PAPER_KL}).",
+        f"{PAPER_KL}). `runs_fine` and `kl_velocity_fine`: the runs of rock finer than {FINE_SIZE_MM:g} mm "
+        "among the first *n* and their own mean velocity KL, the fine region's learning curve.",
         "",
         *markdown_table(curve.round(4)),
         "",
@@ -626,6 +628,8 @@ def write_campaign_report(export: Path | None = None, surrogate: Path | None = N
     plot_trends(r.provider, r.at, img / "campaign-trends.png")
     atomic_write_bytes(out, render(r, img).encode("utf-8"), "--out")
     echo(f"wrote {out} and its figures in {img}")
-    kl = "" if r.curve is None else f" loo_kl_velocity_mean={r.curve.iloc[-1]['kl_velocity']:.4f}"
+    last = None if r.curve is None else r.curve.iloc[-1]
+    kl = "" if last is None else (f" loo_kl_velocity_mean={last['kl_velocity']:.4f} runs_fine={last['runs_fine']}"
+                                  f" loo_kl_velocity_mean_fine={last['kl_velocity_fine']:.4f}")
     echo(f"runs={len(r.runs)}{kl} dem_hours={r.runs['wall_s'].sum() / 3600:.2f}")
     return r

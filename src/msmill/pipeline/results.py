@@ -136,9 +136,11 @@ def learning_curve(slices: list, order: list[str], n_points: int = 10) -> pd.Dat
     -------
     DataFrame
         ``runs``, ``kl_velocity``, ``kl_count``, ``representation_kl`` (mean KL, nats), ``stream_mae``,
-        ``hit_mae`` (mean absolute errors of fractions).
+        ``hit_mae`` (mean absolute errors of fractions), ``runs_fine`` and ``kl_velocity_fine`` (the runs
+        of rock finer than :data:`msmill.surrogate.accuracy.FINE_SIZE_MM` among the first n, their mean
+        velocity KL; NaN while there are none).
     """
-    from msmill.surrogate.accuracy import loo_scores
+    from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
     from msmill.surrogate.stage_model import StageSurrogate
 
     by_file = {r.path.name: r.statistics for r in slices}
@@ -148,10 +150,12 @@ def learning_curve(slices: list, order: list[str], n_points: int = 10) -> pd.Dat
     for n in ns:
         if n < 3:
             continue
-        s = loo_scores(StageSurrogate(n_restarts=0).fit(runs[:n])).summary()
+        rep = loo_scores(StageSurrogate(n_restarts=0).fit(runs[:n]))
+        s, fine = rep.summary(), rep.summary(below_size_mm=FINE_SIZE_MM)
         out.append({"runs": n, "kl_velocity": s["mean_kl_velocity"], "kl_count": s["mean_kl_count"],
                     "stream_mae": s["stream_mae"], "hit_mae": s["hit_probability_mae"],
-                    "representation_kl": s["representation_kl"]})
+                    "representation_kl": s["representation_kl"], "runs_fine": fine["n_runs"],
+                    "kl_velocity_fine": fine["mean_kl_velocity"]})
     return pd.DataFrame(out)
 
 

@@ -25,11 +25,15 @@ def plot_learning(curve: Any, path: Path) -> None:
     """LOO mean KL (nats) against the number of runs (``learning_curve``), the paper's figure, the floor."""
     import matplotlib.pyplot as plt
 
+    from msmill.surrogate.accuracy import FINE_SIZE_MM
     from msmill.surrogate.targets import N_LEVELS
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(curve["runs"], curve["kl_velocity"], "o-", label="ours: LOO mean KL, velocities")
     ax.plot(curve["runs"], curve["kl_count"], "s--", label="ours: LOO mean KL, secondary count")
+    if "kl_velocity_fine" in curve and curve["kl_velocity_fine"].notna().any():
+        ax.plot(curve["runs"], curve["kl_velocity_fine"], "^-.",
+                label=f"ours: LOO mean KL, velocities, runs below {FINE_SIZE_MM:g} mm")
     ax.axhline(curve["representation_kl"].iloc[-1], color="grey", ls=":",
                label=f"{N_LEVELS}-quantile representation floor (velocities)")
     ax.plot([PAPER_RUNS], [PAPER_KL], "r*", ms=14, label=f"paper: {PAPER_KL} after {PAPER_RUNS} runs")
