@@ -137,10 +137,14 @@ def main(argv: list[str] | None = None) -> None:
     if a.method == "censored":
         print("coefficients (log t/h): " + ", ".join(f"{k} {v:.3f}" for k, v in model.params["coefficients"].items())
               + f"; sigma {model.params['sigma']:.3f}")
+    if again.lower_bound:
+        from msmill.surrogate.capacity import demonstrated_rule
+
+        print(f"lower bounds ({demonstrated_rule()}):")
     for s, v, g in SHOW:
         cap = again.capacity_tph(s, v, g)
         if again.lower_bound:
-            print(f"{s:g} mm {v:g} rpm gate {g:g} deg: capacity at least {cap:.0f} t/h (largest steady feed near it)")
+            print(f"{s:g} mm {v:g} rpm gate {g:g} deg: capacity at least {cap:.0f} t/h")
             continue
         p = again.probability_steady(s, [0.8 * cap, 1.25 * cap], v, g) if cap < float("inf") else [float("nan")] * 2
         print(f"{s:g} mm {v:g} rpm gate {g:g} deg: capacity {cap:.1f} t/h; P(steady) at 0.8x {p[0]:.2f}, "

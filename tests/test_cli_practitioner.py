@@ -76,6 +76,16 @@ def test_sweep_and_optimize(tmp_path, capsys):
     # a smaller L_ref breaks more easily, so the target is reached at a lower speed
     assert sens["speed_rpm"].is_monotonic_increasing and sens["speed_rpm"].nunique() == 3
     assert run(["sweep", str(run_file), "--var", "colour=1:2"]) == 2
+    capsys.readouterr()
+    # a target out of reach says what the bounds reach; an optimum on a bound says so
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--goal", "min_energy",
+                "--target-p80-mm", "0.5", "--n-grid", "3", "--out", str(tmp_path / "o2")]) == 0
+    out = capsys.readouterr().out
+    assert "no setting within the bounds reaches P80 <= 0.5 mm" in out and "the closest: P80" in out
+    assert "speed_rpm = 1900" in out
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--goal", "min_energy",
+                "--target-p80-mm", "1000", "--n-grid", "3", "--out", str(tmp_path / "o3")]) == 0
+    assert "the optimum sits on a bound: speed_rpm at its low bound 1200" in capsys.readouterr().out
 
 
 def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):

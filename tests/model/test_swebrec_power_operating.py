@@ -101,6 +101,8 @@ def test_optimizer_finds_known_max_feed():
     assert r.settings["speed_rpm"] == pytest.approx(1900.0)
     assert r.settings["feed_tph"] == pytest.approx(48.0, rel=2e-3)
     assert r.row["p80_mm"] <= 12.0
+    assert r.at_bounds() == {"speed_rpm": "high"}  # the speed is the range's, the feed the mill's
+    assert r.closest is None
 
 
 def test_optimizer_respects_the_feasibility_hook():
@@ -115,8 +117,11 @@ def test_optimizer_respects_the_feasibility_hook():
 def test_optimizer_finds_known_min_energy():
     r = optimize_settings(analytic, {"speed_rpm": (1200, 1900)}, "min_energy", target_p80_mm=9.0)
     assert r.settings["speed_rpm"] == pytest.approx(1750.0, rel=2e-3)  # 16 - 0.004 s = 9
+    assert r.at_bounds() == {}  # an interior optimum
     none = optimize_settings(analytic, {"speed_rpm": (1200, 1900)}, "min_energy", target_p80_mm=5.0)
     assert none.settings is None
+    # what the bounds can reach: the finest product, at the top speed (P80 16 - 0.004 * 1900 = 8.4 mm)
+    assert none.closest["speed_rpm"] == pytest.approx(1900.0) and none.closest["p80_mm"] == pytest.approx(8.4)
 
 
 def test_optimizer_on_the_mill_meets_the_target_at_the_lowest_speed():

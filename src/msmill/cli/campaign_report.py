@@ -258,11 +258,7 @@ DEMONSTRATED_AT = ((6.0, 10.0, 14.0, 20.0, 28.0), (1200.0, 1550.0, 1900.0), (0.0
 
 def demonstrated_section(env: Any, model: Any, missing: list, env_rel: str) -> list[str]:
     """Capacity section when no run choked: the largest feed a steady run passed near each point (lower bounds)."""
-    from msmill.surrogate.capacity import (
-        DEMONSTRATED_GATE_TOL_DEG,
-        DEMONSTRATED_SIZE_FACTOR,
-        DEMONSTRATED_SPEED_RPM,
-    )
+    from msmill.surrogate.capacity import demonstrated_rule
 
     n = env.counts()
     sizes, speeds, gates = DEMONSTRATED_AT
@@ -284,19 +280,18 @@ def demonstrated_section(env: Any, model: Any, missing: list, env_rel: str) -> l
         f"deliver, up to {top.feed_tph:.0f} t/h ({top.size_mm:.3g} mm rock, {top.speed_rpm:.0f} rpm, gate "
         f"{top.gate_deg:.1f} deg; `docs/mill-dem.md` 3.1), more than 40 times the design space's largest feed. "
         "So the data bound the capacity from below only, and the shipped envelope (method `demonstrated`, "
-        "`msmill.surrogate.capacity`) says exactly that: the capacity at a size, speed and gate is **at least** the largest "
-        f"feed of a steady run near it (rock within a factor {DEMONSTRATED_SIZE_FACTOR:g} of the size, a shaft "
-        f"speed within {DEMONSTRATED_SPEED_RPM:g} rpm, a gate angle at most {DEMONSTRATED_GATE_TOL_DEG:g} deg above "
-        "the point's: opening the gates further cannot pass less). '-': no run near that point, no statement.",
+        "`msmill.surrogate.capacity`) says exactly that, under one stated assumption: the capacity at a size, speed "
+        f"and gate is **at least** {demonstrated_rule()} (`docs/mill-dem.md` 3.1): continuous, never falling as "
+        "the gates open.",
         "",
         *rows,
         "",
         "`msmill predict` reports the lower bound (`capacity ... >= X`) and warns, in one line, when the feed rate "
         "is above it: the feed is beyond what the DEM has shown the mill to pass there, and the capacity above it is "
-        "unknown (not exceeded). `msmill sweep` flags such points (`above_capacity`) and `msmill optimize` "
-        "excludes them. Where only low-feed runs are near (fine rock, the small entries above), the bound lies "
-        "inside the design space's 10-60 t/h, so there the tools flag feeds that no DEM run near them has passed: "
-        "a conservative constraint, lifted by a DEM run at a higher feed there (`msmill campaign add`). "
+        "unknown (not exceeded). `msmill sweep` and `msmill optimize` flag such points (`above_capacity`) and keep "
+        "them feasible. Where only low-feed runs are near (fine rock, the small entries above), the bound lies "
+        "inside the design space's 10-60 t/h, so there the tools flag feeds that no DEM run near them has passed, "
+        "until a DEM run at a higher feed there lifts the bound (`msmill campaign add`). "
         "The censored capacity model and the classifier stay in `msmill.surrogate.capacity` for data with chokes "
         "(`scripts/build_envelope.py --method censored` refuses to fit without one).",
         "",

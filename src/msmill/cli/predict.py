@@ -78,11 +78,14 @@ def apply_envelope(mill, envelope: Path | None, capacity_check: bool) -> None:
 
 def _capacity_rows(result: Any) -> list[tuple[str, str]]:
     """Summary rows of the envelope check: the capacity (or its lower bound) and P(steady)."""
+    from msmill.model.result import display_number
+
     if result.capacity_is_lower_bound:
         known = not math.isnan(result.probability_steady)  # NaN above the bound: no evidence either way
-        return [("capacity at F80, speed, gate (t/h; DEM envelope, no run choked)", f">= {result.capacity_tph:.3g}"),
+        return [("capacity at F80, speed, gate (t/h; DEM envelope lower bound, no run choked)",
+                 f">= {display_number(result.capacity_tph)}"),
                 ("probability of steady flow at this feed",
-                 "1 (a steady DEM run passed more)" if known else "unknown (above every steady DEM run near here)")]
+                 "1 (within the lower bound)" if known else "unknown (above the lower bound)")]
     return [("capacity at F80, speed, gate (t/h; DEM envelope)", f"{result.capacity_tph:.3g}"),
             ("probability of steady flow at this feed", f"{result.probability_steady:.2f}")]
 
@@ -132,14 +135,14 @@ def _print_summary(rf, mill, result, folder: Path, names: list[str]) -> None:
     for r in rows:
         t.add_row(*r)
     con.print(t)
+    from msmill.model.result import display_number, stage_display
+
+    table = stage_display(result.stages)
     s = Table(title="per stage", show_header=True)
-    for col in ("stage", "hold-up (kg)", "P80 (mm)", "primary /rock", "secondary /rock", "kWh/t feed",
-                "flinger J/t feed"):
+    for col in table.columns:
         s.add_column(col, justify="right")
-    for _, r in result.stages.iterrows():
-        s.add_row(f"{int(r['stage'])}", f"{1000 * r['holdup_t']:.3g}", f"{r['p80_mm']:.3g}",
-                  f"{r['primary_impacts_per_t']:.3g}", f"{r['secondary_impacts_per_t']:.3g}",
-                  f"{r['impact_energy_kwh_t']:.3g}", f"{r['flinger_energy_j_per_t']:.3g}")
+    for row in table.itertuples(index=False):
+        s.add_row(str(row[0]), *(display_number(v) for v in row[1:]))
     con.print(s)
     con.print(f"solver: {result.solver}; sub-models: "
               + ", ".join(f"{k}={v}" for k, v in result.submodels.items()))

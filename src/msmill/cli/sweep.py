@@ -61,7 +61,8 @@ def _grid_size(counts: list[int], field: str) -> None:
 
 
 ENVELOPE_HELP = "DEM envelope (JSON) whose capacity constrains the points, instead of the shipped one."
-CHECK_HELP = "Points above the envelope's capacity are infeasible (flagged in the table, excluded by the optimiser)."
+CHECK_HELP = ("Points above the envelope's predicted capacity are infeasible (flagged in the table, excluded by the "
+              "optimiser); above a lower bound (no DEM run choked) they are flagged only.")
 
 
 def _build(run_file: Path, names: list[str], envelope: Path | None = None, capacity_check: bool = True):
@@ -117,10 +118,14 @@ def _capacity_line(con, mill, table) -> None:
         return
     n = int(table["above_capacity"].sum())
     cap = mill.capacity
-    what = ("lower bound: the largest feed a steady run near the point passed, no run choked" if cap.lower_bound
-            else f"{cap.n_choked} choked of {cap.n_steady + cap.n_choked} runs")
-    con.print(f"capacity (DEM envelope, {what}): {n} of {len(table)} points above it (above_capacity, "
-              "feasible = false)")
+    if cap.lower_bound:
+        from msmill.surrogate.capacity import demonstrated_rule
+
+        con.print(f"capacity (DEM envelope, a lower bound: {demonstrated_rule()}): {n} of {len(table)} points "
+                  "above it (above_capacity; still feasible: the capacity there is unknown, not exceeded)")
+        return
+    con.print(f"capacity (DEM envelope, {cap.n_choked} choked of {cap.n_steady + cap.n_choked} runs): {n} of "
+              f"{len(table)} points above it (above_capacity, feasible = false)")
 
 
 def optimize(
@@ -190,7 +195,14 @@ def optimize(
     con = _console()
     _capacity_line(con, mill, res.candidates)
     if res.settings is None:
-        con.print(f"no setting within the bounds reaches {res.target} ({len(res.candidates)} evaluated)")
+        c = res.closest
+        reach = ""
+        if c is not None:
+            got = (f"P80 {c['p80_mm']:.4g} mm" if res.target.startswith("P80") else
+                   next(f"passing {k[8:-6]} mm {c[k]:.4g} %" for k in c if k.startswith("passing_")))
+            reach = (f"; the closest: {got} at " + ", ".join(f"{k} = {c[k]:.4g}" for k in res.bounds)
+                     + ("" if c["feasible"] else " (infeasible)"))
+        con.print(f"no setting within the bounds reaches {res.target} ({len(res.candidates)} evaluated){reach}")
     else:
         r = res.row
         con.print(f"best ({res.goal}, {res.target}): "
@@ -201,6 +213,11 @@ def optimize(
                   + _capacity_text(r))
         if "p80_low_mm" in r:
             con.print(f"P80 band {r['p80_low_mm']:.4g}-{r['p80_high_mm']:.4g} mm")
+        on = res.at_bounds()
+        if on:
+            con.print("the optimum sits on a bound: " + ", ".join(
+                f"{k} at its {side} bound {res.bounds[k][0 if side == 'low' else 1]:g}" for k, side in on.items())
+                + " (a wider range may do better)")
     if sens is not None:
         con.print("optimum at L_ref -+ s.e.:")
         con.print(sens.to_string(index=False, float_format=lambda v: f"{v:.4g}"))

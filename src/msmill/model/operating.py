@@ -13,7 +13,10 @@ feasible). The mill's DEM operating envelope (``Mill(envelope=...)``, by
 default the shipped one, :mod:`msmill.surrogate.capacity`) is a constraint on top of it:
 every row carries ``capacity_tph`` (at the feed's F80, speed and gate),
 ``p_steady`` (probability the mill passes the feed) and ``above_capacity``,
-and a point above capacity is infeasible, in sweeps and the optimiser alike.
+and a point above a predicted capacity (an envelope with choked runs) is
+infeasible, in sweeps and the optimiser alike. A capacity that is only a
+lower bound (no DEM run choked, ``capacity_is_lower_bound``) flags the point
+and leaves it feasible: above it the capacity is unknown, not exceeded.
 :func:`capacity_feasible` makes the same constraint from another envelope.
 
 Note: with a stage-parameter table measured at one operating point, the
@@ -25,6 +28,7 @@ surrogate). Off the table's point the provider warns.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import warnings
@@ -64,7 +68,7 @@ def capacity_feasible(model: Any) -> Feasible:
 
     def feasible(op: Any, res: Any) -> bool:
         chk = check_capacity(model, res.f80_mm, op.feed_tph, op.upper_speed_rpm, op.gate_deg)
-        return chk is None or not chk.above
+        return chk is None or not chk.above or chk.lower_bound  # above a lower bound: unknown, not exceeded
 
     return feasible
 
@@ -101,7 +105,8 @@ def evaluate_point(mill: Any, feed: PSD, base_op: Any, settings: dict[str, float
            "holdup_t": float(res.stages["holdup_t"].sum()),
            "inside_design_space": not any("design space" in str(w.message) for w in caught),
            **_capacity_columns(res)}
-    row["feasible"] = (bool(feasible(op, res)) if feasible is not None else True) and not row["above_capacity"]
+    choked = row["above_capacity"] and not row["capacity_is_lower_bound"]  # a lower bound flags, never excludes
+    row["feasible"] = (bool(feasible(op, res)) if feasible is not None else True) and not choked
     band = getattr(res, "p80_band_mm", None)  # uncertainty band (issue 13), when the result has one
     if band is not None:
         row["p80_low_mm"], row["p80_high_mm"] = float(band[0]), float(band[1])
@@ -160,6 +165,11 @@ class OptimumResult:
     goal : str
     target : str
         Human-readable target.
+    bounds : dict
+        ``{variable: (low, high)}`` searched.
+    closest : dict or None
+        When no candidate meets the target: the evaluated point nearest to meeting it (feasible ones first),
+        i.e. what the bounds can reach; None otherwise.
     """
 
     settings: dict[str, float] | None
@@ -168,6 +178,23 @@ class OptimumResult:
     front: pd.DataFrame
     goal: str
     target: str
+    bounds: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    closest: dict[str, Any] | None = None
+
+    def at_bounds(self) -> dict[str, str]:
+        """Variables whose best setting sits on a bound of the search: ``{variable: "low" or "high"}``.
+
+        There a wider bound may do better: the optimum is the bound's, not the mill's.
+        """
+        out = {}
+        for k, v in (self.settings or {}).items():
+            lo, hi = self.bounds.get(k, (v, v))
+            tol = 1e-6 * (hi - lo)
+            if hi > lo and v <= lo + tol:
+                out[k] = "low"
+            elif hi > lo and v >= hi - tol:
+                out[k] = "high"
+        return out
 
 
 def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
@@ -245,7 +272,10 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     feas = cand[cand["feasible"]]
     front = pareto_front(feas) if len(feas) else feas
     settings = {k: float(best[k]) for k in names} if best is not None else None
-    return OptimumResult(settings, best, cand, front, goal, target)
+    closest = None
+    if best is None and rows:  # what the bounds can reach: the nearest miss, feasible points first
+        closest = max(rows, key=lambda r: (bool(r["feasible"]), margin(r)))
+    return OptimumResult(settings, best, cand, front, goal, target, dict(bounds), closest)
 
 
 def _refine_all(evaluate, ok, names, drive, axis, margin, rows, tol, score, goal) -> dict:

@@ -154,6 +154,37 @@ class MillResult:
         })
 
 
+#: the per-stage table as users read it (CLI summary, report): column -> (label, factor to the display unit)
+STAGE_DISPLAY = {
+    "stage": ("stage", 1),
+    "holdup_t": ("hold-up (kg)", 1000.0),
+    "p80_mm": ("P80 (mm)", 1.0),
+    "primary_impacts_per_t": ("primary impacts per rock", 1.0),
+    "secondary_impacts_per_t": ("secondary impacts per rock", 1.0),
+    "impact_energy_kwh_t": ("impact energy (kWh/t feed)", 1.0),
+    "flinger_energy_j_per_t": ("flinger energy (kJ/t feed)", 1e-3),
+    "impact_kw": ("impact power (kW)", 1.0),
+    "flinger_kw": ("flinger power (kW)", 1.0),
+}
+
+
+def stage_display(stages: pd.DataFrame) -> pd.DataFrame:
+    """``stages`` (``MillResult.stages``, optionally merged with the power's per-stage kW) in display units and
+    labels (:data:`STAGE_DISPLAY`: hold-up in kg, flinger energy in kJ/t), the columns it has, in that order."""
+    cols = [c for c in STAGE_DISPLAY if c in stages.columns]
+    out = pd.DataFrame({STAGE_DISPLAY[c][0]: stages[c].to_numpy() * STAGE_DISPLAY[c][1] for c in cols})
+    out["stage"] = out["stage"].astype(int)
+    return out
+
+
+def display_number(value: float) -> str:
+    """A figure as people read it: three significant digits, thousands whole with separators, '-' if not finite."""
+    v = float(value)
+    if not np.isfinite(v):
+        return "-"
+    return f"{v:,.0f}" if abs(v) >= 1000 else f"{v:.3g}"
+
+
 def time_to_steady_state(time_s: np.ndarray, product_tph: np.ndarray, feed_tph: float,
                          tol: float = 0.01, holdup_t: np.ndarray | None = None,
                          criterion: SteadyStateCriterion | None = None) -> float:

@@ -25,17 +25,23 @@ the capacity where that probability is one half:
 ``"demonstrated"``: no choked run at all (what our DEM of the default
     machine gives: its slice passed every feed the chute's feed stream could
     deliver, up to 2520 t/h, docs/mill-dem.md 3.1). The data then bound the
-    capacity from below only, and this method says exactly that: the
-    capacity at ``(size, speed, gate)`` is **at least** the largest feed of a
-    steady run near it, a run of rock within a factor
-    :data:`DEMONSTRATED_SIZE_FACTOR` of the size, a shaft speed within
-    :data:`DEMONSTRATED_SPEED_RPM`, and a gate angle at most
-    :data:`DEMONSTRATED_GATE_TOL_DEG` above the query's (a gate opened
-    further cannot pass less through the outlet; nothing is assumed about
-    speed or size beyond the neighbourhood). ``P(steady)`` is 1 at or below
-    that feed and unknown (NaN) above it; no such run: no statement (NaN).
-    The warning above it says that the feed is beyond what the DEM has shown
-    the mill to pass, not that the mill chokes.
+    capacity from below only, and this method says exactly that: a steady
+    run at feed ``F_i`` shows the capacity at its own point is **at least**
+    ``F_i``; elsewhere the bound is ``max_i F_i 2^(-d_i)``, with ``d_i`` the
+    distance to run ``i`` in units of a factor :data:`DEMONSTRATED_SIZE_FACTOR`
+    in rock size, :data:`DEMONSTRATED_SPEED_RPM` in shaft speed and
+    :data:`DEMONSTRATED_GATE_TOL_DEG` of gate *closing* (a gate opened further
+    cannot pass less through the outlet, so opening costs nothing). That is
+    the lower bound under one stated assumption, that the capacity at most
+    halves over one such unit (log capacity Lipschitz in those units): it
+    is continuous in every input (no jump from one nearest run to another),
+    never falls as the gates open, rises wherever a run is added, and equals
+    the largest feed run at a run's own point when no other run claims more.
+    ``P(steady)`` is 1 at or below that feed and unknown (NaN) above it. The
+    warning above it says that the feed is beyond what the DEM has shown the
+    mill to pass, not that the mill chokes; sweeps and the optimiser flag
+    such points and keep them feasible (there is no choke model to exclude
+    them by).
 ``"classifier"``: a Gaussian-process classifier (scikit-learn, anisotropic
     RBF on ``log size``, ``feed``, ``speed``, ``gate`` scaled to about unit
     range) of steady (label 1, plus a steady pseudo-point at each choked run's
@@ -82,17 +88,21 @@ __all__ = [
     "check_capacity",
     "default_capacity_model",
     "default_envelope_path",
+    "demonstrated_rule",
     "load_capacity",
     "warn_if_above_capacity",
 ]
 
 METHODS = ("censored", "classifier", "demonstrated")
-#: ``"demonstrated"``: a steady run speaks for rock sizes within this factor of its own ...
+#: ``"demonstrated"``: a steady run's feed is assumed to bound the capacity to within a factor 2 over one unit
+#: of distance: this factor in rock size ...
 DEMONSTRATED_SIZE_FACTOR = 1.5
-#: ... for shaft speeds within this many rpm of its own ...
+#: ... this many rpm of shaft speed ...
 DEMONSTRATED_SPEED_RPM = 250.0
-#: ... and for gate angles from its own less this tolerance upwards (a wider opening passes at least as much)
+#: ... and this many degrees of gate closing (a wider opening passes at least as much: opening costs nothing)
 DEMONSTRATED_GATE_TOL_DEG = 5.0
+#: the factor the bound may fall by over one unit of that distance
+DEMONSTRATED_FALL_PER_UNIT = 2.0
 ENVELOPE_KIND = "msmill_envelope"
 _SCALE = np.array([1.0, 60.0, 1900.0, 80.0])  # log(size/mm), t/h, rpm, deg: about unit range over the design space
 #: reference point and unit of each input of the censored model's log-linear law
@@ -261,21 +271,29 @@ def _fit_classifier(points: list[EnvelopePoint], throughput_as_steady: bool, see
                  "throughput_as_steady": throughput_as_steady, "seed": seed, "n_labelled_steady": int(sum(labels))}
 
 
+def demonstrated_rule() -> str:
+    """The ``"demonstrated"`` lower bound in words, for the summaries and pages that show it."""
+    return (f"a steady DEM run's feed, halved per {DEMONSTRATED_SIZE_FACTOR:g}x in rock size, "
+            f"{DEMONSTRATED_SPEED_RPM:g} rpm or {DEMONSTRATED_GATE_TOL_DEG:g} deg of gate closing away from it; "
+            "no run has choked")
+
+
 def _demonstrated_params() -> dict[str, float]:
     return {"size_factor": DEMONSTRATED_SIZE_FACTOR, "speed_window_rpm": DEMONSTRATED_SPEED_RPM,
-            "gate_tolerance_deg": DEMONSTRATED_GATE_TOL_DEG}
+            "gate_tolerance_deg": DEMONSTRATED_GATE_TOL_DEG, "fall_per_unit": DEMONSTRATED_FALL_PER_UNIT}
 
 
 def _demonstrated_tph(steady: np.ndarray, params: dict[str, float], size_mm: Any, speed_rpm: Any,
                       gate_deg: Any) -> np.ndarray:
-    """Largest feed (t/h) of the steady runs ``steady`` (rows size, feed, speed, gate) near each query; NaN if none."""
+    """Lower bound on the capacity (t/h) at each query from the steady runs ``steady`` (rows size, feed, speed,
+    gate): ``max_i feed_i fall^(-d_i)``, ``d_i`` the distance to run ``i`` in the units of ``params``."""
     s, v, g = (np.ravel(c) for c in np.broadcast_arrays(*(np.asarray(x, dtype=float)
                                                           for x in (size_mm, speed_rpm, gate_deg))))
-    near = ((np.abs(np.log(steady[None, :, 0] / s[:, None])) <= math.log(params["size_factor"]) + 1e-12)
-            & (np.abs(steady[None, :, 2] - v[:, None]) <= params["speed_window_rpm"])
-            & (steady[None, :, 3] <= g[:, None] + params["gate_tolerance_deg"]))
-    best = np.where(near, steady[None, :, 1], -np.inf).max(axis=1, initial=-np.inf)
-    return np.where(np.isfinite(best), best, np.nan)
+    d2 = ((np.log(steady[None, :, 0] / s[:, None]) / math.log(params["size_factor"])) ** 2
+          + ((steady[None, :, 2] - v[:, None]) / params["speed_window_rpm"]) ** 2
+          + (np.maximum(steady[None, :, 3] - g[:, None], 0.0) / params["gate_tolerance_deg"]) ** 2)
+    log_bound = np.log(steady[None, :, 1]) - np.sqrt(d2) * math.log(params["fall_per_unit"])
+    return np.exp(log_bound.max(axis=1))
 
 
 @dataclass
@@ -357,7 +375,7 @@ class CapacityModel:
     def probability_steady(self, size_mm: Any, feed_tph: Any, speed_rpm: Any, gate_deg: Any) -> np.ndarray:
         """Probability that the mill is steady (passes its feed) at the given points (broadcast).
 
-        ``"demonstrated"``: 1 at or below the demonstrated feed, NaN (unknown) above it or where no run is near.
+        ``"demonstrated"``: 1 at or below the lower bound, NaN (unknown) above it.
         """
         if self.method == "demonstrated":
             f = np.ravel(np.broadcast_arrays(*(np.asarray(x, dtype=float)
@@ -379,8 +397,7 @@ class CapacityModel:
 
         Censored model: ``exp(mu)`` in closed form. Classifier: the smallest
         feed on a grid over ``feed_range_tph`` where it falls below 1/2
-        (``inf`` if none). Demonstrated: the lower bound, the largest feed of
-        a steady run near the point (NaN if none is near).
+        (``inf`` if none). Demonstrated: the lower bound (module docstring).
         """
         if self.method == "demonstrated":
             return float(_demonstrated_tph(self.steady, self.params, size_mm, speed_rpm, gate_deg)[0])
@@ -489,11 +506,11 @@ class CapacityCheck:
         where = f"at {self.size_mm:.3g} mm, {self.speed_rpm:g} rpm, gate {self.gate_deg:g} deg"
         if self.lower_bound:
             if self.above:
-                return (f"feed {self.feed_tph:g} t/h is above the largest feed the DEM has shown the mill to pass "
-                        f"{where} ({self.capacity_tph:.0f} t/h, by {self.feed_tph - self.capacity_tph:.0f} t/h): "
-                        "no DEM run has choked, so the capacity above it is unknown, not exceeded")
-            return (f"capacity at least {self.capacity_tph:.0f} t/h {where} (a steady DEM run near here passed it; "
-                    f"no run has choked); feed {self.feed_tph:g} t/h")
+                return (f"feed {self.feed_tph:g} t/h is above the feed the DEM has shown the mill to pass "
+                        f"{where} ({self.capacity_tph:.0f} t/h, by {self.feed_tph - self.capacity_tph:.0f} t/h; "
+                        f"{demonstrated_rule()}): the capacity above it is unknown, not exceeded")
+            return (f"capacity at least {self.capacity_tph:.0f} t/h {where} ({demonstrated_rule()}); "
+                    f"feed {self.feed_tph:g} t/h")
         extra = f"; extrapolated in {', '.join(self.outside)}" if self.outside else ""
         if self.capacity_tph > self.largest_feed_tph:
             extra += f"; above the largest DEM feed ({self.largest_feed_tph:.0f} t/h), so not measured"
@@ -508,7 +525,7 @@ class CapacityCheck:
 
 def check_capacity(model: CapacityModel | None, size_mm: float, feed_tph: float, speed_rpm: float,
                    gate_deg: float) -> CapacityCheck | None:
-    """The capacity and steady probability at a point; None without a model, or (``"demonstrated"``) no run near it."""
+    """The capacity and steady probability at a point; None without a model (or where it makes no statement)."""
     if model is None:
         return None
     cap = model.capacity_tph(size_mm, speed_rpm, gate_deg)
