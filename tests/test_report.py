@@ -64,6 +64,19 @@ def test_report_is_self_contained(report_file):
     assert "rests on stage statistics extrapolated" in warnings_part
 
 
+def test_report_tables_read_as_people_read_them(report_file):
+    """Issue 40 item 7: labelled columns with units (hold-up in kg as in the headline), no raw snake_case
+    headers and no e-notation in the stage table, and tables that scroll rather than overflow the page."""
+    doc = report_file.read_text(encoding="utf-8")
+    stage_part = doc.split("<h2>Per stage</h2>", 1)[1].split("<h2>", 1)[0]
+    heads = re.findall(r"<th>([^<]*)</th>", stage_part)
+    assert heads[:3] == ["stage", "hold-up (kg)", "P80 (mm)"] and "flinger energy (kJ/t feed)" in heads
+    assert not any("_" in h for h in heads)
+    cells = re.findall(r"<td>([^<]*)</td>", stage_part)
+    assert cells and not any(re.search(r"\de[+-]\d", c) for c in cells)
+    assert doc.count("<div class='scroll'><table>") >= 2 and ".scroll{overflow-x:auto" in doc
+
+
 @pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium not installed (.ci/run installs it)")
 def test_report_renders_in_headless_chromium_with_its_plots(report_file, tmp_path):
     assert CHROMIUM is not None, "MSMILL_REQUIRE_BROWSER=1 but chromium is missing"

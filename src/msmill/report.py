@@ -27,6 +27,7 @@ h1{font-size:1.6em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-botto
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
 th{background:#f3f3f3}td.l,th.l{text-align:left}pre{background:#f7f7f7;padding:.8em;overflow-x:auto}
 img{max-width:100%;height:auto;display:block;margin:.5em 0}.warn{color:#8a4b00}.small{font-size:.85em;color:#555}
+.scroll{overflow-x:auto;max-width:100%}
 """
 
 
@@ -39,17 +40,14 @@ def _table(rows: list[tuple[str, str]]) -> str:
     return f"<table>{body}</table>"
 
 
-def _frame(df: Any, formats: dict[str, str] | None = None) -> str:
-    formats = formats or {}
+def _frame(df: Any) -> str:
+    """An HTML table of ``df`` (labelled columns; figures by :func:`display_number`), scrolling if wider than the page."""
+    from msmill.model.result import display_number
+
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
-    rows = []
-    for _, r in df.iterrows():
-        cells = []
-        for c in df.columns:
-            v = r[c]
-            cells.append(f"<td>{html.escape(format(v, formats.get(c, '.4g')) if isinstance(v, float) else str(v))}</td>")
-        rows.append("<tr>" + "".join(cells) + "</tr>")
-    return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
+    rows = ["<tr>" + "".join(f"<td>{html.escape(display_number(v) if isinstance(v, float) else str(v))}</td>"
+                             for v in r) + "</tr>" for r in df.itertuples(index=False)]
+    return f"<div class='scroll'><table><tr>{head}</tr>{''.join(rows)}</table></div>"
 
 
 def _git_commit() -> str:
@@ -105,6 +103,7 @@ def build_report(run_file: str | Path, no_load_kw: float = 0.0) -> str:
     """
     from msmill import __version__
     from msmill.model.power import power_estimate
+    from msmill.model.result import stage_display
     from msmill.model.runfile import RunFile
     from msmill.plots.model import plot_psds, plot_timeseries, png_bytes
     from msmill.plots.validation import overlay
@@ -154,10 +153,11 @@ def build_report(run_file: str | Path, no_load_kw: float = 0.0) -> str:
         f"<h1>msmill report: {html.escape(rf.title or rf.name)}</h1>",
         "<h2>Headline</h2>", _table(headline),
         "<h2>Product size distribution</h2>", _img(png_bytes(psd_fig), "product PSD"),
-        _frame(result.psd_table[["upper_mm", "feed_passing_pct", "product_passing_pct"]]),
+        _frame(result.psd_table[["upper_mm", "feed_passing_pct", "product_passing_pct"]].set_axis(
+            ["size (mm)", "feed passing (%)", "product passing (%)"], axis=1)),
         "<h2>Approach to steady state (paper Fig. 14)</h2>", _img(png_bytes(ts_fig), "time series"),
         "<h2>Per stage</h2>", _img(png_bytes(_stage_figure(result, power)), "per-stage breakdown"),
-        _frame(stages),
+        _frame(stage_display(stages)),
         "<h2>Power and wear: assumptions</h2><ul>",
         *[f"<li>{html.escape(a)}</li>" for a in power.assumptions], "</ul>",
         "<h2>Warnings</h2>",

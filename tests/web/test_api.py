@@ -138,6 +138,53 @@ def test_requests_leave_no_temporary_files(client: TestClient, tmp_path: Path, m
     assert list(tmp_path.iterdir()) == []
 
 
+def test_served_app_leaves_no_file_after_50_requests(tmp_path: Path) -> None:
+    """``python -m msmill serve`` (a real server process, its TMPDIR a fresh folder), then 50 POST /predict, half of
+    them refused: nothing new in the temporary folder."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    from msmill.web.process import serve_in_subprocess
+
+    ore_text = (ROOT / "src" / "msmill" / "data" / "ores" / "ug2.toml").read_text(encoding="utf-8")
+    ok, bad = _example(), _example()
+    ok["attachments"] = {"ore_toml": ore_text, "feed_csv": "size_mm,passing_pct\n1,5\n4,20\n8,45\n16,80\n22.4,100\n"}
+    bad["attachments"] = {"ore_toml": "not = [toml"}
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    with serve_in_subprocess(startup_s=60.0, env={"TMPDIR": str(tmp)}) as url:
+        before = sorted(tmp.rglob("*"))
+        codes = []
+        for i in range(50):
+            req = urllib.request.Request(url + "predict", data=json.dumps(ok if i % 2 else bad).encode(),
+                                         headers={"Content-Type": "application/json"})
+            try:
+                with urllib.request.urlopen(req, timeout=60) as r:
+                    codes.append(r.status)
+            except urllib.error.HTTPError as e:
+                codes.append(e.code)
+        after = sorted(tmp.rglob("*"))
+    assert codes.count(200) == 25 and codes.count(422) == 25
+    assert after == before
+
+
+def test_predict_psd_rows_flag_the_extrapolated_and_thin_classes(client: TestClient) -> None:
+    """The page shades what the JSON flags: the README example's extrapolated classes, per PSD row."""
+    from msmill.model.runfile import RunFile
+
+    r = client.post("/predict", json=_example())
+    rows = pd.DataFrame(r.json()["psd"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rf = RunFile.from_toml(EXAMPLE)
+        mill, feed, op = rf.build()
+        res = mill.run(feed, op, timeseries=False)
+    np.testing.assert_array_equal(rows["extrapolated"], res.extrapolated_classes)
+    np.testing.assert_array_equal(rows["thin_data"], res.thin_data_classes)
+    assert 0 < rows["extrapolated"].sum() < len(rows)  # the fine classes and the top class, not all
+
+
 def test_a_warmed_service_answers_its_first_request_from_the_built_mill(monkeypatch) -> None:
     from msmill.model.runfile import RunFile
     from msmill.web.service import PredictionService, default_request

@@ -51,6 +51,10 @@ def test_page_what_if(server: str, tmp_path: Path) -> None:
         p80 = _changes(page, "#p80", "-")
         # the README example rests half on statistics extrapolated in size: the page says so among its warnings
         expect(page.locator("#warnings")).to_contain_text("rests on stage statistics extrapolated")
+        # ... and its PSD plot shades those size classes, with a legend line
+        assert page.locator("#psd_plot .extrapolated_span").count() >= 1
+        expect(page.locator("#extrapolated_legend")).to_have_text("stage statistics extrapolated in size")
+        assert float(page.locator("#psd_plot .extrapolated_span").first.get_attribute("width")) > 10
         product = page.locator("#product_line").get_attribute("d")
         holdup = page.locator("#holdup").inner_text()
 

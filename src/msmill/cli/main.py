@@ -19,6 +19,24 @@ import typer
 from msmill._version import __version__
 from msmill.errors import MsmillError, MsmillInputError, from_validation_error
 
+#: width of --help written to a pipe or file (Rich's default there, 80 columns, cut option names short)
+HELP_WIDTH_NOT_A_TERMINAL = 100
+
+
+def _help_width() -> None:
+    """Help written to a pipe or a file (no terminal, no ``COLUMNS``/``TERMINAL_WIDTH``) is 100 columns wide."""
+    import os
+    import sys
+
+    if os.environ.get("TERMINAL_WIDTH") or os.environ.get("COLUMNS") or sys.stdout.isatty():
+        return
+    import typer.rich_utils
+
+    typer.rich_utils.MAX_WIDTH = HELP_WIDTH_NOT_A_TERMINAL
+
+
+_help_width()
+
 app = typer.Typer(
     name="msmill",
     help="Predict what a multi-shaft vertical impact mill does to rock.",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -12,8 +13,10 @@ from contextlib import contextmanager
 
 
 @contextmanager
-def serve_in_subprocess(startup_s: float = 20.0) -> Iterator[str]:
+def serve_in_subprocess(startup_s: float = 20.0, env: dict[str, str] | None = None) -> Iterator[str]:
     """Start ``msmill serve --port 0``, wait until ``/health`` answers, yield its base URL, stop it.
+
+    ``env``: variables set for the server on top of this process's environment (e.g. ``TMPDIR``).
 
     Raises
     ------
@@ -21,7 +24,7 @@ def serve_in_subprocess(startup_s: float = 20.0) -> Iterator[str]:
         If the server does not print its address or does not answer within ``startup_s``.
     """
     proc = subprocess.Popen([sys.executable, "-m", "msmill", "serve", "--port", "0"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})})
     try:
         m, line = None, ""
         for _ in range(20):  # "warming ..." first, then the ready line with the address

@@ -55,6 +55,8 @@ def _finite(x: Any) -> Any:
         return float(x) if math.isfinite(x) else None
     if isinstance(x, np.integer):
         return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
     return x
 
 
@@ -201,10 +203,13 @@ class PredictionService:
 def result_payload(result: Any) -> dict[str, Any]:
     """A :class:`msmill.model.result.MillResult` as plain JSON (summary, PSD table, stages, series)."""
     summary = {k: _finite(v) for k, v in result.summary().items()}
+    psd = result.psd_table.copy()
+    for col, mask in (("extrapolated", result.extrapolated_classes), ("thin_data", result.thin_data_classes)):
+        psd[col] = np.zeros(len(psd), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     out: dict[str, Any] = {
         "summary": summary,
         "passing_pct": [{"size_mm": float(s), "passing_pct": _finite(v)} for s, v in result.passing_pct.items()],
-        "psd": _records(result.psd_table),
+        "psd": _records(psd),
         "stages": _records(result.stages),
         "timeseries": _records(result.timeseries),
         "notes": list(result.notes),
