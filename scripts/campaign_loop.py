@@ -124,7 +124,8 @@ def one_round(st, a) -> str | None:
     if why:
         return why
     if st.counts(a.campaign)["planned"] == 0:
-        added, _ = st.add_points(a.campaign, PLANNERS["active"](st, a.campaign, a.batch))
+        added, _ = st.add_points(a.campaign, PLANNERS["active"](st, a.campaign, a.batch,
+                                                                max_run_hours=a.max_run_hours))
         print(f"planned {added} runs")
     return "planned, not run (--no-run)" if a.no_run else None
 
@@ -136,6 +137,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--campaign", default="default")
     ap.add_argument("--export", type=Path, default=EXPORT)
     ap.add_argument("--size-range-mm", type=float, nargs=2, default=(6.0, 30.0))
+    ap.add_argument("--max-run-hours", type=float, default=None,
+                    help="plan no point whose expected wall time exceeds this (h; default the campaign's option)")
     ap.add_argument("--set", action="append", default=[], help="RunSettings KEY=VALUE (new campaign only)")
     ap.add_argument("--max-attempts", type=int, default=3)
     ap.add_argument("--raw-dir", default=None, help="workers save raw run folders here")

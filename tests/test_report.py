@@ -20,9 +20,10 @@ REQUIRED = os.environ.get("MSMILL_REQUIRE_BROWSER") == "1"
 
 
 def _screenshot(html_path: Path, png: Path, profile: Path) -> None:
+    """A screenshot tall enough to hold every plot of the report (its tables above them vary in height)."""
     cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           f"--user-data-dir={profile}", "--window-size=1100,1800", "--hide-scrollbars",
+           f"--user-data-dir={profile}", "--window-size=1100,3200", "--hide-scrollbars",
            f"--screenshot={png}", html_path.as_uri()]
     subprocess.run(cmd, capture_output=True, timeout=120, check=False)
 

@@ -110,6 +110,22 @@ def test_cost_model_recovers_exponents_from_timings():
     assert np.median(cheap.expected_cost_s) < np.median(free.expected_cost_s)
 
 
+def test_cost_cap_keeps_every_pick_under_it():
+    """A cap on one run's expected cost (a fine point at a high feed took a whole session): no pick above it,
+    the uncapped plan goes above it, and a cap under every candidate is a one-line error."""
+    from msmill.errors import MsmillInputError
+
+    X = initial_design(32, SPACE, seed=4)
+    c = CostModel.from_timings(X, 50.0 * X[:, 1] / X[:, 0] ** 3.5)
+    gp = SurrogateGP(n_restarts=0).fit(X, stand_in(X)[:, None])
+    free = plan_batch(gp, 4, n_initial=4, cost=c, cost_power=0.0)
+    cap = float(np.median(free.expected_cost_s))
+    capped = plan_batch(gp, 4, n_initial=4, cost=c, cost_power=0.0, max_cost_s=cap)
+    assert free.expected_cost_s.max() > cap and capped.expected_cost_s.max() <= cap
+    with pytest.raises(MsmillInputError, match="max_cost_s"):
+        plan_batch(gp, 1, n_initial=4, cost=c, max_cost_s=1e-12)
+
+
 def test_initial_design_is_space_filling_and_continues():
     a = initial_design(8, SPACE, seed=0)
     b = initial_design(4, SPACE, seed=0, skip=8)

@@ -64,6 +64,9 @@ def create_cmd(
     size_range_mm: Annotated[tuple[float, float] | None, typer.Option(
         "--size-range-mm", help="Rock sizes the active-learning planner may choose (mm), LOW HIGH; "
                                 "default the paper's 2-30 mm.")] = None,
+    max_run_hours: Annotated[float | None, typer.Option(
+        "--max-run-hours", help="The planner chooses no point whose expected wall time (the cost model learnt "
+                                "from the runs) exceeds this (h); default no cap.")] = None,
     db: DbOpt = None,
 ) -> None:
     """Create a campaign: machine, slice/full and the DEM run settings."""
@@ -92,6 +95,10 @@ def create_cmd(
         if not 0 < lo < hi:
             raise MsmillInputError("--size-range-mm", f"{lo} {hi}", "two sizes 0 < LOW < HIGH (mm)")
         opts["size_range_mm"] = [lo, hi]
+    if max_run_hours is not None:
+        if not max_run_hours > 0:
+            raise MsmillInputError("--max-run-hours", max_run_hours, "a positive number of hours")
+        opts["max_run_hours"] = float(max_run_hours)
     info = open_store(db).create_campaign(name, machine, mode="full" if full else "slice",
                                           run_settings=settings,
                                           max_attempts=max_attempts, options={k: v for k, v in opts.items() if v})

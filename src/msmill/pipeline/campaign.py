@@ -68,7 +68,8 @@ PLANNERS: dict[str, Callable[[Store, str, int], list[DesignPoint]]] = {}
 CAMPAIGN_RUN_DEFAULTS: dict[str, Any] = {"start": "table", "adaptive": True, "window_from": "onset"}
 
 
-def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: float = 1.0) -> list[DesignPoint]:
+def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: float = 1.0,
+                   max_run_hours: float | None = None) -> list[DesignPoint]:
     """Next ``n`` design points of a campaign by the surrogate's cost-aware active learning.
 
     Fits :class:`msmill.surrogate.stage_model.StageSurrogate` to the store's
@@ -76,7 +77,8 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     there are too few), within the campaign's size range (option
     ``size_range_mm``, default the paper's 2-30 mm), avoids the campaign's planned, running and failed points
     (kriging believer) and weights the acquisition by the DEM cost learnt from
-    the runs' timings (:func:`msmill.surrogate.active.plan_batch`).
+    the runs' timings (:func:`msmill.surrogate.active.plan_batch`). No point whose expected wall time
+    exceeds ``max_run_hours`` (default: the campaign's option ``max_run_hours``, else no cap) is planned.
     """
 
     from msmill.machine import OperatingPoint
@@ -95,8 +97,10 @@ def active_planner(store: Store, name: str, n: int, seed: int = 0, cost_power: f
     pending = [r.design for r in store.runs(campaign=name) if r.status in ("planned", "running", "failed")]
     pend = design_inputs(pending)
     model = StageSurrogate().fit(runs).gp_ if len(runs) >= 2 else None
+    cap_h = max_run_hours if max_run_hours is not None else info.options.get("max_run_hours")
     plan = plan_batch(model, n, space, n_existing=len(runs), pending=pend if len(pend) else None,
-                      cost=CostModel.from_runs(runs, space), cost_power=cost_power, seed=seed)
+                      cost=CostModel.from_runs(runs, space), cost_power=cost_power, seed=seed,
+                      max_cost_s=None if cap_h is None else 3600.0 * float(cap_h))
     out = []
     for size, feed, speed, gate in plan.points:
         op = OperatingPoint(feed_tph=float(feed), speed_rpm=float(speed), gate_deg=float(gate))

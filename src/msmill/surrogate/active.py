@@ -204,7 +204,7 @@ def _latent_kernel(gp: SurrogateGP, j: int):
 def plan_batch(model: SurrogateGP | None, n_points: int, design_space: DesignSpace | None = None, *,
                n_existing: int | None = None, pending: np.ndarray | None = None, cost: CostModel | None = None,
                cost_power: float = 1.0, weights: np.ndarray | None = None, n_candidates: int = 512,
-               n_initial: int = DEFAULT_N_INITIAL, seed: int = 0) -> BatchPlan:
+               n_initial: int = DEFAULT_N_INITIAL, seed: int = 0, max_cost_s: float | None = None) -> BatchPlan:
     """Plan the next batch of ``n_points`` DEM runs (see the module docstring).
 
     Parameters
@@ -231,9 +231,15 @@ def plan_batch(model: SurrogateGP | None, n_points: int, design_space: DesignSpa
         Runs before the acquisition replaces the space-filling design.
     seed : int
         Seed of the Sobol scrambling (candidates use ``seed + 1``).
+    max_cost_s : float, optional
+        No candidate whose expected cost exceeds this (s, the cost model's units) is chosen: a cap on
+        the wall time of one run (a fine-rock point at a high feed can cost a whole session). The
+        space-filling design is not capped.
     """
     if not isinstance(n_points, int | np.integer) or n_points < 1:
         raise MsmillInputError("batch", n_points, "an integer >= 1")
+    if max_cost_s is not None and not max_cost_s > 0:
+        raise MsmillInputError("max_cost_s", max_cost_s, "a positive cost (s) or None")
     space = design_space or (model.design_space if model is not None else DesignSpace())
     cost = cost or CostModel(design_space=space)
     n_done = n_existing if n_existing is not None else (0 if model is None else model.X_train_.shape[0])
@@ -252,11 +258,15 @@ def plan_batch(model: SurrogateGP | None, n_points: int, design_space: DesignSpa
     taken = np.asarray(model.X_train_, dtype=float)
     taken = np.vstack([taken, np.asarray(pending, dtype=float)]) if n_pend else taken
     run_already = (np.abs(Uc[:, None, :] - space.to_unit(taken)[None]) < 1e-9).all(axis=2).any(axis=1)
+    too_dear = np.zeros(len(cand), dtype=bool) if max_cost_s is None else cost.predict_s(cand) > max_cost_s
+    if too_dear.all():
+        raise MsmillInputError("max_cost_s", max_cost_s, f"at least the cheapest candidate's expected cost, "
+                               f"{float(cost.predict_s(cand).min()):.3g} s")
     chosen, scores = [], []
     for _ in range(n_points):
         total = sum(wj * s.var for wj, s in zip(w, state, strict=True))
         acq = total / divisor
-        acq[run_already] = -np.inf
+        acq[run_already | too_dear] = -np.inf
         acq[chosen] = -np.inf
         i = int(np.argmax(acq))
         chosen.append(i)
