@@ -85,6 +85,18 @@ def test_learning_curve_uses_the_first_n_runs_in_the_given_order(campaign):
     assert (fwd[["kl_velocity", "kl_count", "representation_kl"]] > 0).all().all()
 
 
+def test_hours_by_size_band_sums_each_band():
+    """HAND-MADE runs: sizes on and between the band edges, wall times in seconds."""
+    runs = pd.DataFrame({"size_mm": [1.5, 2.0, 3.9, 4.0, 6.4, 30.0, 25.0],
+                         "wall_s": [3600.0, 7200.0, 1800.0, 900.0, 600.0, 360.0, np.nan]})
+    t = R.hours_by_size_band(runs)
+    assert list(t["band"]) == ["< 2 mm", "2-4 mm", "4-6.4 mm", "6.4-10 mm", "10-20 mm", "20-30 mm"]
+    assert list(t["runs"]) == [1, 2, 1, 1, 0, 2]
+    np.testing.assert_allclose(t["dem_hours"], [1.0, 2.5, 0.25, 1 / 6, 0.0, 0.1])
+    assert t["median_hours_per_run"].iloc[1] == pytest.approx(1.25) and np.isnan(t["median_hours_per_run"].iloc[4])
+    assert t["runs"].sum() == len(runs)
+
+
 def test_loo_summary_below_a_size_scores_only_the_finer_runs(fitted):
     rep = loo_scores(fitted)
     sizes = np.array(sorted({r.design.size_mm for r in fitted.training_.runs}))

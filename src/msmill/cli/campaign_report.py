@@ -39,6 +39,7 @@ from msmill.pipeline.results import (
     CampaignRuns,
     choked_loo,
     domain_centre,
+    hours_by_size_band,
     kl_by_sample_size,
     learning_curve,
     load_campaign,
@@ -460,6 +461,11 @@ def _header(r: CampaignReport) -> list[str]:
         f"- sizes {runs['size_mm'].min():g}-{runs['size_mm'].max():g} mm, feed "
         f"{runs['feed_tph'].min():.3g}-{runs['feed_tph'].max():.3g} t/h, speed {runs['speed_rpm'].min():.4g}-"
         f"{runs['speed_rpm'].max():.4g} rpm, gate {runs['gate_deg'].min():.3g}-{runs['gate_deg'].max():.3g} deg",
+        "",
+        "DEM hours by rock-size band (steady training runs; fine rock costs more per run: about (size)^-3 "
+        "more rocks and (size)^-1 more steps):",
+        "",
+        *markdown_table(hours_by_size_band(runs).round(3)),
         "",
     ]
 

@@ -18,6 +18,7 @@ capacity envelope's points (``msmill.surrogate.capacity``).
 
 from __future__ import annotations
 
+import itertools
 import json
 import warnings
 from dataclasses import dataclass
@@ -30,11 +31,36 @@ import pandas as pd
 from msmill.errors import MsmillInputError
 from msmill.stageparams import DESIGN_INPUTS, RunStatistics
 
-__all__ = ["CAPACITY_AT", "IMPACT_BINS", "MIN_SLICE_RUNS", "PAPER_KL", "PAPER_RUNS", "PRIOR_VARIANTS", "QUANTITIES",
-           "CampaignRuns", "ChokedRun", "choked_loo", "domain_centre", "kl_by_sample_size", "learning_curve",
-           "load_campaign", "passed_shares", "point_key", "prior_sensitivity", "range_change", "rocks_per_s",
-           "run_settings_by_point", "run_table", "sampling_kl", "spearman", "stage_quantities", "sweep",
-           "warn_counts"]
+__all__ = [
+    "CAPACITY_AT",
+    "IMPACT_BINS",
+    "MIN_SLICE_RUNS",
+    "PAPER_KL",
+    "PAPER_RUNS",
+    "PRIOR_VARIANTS",
+    "QUANTITIES",
+    "SIZE_BANDS_MM",
+    "CampaignRuns",
+    "ChokedRun",
+    "choked_loo",
+    "domain_centre",
+    "hours_by_size_band",
+    "kl_by_sample_size",
+    "learning_curve",
+    "load_campaign",
+    "passed_shares",
+    "point_key",
+    "prior_sensitivity",
+    "range_change",
+    "rocks_per_s",
+    "run_settings_by_point",
+    "run_table",
+    "sampling_kl",
+    "spearman",
+    "stage_quantities",
+    "sweep",
+    "warn_counts",
+]
 
 #: the paper's learning-curve figure: mean KL 0.012 after 177 DEM runs
 PAPER_RUNS, PAPER_KL = 177, 0.012
@@ -118,6 +144,30 @@ def run_table(slices: list) -> pd.DataFrame:
                     s.primary_hit_probability}
         rows.append(row)
     return pd.DataFrame(rows).sort_values(["date", "file"]).reset_index(drop=True)
+
+
+#: rock-size bands (mm) of the campaign's cost log: the fine bands the second campaign fills, then the first's
+SIZE_BANDS_MM = (2.0, 4.0, 6.4, 10.0, 20.0, 30.0)
+
+
+def hours_by_size_band(runs: pd.DataFrame, bands_mm: tuple[float, ...] = SIZE_BANDS_MM) -> pd.DataFrame:
+    """Steady runs and DEM wall hours per rock-size band of a :func:`run_table`.
+
+    Rows: one per band ``[lo, hi)`` (the last closed), below the first edge as ``< lo``; columns ``band``,
+    ``runs``, ``dem_hours``, ``median_hours_per_run`` (NaN for an empty band).
+    """
+    edges = np.asarray(bands_mm, dtype=float)
+    size = runs["size_mm"].to_numpy()
+    hours = runs["wall_s"].fillna(0.0).to_numpy() / 3600.0
+    idx = np.searchsorted(edges, size, side="right")  # 0: below the first edge
+    idx[size == edges[-1]] = len(edges) - 1
+    names = [f"< {edges[0]:g}"] + [f"{a:g}-{b:g}" for a, b in itertools.pairwise(edges)]
+    rows = []
+    for k, name in enumerate(names):
+        h = hours[idx == k]
+        rows.append({"band": f"{name} mm", "runs": int(h.size), "dem_hours": float(h.sum()),
+                     "median_hours_per_run": float(np.median(h)) if h.size else float("nan")})
+    return pd.DataFrame(rows)
 
 
 def learning_curve(slices: list, order: list[str], n_points: int = 10) -> pd.DataFrame:
