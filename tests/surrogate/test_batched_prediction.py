@@ -48,6 +48,35 @@ def test_predict_equals_each_estimator(fitted, points):
         np.testing.assert_allclose(std[:, j], want, rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("nu", [1.5, 2.5])
+def test_in_place_matern_is_bitwise_the_closed_form(nu):
+    """The in-place Matern (speed, issue 42) does the closed form's operations in its order: bitwise equal."""
+    from msmill.surrogate.gp import _matern
+
+    d = np.random.default_rng(3).exponential(1.0, (7, 5, 11))
+    d[0, 0, :3] = [0.0, 1e-300, 50.0]
+    k = d * np.sqrt(3.0 if nu == 1.5 else 5.0)
+    want = (1.0 + k) * np.exp(-k) if nu == 1.5 else (1.0 + k + k**2 / 3.0) * np.exp(-k)
+    got = _matern(d.copy(), nu)
+    assert np.array_equal(got, want)
+
+
+def test_stacked_kernel_is_bitwise_the_two_matern_sum(fitted, points):
+    """The stacked latent kernel equals c32 M32(d32) + c52 M52(d52) written out, bit for bit."""
+    gp = fitted.gp_
+    st = gp._stacked()
+    U, B = gp.design_space.to_unit(points), st.X_train
+    want = 0.0
+    for c, ls, nu in ((st.c32, st.ls32, 1.5), (st.c52, st.ls52, 2.5)):
+        a, b = U[None] / ls[:, None, :], B[None] / ls[:, None, :]
+        d2 = (np.einsum("tpk,tpk->tp", a, a)[:, :, None] + np.einsum("tqk,tqk->tq", b, b)[:, None, :]
+              - 2.0 * (a @ np.swapaxes(b, 1, 2)))
+        k = np.sqrt(np.maximum(d2, 0.0)) * np.sqrt(3.0 if nu == 1.5 else 5.0)
+        m = (1.0 + k) * np.exp(-k) if nu == 1.5 else (1.0 + k + k**2 / 3.0) * np.exp(-k)
+        want = want + c[:, None, None] * m
+    assert np.array_equal(st.latent(U, B), want)
+
+
 def test_joint_draws_equal_each_estimators_covariance(fitted, points):
     gp = fitted.gp_
     U = gp.design_space.to_unit(points)

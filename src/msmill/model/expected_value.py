@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -331,6 +330,43 @@ def _power_series(survive: np.ndarray, pk: np.ndarray, qk: np.ndarray) -> tuple[
     return out_eA, out_phi
 
 
+#: Higham (2005) degree-13 Pade coefficients and the 1-norm up to which it is accurate to double precision
+_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0, 129060195264000.0,
+           10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0, 40840800.0, 960960.0, 16380.0, 182.0,
+           1.0)
+_THETA13 = 5.371920351148152
+
+
+def expm_batched(Z: np.ndarray) -> np.ndarray:
+    """Matrix exponentials of a stack ``Z`` (n, m, m): scaling and squaring with the degree-13 Pade approximant
+    (Higham 2005), every matrix at once.
+
+    ``scipy.linalg.expm`` takes a stack but treats it matrix by matrix in Python (about 0.03 ms each, hundreds
+    per prediction); here each matrix gets Higham's scaling ``2^-s`` from its own 1-norm and the stack shares
+    a few batched products and one batched solve. Agrees with ``scipy.linalg.expm`` to about 1e-14 relative
+    (``tests/model/test_expm_batched.py``).
+    """
+    Z = np.asarray(Z, dtype=float)
+    n, m, _ = Z.shape
+    if n == 0:
+        return Z.copy()
+    norm = np.abs(Z).sum(axis=1).max(axis=1)  # 1-norm of each matrix
+    s = np.maximum(0, np.ceil(np.log2(np.maximum(norm, 1e-300) / _THETA13))).astype(int)
+    A = Z * np.ldexp(1.0, -s)[:, None, None]
+    eye = np.eye(m)
+    A2 = A @ A
+    A4 = A2 @ A2
+    A6 = A4 @ A2
+    b = _PADE13
+    U = A @ (A6 @ (b[13] * A6 + b[11] * A4 + b[9] * A2) + b[7] * A6 + b[5] * A4 + b[3] * A2 + b[1] * eye)
+    V = A6 @ (b[12] * A6 + b[10] * A4 + b[8] * A2) + b[6] * A6 + b[4] * A4 + b[2] * A2 + b[0] * eye
+    X = np.linalg.solve(V - U, V + U)
+    for j in range(int(s.max())):  # undo the scaling: square each matrix s times
+        more = s > j
+        X[more] = X[more] @ X[more]
+    return X
+
+
 def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n, nd, _ = survive.shape
     n_c = w.shape[1]
@@ -344,7 +380,7 @@ def _expm_series(survive: np.ndarray, w: np.ndarray, lam: np.ndarray) -> tuple[n
         Z = np.zeros((active.size, 2 * nd, 2 * nd))
         Z[:, :nd, :nd] = lam_ic * (survive[i] - np.eye(nd)[None])
         Z[:, nd:, :nd] = np.eye(nd)[None]
-        X = scipy.linalg.expm(Z)
+        X = expm_batched(Z)
         wic = w.ravel()[active][:, None, None]
         full = np.zeros((2, n * n_c, nd, nd))
         full[0, active] = wic * X[:, :nd, :nd]

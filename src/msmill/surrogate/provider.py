@@ -137,19 +137,23 @@ class SurrogateProvider:
     def _thin(self, X: np.ndarray) -> np.ndarray:
         """Size classes inside the trained sizes whose point lies far from every training run (warned once)."""
         m = self.surrogate
-        sup = m.data_support(X[0])
         inside = m.domain_excess(X)[0, :, 0] <= 1e-9
-        thin = sup.thin & inside
+        thin = np.zeros(X.shape[1], dtype=bool)
+        if not inside.any():  # every class is extrapolated in size (warned as such): none is "thin"
+            return thin
+        sup = m.data_support(X[0, inside])  # the posterior spread only where it can flag (the classes inside)
+        thin[inside] = sup.thin
         if thin.any():
-            k = int(np.argmax(np.where(thin, sup.spread_ratio, -np.inf)))
-            r = m.training_.X[sup.nearest_run[k]]
+            j = int(np.argmax(np.where(sup.thin, sup.spread_ratio, -np.inf)))  # among the inside classes
+            k = int(np.flatnonzero(inside)[j])
+            r = m.training_.X[sup.nearest_run[j]]
             sizes = X[0, thin, 0]
             warnings.warn(
                 f"{self.source}: thin data: {int(thin.sum())} of {int(inside.sum())} size classes inside the trained "
                 f"sizes ({sizes.min():.3g}-{sizes.max():.3g} mm) lie far from every training run (posterior "
-                f"spread {sup.spread_ratio[k]:.3g} of the prior against at most {sup.threshold:.3g} at 90 % of "
+                f"spread {sup.spread_ratio[j]:.3g} of the prior against at most {sup.threshold:.3g} at 90 % of "
                 f"the runs); nearest run to {X[0, k, 0]:.3g} mm: {r[0]:.3g} mm, {r[1]:.3g} t/h, {r[2]:.0f} rpm, "
-                f"{r[3]:.0f} deg ({sup.nearest_distance[k]:.2f} of the unit design cube away)",
+                f"{r[3]:.0f} deg ({sup.nearest_distance[j]:.2f} of the unit design cube away)",
                 ThinDataWarning, stacklevel=3)
         return thin
 

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -353,10 +353,12 @@ class TargetLayout:
         """Length of a target row."""
         return len(self.names)
 
-    @property
+    @cached_property
     def stage_of(self) -> np.ndarray:
-        """Stage of every target (0 for run-level targets)."""
-        return np.array([0 if n.startswith("run.") else int(n.split(".")[0][1:]) for n in self.names])
+        """Stage of every target (0 for run-level targets; read-only, computed once)."""
+        out = np.array([0 if n.startswith("run.") else int(n.split(".")[0][1:]) for n in self.names])
+        out.setflags(write=False)
+        return out
 
     def slices(self, stage: int) -> dict[str, slice]:
         """Position of each group of ``stage`` in a target row."""
