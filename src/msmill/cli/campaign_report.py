@@ -630,7 +630,7 @@ def write_campaign_report(export: Path | None = None, surrogate: Path | None = N
     atomic_write_bytes(out, render(r, img).encode("utf-8"), "--out")
     echo(f"wrote {out} and its figures in {img}")
     last = None if r.curve is None else r.curve.iloc[-1]
-    kl = "" if last is None else (f" loo_kl_velocity_mean={last['kl_velocity']:.4f} runs_fine={last['runs_fine']}"
+    kl = "" if last is None else (f" loo_kl_velocity_mean={last['kl_velocity']:.4f} runs_fine={int(last['runs_fine'])}"
                                   f" loo_kl_velocity_mean_fine={last['kl_velocity_fine']:.4f}")
     echo(f"runs={len(r.runs)}{kl} dem_hours={r.runs['wall_s'].sum() / 3600:.2f}")
     return r
