@@ -363,7 +363,8 @@ def expm_batched(Z: np.ndarray) -> np.ndarray:
     X = np.linalg.solve(V - U, V + U)
     for j in range(int(s.max())):  # undo the scaling: square each matrix s times
         more = s > j
-        X[more] = X[more] @ X[more]
+        Xm = X[more]
+        X[more] = Xm @ Xm
     return X
 
 

@@ -252,16 +252,17 @@ def plan_batch(model: SurrogateGP | None, n_points: int, design_space: DesignSpa
     w = np.ones(model.n_targets) if weights is None else np.asarray(weights, dtype=float)
     Up = space.to_unit(np.asarray(pending, dtype=float)) if n_pend else None
     state = [_OutputState(model, j, Uc, Up) for j in range(model.n_targets)]
-    divisor = cost.predict_s(cand) ** cost_power
+    cand_cost_s = cost.predict_s(cand)
+    divisor = cand_cost_s ** cost_power
     # a candidate at a point already run or pending adds nothing (the store keeps a point once): the
     # fine campaign re-planned its first run's point, a candidate of the same deterministic set
     taken = np.asarray(model.X_train_, dtype=float)
     taken = np.vstack([taken, np.asarray(pending, dtype=float)]) if n_pend else taken
     run_already = (np.abs(Uc[:, None, :] - space.to_unit(taken)[None]) < 1e-9).all(axis=2).any(axis=1)
-    too_dear = np.zeros(len(cand), dtype=bool) if max_cost_s is None else cost.predict_s(cand) > max_cost_s
+    too_dear = np.zeros(len(cand), dtype=bool) if max_cost_s is None else cand_cost_s > max_cost_s
     if too_dear.all():
         raise MsmillInputError("max_cost_s", max_cost_s, f"at least the cheapest candidate's expected cost, "
-                               f"{float(cost.predict_s(cand).min()):.3g} s")
+                               f"{float(cand_cost_s.min()):.3g} s")
     chosen, scores = [], []
     for _ in range(n_points):
         total = sum(wj * s.var for wj, s in zip(w, state, strict=True))

@@ -358,16 +358,11 @@ def _matern(d: np.ndarray, nu: float) -> np.ndarray:
     ``(1 + k + k**2 / 3) * exp(-k)`` (bitwise equal; 1.7x faster on the stacked kernels of a prediction)."""
     k = d
     k *= np.sqrt(3.0) if nu == 1.5 else np.sqrt(5.0)
-    if nu == 1.5:
-        e = np.negative(k)
-        np.exp(e, out=e)
-        k += 1.0
-    else:
-        sq = np.square(k)
-        sq /= 3.0
-        e = np.negative(k)
-        np.exp(e, out=e)
-        k += 1.0
+    sq = None if nu == 1.5 else np.square(k) / 3.0
+    e = np.negative(k)
+    np.exp(e, out=e)
+    k += 1.0
+    if sq is not None:
         k += sq
     k *= e
     return k
@@ -441,7 +436,10 @@ class _Stacked:
             np.maximum(d2, 0.0, out=d2)
             k = _matern(np.sqrt(d2, out=d2), nu)
             k *= c[:, None, None]
-            out = k if out is None else out + k
+            if out is None:
+                out = k
+            else:
+                out += k
         return out
 
     def cross(self, U: np.ndarray) -> np.ndarray:
