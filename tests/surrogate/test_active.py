@@ -174,8 +174,28 @@ def test_cost_model_prices_fine_rock_as_measured():
     X = np.array([[4.0, 30.0, 1500.0, 40.0]] * 6 + [[20.0, 30.0, 1500.0, 40.0]] * 2)
     t = np.r_[[2000.0] * 6, [100.0] * 2]
     refit = CostModel.from_timings(X, t)
-    assert refit.fine == pytest.approx((np.log(2000.0), 4.75))
+    assert refit.fine == pytest.approx((np.log(2000.0), 4.75, 0.0, 0.0), abs=1e-9)
     assert refit.predict_s(np.array([[2.0, 60.0, 1500.0, 40.0]]))[0] == pytest.approx(2000.0 * 2 * 2**4.75)
+
+
+def test_fine_cost_learns_that_an_open_gate_is_cheaper():
+    """The fine campaign's runs at gates near 70 deg cost half those near 0 (the mill empties faster): from
+    6 fine timings the fine-rock term fits its gate and speed slopes, below 6 it keeps them flat."""
+    from msmill.surrogate.active import FINE_COST_SIZE_MM
+
+    rng = np.random.default_rng(2)
+    X = np.column_stack([rng.uniform(3.5, 5.5, 12), rng.uniform(10, 30, 12), rng.uniform(1200, 1900, 12),
+                         rng.uniform(0, 80, 12)])
+    u = SPACE.to_unit(X) - 0.5
+    t = 1500.0 * (X[:, 1] / 30.0) * (X[:, 0] / 4.0) ** -4.75 * np.exp(-0.9 * u[:, 3] + 0.4 * u[:, 2])
+    c = CostModel.from_timings(X, t, SPACE)
+    assert X[:, 0].max() < FINE_COST_SIZE_MM
+    assert c.fine[2] == pytest.approx(-0.9, abs=0.05) and c.fine[3] == pytest.approx(0.4, abs=0.05)
+    edge = np.array([[2.2, 10.0, 1500.0, 0.0], [2.2, 10.0, 1500.0, 70.0]])
+    shut, open_ = c.predict_s(edge)
+    assert open_ / shut == pytest.approx(np.exp(-0.9 * 70.0 / 80.0), rel=0.06)
+    flat = CostModel.from_timings(X[:5], t[:5], SPACE)
+    assert flat.fine[2:] == (0.0, 0.0)
 
 
 def test_a_point_already_run_is_never_planned_again():
