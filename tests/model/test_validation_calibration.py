@@ -89,21 +89,29 @@ def test_calibrate_several_parameters_on_exact_solves():
     assert cal.table["ks_fit"].max() < 0.012
 
 
-def test_standard_error_covers_a_plant_whose_stage_parameters_are_a_posterior_draw():
+@pytest.mark.slow
+def test_standard_error_covers_plants_whose_stage_parameters_are_posterior_draws():
     # issue 41: the plant's real stage parameters are not the surrogate's posterior mean. Surveys made with
-    # one posterior draw (member 3 of 8, seed 5) and calibrated with the mean: L_ref lands 2.8 mm from the
-    # truth, over 3 jackknife s.e. (the surveys' scatter), inside the total with the stage parameters' part
+    # each of 8 posterior draws (seed 5) and calibrated with the mean: the jackknife s.e. (the surveys'
+    # scatter) alone misses L_ref = 20 by over 2 s.e. in most plants, the total (with the stage parameters'
+    # part from 8 other draws) covers at least 6 of 8 within 2 s.e. (a 2-sigma interval should cover ~7.6;
+    # 98-run surrogate: 3 of 8 and 7 of 8, the miss being a tail draw at 4 s.e.). One draw alone is no test:
+    # which one lands where changes with every rebuild of the surrogate.
     from msmill.model.providers import load_provider, posterior_samples
 
-    world = posterior_samples(load_provider("default"), 8, seed=5)[3]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OutOfDomainWarning)
-        surveys = model_surveys("UG2", specs("n"), {"l_ref_mm": 20.0}, 0.05, np.random.default_rng(3),
-                                stage_parameters=world)
-        cal = calibrate_surveys(SurveyModel("UG2", surveys))
-    miss = abs(cal.params["l_ref_mm"] - 20.0)
-    assert miss > 3 * cal.jackknife_std_errors["l_ref_mm"]
-    assert miss < 2 * cal.std_errors["l_ref_mm"], (cal.params, cal.std_errors)
+    z_jack, z_total = [], []
+    for world in posterior_samples(load_provider("default"), 8, seed=5):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OutOfDomainWarning)
+            surveys = model_surveys("UG2", specs("n"), {"l_ref_mm": 20.0}, 0.05, np.random.default_rng(3),
+                                    stage_parameters=world)
+            cal = calibrate_surveys(SurveyModel("UG2", surveys))
+        miss = cal.params["l_ref_mm"] - 20.0
+        z_jack.append(miss / cal.jackknife_std_errors["l_ref_mm"])
+        z_total.append(miss / cal.std_errors["l_ref_mm"])
+    z_jack, z_total = np.abs(z_jack), np.abs(z_total)
+    assert np.sum(z_jack < 2.0) <= 4, z_jack
+    assert np.sum(z_total < 2.0) >= 6, z_total
 
 
 def test_posterior_sample_members_are_fixed_draws():
