@@ -7,7 +7,7 @@ killed at any point and restarted on this or another machine:
 1. ingest the export (runs already in the store are recognised by their hash)
    and re-create the exported campaigns missing from the store, with their
    pending points (``msmill.pipeline.export.restore_campaigns``);
-2. create the campaign if it still does not exist (``--size-range-mm``,
+2. create the campaign if it still does not exist (``--machine``, ``--size-range-mm``,
    ``--set KEY=VALUE`` run settings);
 3. per round: run what is planned (``run_campaign``: stale runs of a dead
    driver are re-planned first), export, then stop if the budget (steady slice
@@ -62,7 +62,8 @@ def prepare(st, a) -> None:
             print(line)
     if a.campaign not in {c.name for c in st.campaigns()}:
         opts = {"size_range_mm": list(a.size_range_mm)} | ({"raw_dir": a.raw_dir} if a.raw_dir else {})
-        st.create_campaign(a.campaign, Machine.default(), run_settings=run_settings_dict(_settings(a.set)),
+        machine = Machine.default() if a.machine == "default" else Machine.from_toml(Path(a.machine))
+        st.create_campaign(a.campaign, machine, run_settings=run_settings_dict(_settings(a.set)),
                            max_attempts=a.max_attempts, options=opts)
         print(f"campaign {a.campaign}: created, sizes {a.size_range_mm[0]:g}-{a.size_range_mm[1]:g} mm")
 
@@ -135,7 +136,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--db", default=None, help="store URL (default $MSMILL_DB or the user store)")
     ap.add_argument("--campaign", default="default")
-    ap.add_argument("--export", type=Path, default=EXPORT)
+    ap.add_argument("--export", type=Path, default=EXPORT,
+                    help="export folder in git (one machine per folder: the envelope and surrogate are per machine)")
+    ap.add_argument("--machine", default="default", help="machine TOML of a new campaign, or 'default'")
     ap.add_argument("--size-range-mm", type=float, nargs=2, default=(6.0, 30.0))
     ap.add_argument("--max-run-hours", type=float, default=None,
                     help="plan no point whose expected wall time exceeds this (h; default the campaign's option)")

@@ -152,3 +152,36 @@ def test_a_failed_point_stays_failed_in_a_store_restored_from_the_export(tmp_pat
     assert [r.design.size_mm for r in fresh.runs(campaign="c", status="planned")] == [17.0]
     assert fresh.retry_failed("c") == 1  # still re-plannable by hand
     fresh.close()
+
+
+def test_a_campaign_run_goes_back_to_its_campaign_and_the_re_export_is_unchanged(tmp_path, table_runs):
+    """A fresh store ingests an export's runs without campaigns; restoring the campaigns gives each run
+    back to the campaign its document names, so the campaign counts it and a re-export (what the loop
+    commits every session) rewrites every document byte for byte (it used to write ``campaign: null``)."""
+    st = Store(f"sqlite:///{tmp_path / 'a.sqlite'}")
+    st.record_run(table_runs[1], MACHINE, wall_s=50.0)  # a run of no campaign stays of none
+    st.create_campaign("c", MACHINE)
+    st.add_points("c", [table_runs[0].design])
+    (claim,) = st.claim("c", 1, "w", "tok")
+    st.complete(claim.run_id, "tok", table_runs[0], wall_s=100.0, engine="msmill.dem 0.1.0", package_version="0.1.0",
+                git_commit="0" * 40)  # what a worker records
+    export_campaign(st, tmp_path / "export")
+    st.close()
+    before = {p.name: p.read_bytes() for p in (tmp_path / "export").iterdir()}
+    assert sorted(r.campaign or "" for r in read_export(tmp_path / "export")) == ["", "c"]
+
+    fresh = Store(f"sqlite:///{tmp_path / 'b.sqlite'}")
+    ingest_paths(fresh, [tmp_path / "export"])
+    restore_campaigns(fresh, tmp_path / "export")
+    assert fresh.counts("c")["done"] == 1 and len(fresh.runs(status="done")) == 2
+    export_campaign(fresh, tmp_path / "export")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "export").iterdir()} == before
+    # a store that already has the campaign (a second session) adopts the runs it ingests too
+    again = Store(f"sqlite:///{tmp_path / 'c.sqlite'}")
+    again.create_campaign("c", MACHINE)
+    ingest_paths(again, [tmp_path / "export"])
+    assert restore_campaigns(again, tmp_path / "export") == ["campaign c: already in the store, 1 ingested runs "
+                                                             "given back to it"]
+    assert again.counts("c")["done"] == 1
+    fresh.close()
+    again.close()

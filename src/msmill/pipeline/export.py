@@ -153,8 +153,11 @@ def restore_campaigns(store: Store, folder: str | Path, raw_dir: str | None = No
     """Re-create the exported campaigns missing from ``store`` and plan their pending points.
 
     Points already done in the store (e.g. ingested from the export) are not
-    planned again. ``raw_dir`` replaces the exporting machine's raw-folder
-    option (``None`` drops it). Returns one line per campaign.
+    planned again; runs ingested from the folder without a campaign go back to
+    the campaign their documents name (:meth:`~msmill.pipeline.store.Store.adopt_runs`),
+    so the campaign's counts hold and a re-export rewrites the documents unchanged.
+    ``raw_dir`` replaces the exporting machine's raw-folder option (``None`` drops it).
+    Returns one line per campaign.
     """
     from msmill.machine import Machine
 
@@ -162,10 +165,16 @@ def restore_campaigns(store: Store, folder: str | Path, raw_dir: str | None = No
     if not p.is_file():
         return []
     have = {c.name for c in store.campaigns()}
+    members: dict[str, list[str]] = {}
+    for r in read_export(folder):
+        if r.campaign:
+            members.setdefault(r.campaign, []).append(r.content_hash)
     lines = []
     for c in json.loads(p.read_text(encoding="utf-8"))["campaigns"]:
         if c["name"] in have:
-            lines.append(f"campaign {c['name']}: already in the store")
+            adopted = store.adopt_runs(c["name"], members.get(c["name"], []))
+            lines.append(f"campaign {c['name']}: already in the store"
+                         + (f", {adopted} ingested runs given back to it" if adopted else ""))
             continue
         opts = {k: v for k, v in c["options"].items() if k != "raw_dir"}
         if raw_dir:
@@ -173,6 +182,7 @@ def restore_campaigns(store: Store, folder: str | Path, raw_dir: str | None = No
         store.create_campaign(c["name"], Machine.from_toml(c["machine_toml"]), mode=c["mode"],
                               run_settings=c["run_settings"], max_attempts=c["max_attempts"],
                               allow_not_steady=c.get("allow_not_steady", False), options=opts)
+        store.adopt_runs(c["name"], members.get(c["name"], []))
         done = _done_points(store, c["machine_hash"])
         todo = [d for d in (DesignPoint(**x) for x in c["pending"]) if _key(d) not in done]
         added, _ = store.add_points(c["name"], todo)

@@ -288,6 +288,24 @@ class QueueMixin:
                                                                "heartbeat_at": None, "error": note})
         return n
 
+    def adopt_runs(self, name: str, content_hashes: Iterable[str]) -> int:
+        """Make the done runs with these content hashes and no campaign runs of campaign ``name``.
+
+        Runs ingested from an export come in without a campaign; their documents name the one they
+        were made in, and :func:`msmill.pipeline.export.restore_campaigns` gives them back to it (so a
+        re-export writes the documents unchanged). Runs of another campaign are left alone; returns
+        how many runs were adopted.
+        """
+        hashes = list(dict.fromkeys(content_hashes))
+        if not hashes:
+            return 0
+        with self.session() as s:
+            cid = self._campaign_row(s, name).id
+            res = s.execute(update(RunRow).where(RunRow.campaign_id.is_(None), RunRow.status == "done",
+                                                 RunRow.content_hash.in_(hashes))
+                            .values(campaign_id=cid), execution_options={"synchronize_session": False})
+            return int(res.rowcount)
+
     def retry_failed(self, name: str) -> int:
         """Re-plan the failed runs of a campaign with a fresh attempt count; returns how many."""
         with self.session() as s:
