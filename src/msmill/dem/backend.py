@@ -43,8 +43,8 @@ def warp_status() -> tuple[bool, int]:
     return True, n
 
 
-def check_backend(value: Any, field: str = "backend") -> str:
-    """Return ``value`` if it names a backend usable here, else raise a one-line :class:`MsmillInputError`.
+def check_backend(value: Any, field: str = "backend", *, here: bool = True) -> str:
+    """Return ``value`` if it names a backend (usable here), else raise a one-line :class:`MsmillInputError`.
 
     Parameters
     ----------
@@ -52,10 +52,13 @@ def check_backend(value: Any, field: str = "backend") -> str:
         The requested backend.
     field : str
         Field name for the error (``--backend`` on the command line).
+    here : bool
+        Also require it to run on this machine (Warp installed; for ``"cuda"`` a GPU). A campaign
+        checks the name only: its runs may execute on other machines, where the engine checks again.
     """
     if not isinstance(value, str) or value not in BACKENDS:
         raise MsmillInputError(field, value, _ALLOWED)
-    if value == "cpu":
+    if value == "cpu" or not here:
         return value
     has_warp, n_cuda = warp_status()
     if not has_warp:
