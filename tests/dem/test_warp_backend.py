@@ -255,3 +255,46 @@ def test_mill_slice_statistics_agree_with_the_numba_engine(warp_default):
     for k in a:
         z = (b[k][0] - a[k][0]) / math.hypot(a[k][1], b[k][1])
         assert abs(z) < z_crit, (k, a[k], b[k], z)
+
+
+def test_the_gpu_way_of_stepping_agrees_on_the_cpu_device(warp_default):
+    """Copies in and out at each call and a stop flag read every 16 steps (what ``cuda`` does),
+    here on Warp's CPU device: the same run as the shared-memory stepper, to 1e-10."""
+    import test_engine as te
+
+    from msmill.dem.warp_kernels import WarpStepper
+
+    runs = []
+    for gpu_way in (False, True):
+        sim = te.gas(5, 0.004, 0.0105, 3.0, e=0.5, mu=0.4)
+        sim.add_sink((0.0, 0.0, 0.0), (0.01, 0.01, 0.01), tag="corner")  # flags: a stop mid-batch
+        if gpu_way:
+            sim._step_fn = WarpStepper("cpu", share=False, steps_per_check=16).advance
+        sim.run(2e-3, dt_s=1e-6, progress=False)
+        runs.append((sim.particle_arrays(), sim.events(), sim.removed(), sim.stats["steps"]))
+    (a, ea, ra, na), (b, eb, rb, nb) = runs
+    assert na == nb == 2000 and len(ea) == len(eb) > 20 and len(ra) == len(rb) > 0
+    for k in ("pid", "pos", "vel", "omg"):
+        np.testing.assert_allclose(b[k], a[k], rtol=1e-10, atol=1e-10 * np.abs(a[k]).max())
+    np.testing.assert_allclose(eb[["time_s", "vn_m_s", "dissipated_j"]].to_numpy(float),
+                               ea[["time_s", "vn_m_s", "dissipated_j"]].to_numpy(float), rtol=1e-10)
+    np.testing.assert_array_equal(rb.time_s, ra.time_s)
+
+
+def test_a_pickled_warp_simulation_continues_as_the_uninterrupted_one(warp_default):
+    """Checkpoints pickle the Simulation: the Warp stepper is left out and made again on load."""
+    import pickle
+
+    import test_engine as te
+
+    whole = te.gas(4, 0.004, 0.0105, 3.0, e=0.5, mu=0.4)
+    whole.run(1e-3, dt_s=1e-6, progress=False)
+    part = te.gas(4, 0.004, 0.0105, 3.0, e=0.5, mu=0.4)
+    part.run(4e-4, dt_s=1e-6, progress=False)
+    part = pickle.loads(pickle.dumps(part))
+    assert part.backend == "warp-cpu" and part._step_fn is None
+    part.run(6e-4, dt_s=1e-6, progress=False)
+    a, b = whole.particle_arrays(), part.particle_arrays()
+    for k in ("pos", "vel", "omg"):
+        np.testing.assert_allclose(b[k], a[k], rtol=1e-10, atol=1e-10 * np.abs(a[k]).max())
+    assert len(whole.events()) == len(part.events()) > 5

@@ -888,11 +888,21 @@ class WarpStepper:
     ----------
     device : str
         ``"cpu"`` (Warp's LLVM-compiled CPU kernels) or ``"cuda"`` / ``"cuda:N"``.
+    share : bool, optional
+        Work on views of the engine's arrays (default on the CPU device) instead of copies made
+        at each call and written back after it (a GPU's way; ``False`` on the CPU tests it there).
+    steps_per_check : int, optional
+        Steps launched between two reads of the stop flag (default: 1 when sharing, else
+        :data:`CUDA_STEPS_PER_CHECK`); steps launched after a stop do nothing.
     """
 
-    def __init__(self, device: str) -> None:
+    def __init__(self, device: str, *, share: bool | None = None,
+                 steps_per_check: int | None = None) -> None:
         self.device = device
-        self._cpu = device == "cpu"
+        self._share = (device == "cpu") if share is None else bool(share)
+        if self._share and device != "cpu":
+            raise ValueError("share=True needs Warp's CPU device")
+        self._every = steps_per_check or (1 if self._share else CUDA_STEPS_PER_CHECK)
         self.compile_s = self._load()
 
     def _load(self) -> float:
@@ -907,7 +917,7 @@ class WarpStepper:
     def _array(self, a: np.ndarray):
         """A Warp view (CPU device: the same memory) or device copy of a numpy array."""
         dtype = _DTYPES[a.dtype]
-        if self._cpu:
+        if self._share:
             return wp.array(a, dtype=dtype, device="cpu", copy=False)
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
 
@@ -948,8 +958,7 @@ class WarpStepper:
         control = wp.launch(control_k, dim=1, device=dev, record_cmd=True, inputs=[
             ctl, dt, 0.5 * float(a["skin"]), a["evf"].shape[1] // 2, arr["disp"], arr["evn"],
             red_f, red_i])
-        every = 1 if self._cpu else CUDA_STEPS_PER_CHECK
-        ctl_host = ctl.numpy() if self._cpu else None
+        every = self._every
         for step in range(nsteps):
             t = t0 + step * dt
             stamp = stamp0 + step
@@ -965,10 +974,8 @@ class WarpStepper:
                 integ.set_param_at_index(14, stamp)
                 integ.launch()
             control.launch()
-            if (step + 1) % every == 0 or step == nsteps - 1:
-                state = ctl_host if self._cpu else ctl.numpy()
-                if state[0] >= 0:
-                    break
+            if ((step + 1) % every == 0 or step == nsteps - 1) and ctl.numpy()[0] >= 0:
+                break
         state = ctl.numpy()
         self._copy_back(a, arr)
         steps = int(state[1])
@@ -976,7 +983,7 @@ class WarpStepper:
 
     def _copy_back(self, a: dict, arr: dict) -> None:
         """Bring the arrays the step wrote back from a CUDA device (on the CPU they are shared); clamp ``evn``."""
-        if not self._cpu:
+        if not self._share:
             wp.synchronize_device(self.device)
             for k in _WRITTEN:
                 if a[k].size:
