@@ -13,8 +13,8 @@ compiles (``msmill.dem.warp_kernels``). What agreement is expected (``docs/dem.m
   step: same operations in the same order, no FMA contraction. That is not promised and not
   tested: a GPU's ``sin``/``cos`` differ in the last bit, and chaos does the rest.)
 
-The first test of a fresh machine pays Warp's kernel compile (~40 s; then cached in
-``~/.cache/warp``). The selection and error tests at the top run without Warp.
+The first test of a fresh machine pays Warp's kernel compile (3 s cold on the 2-core VM; then
+cached in ``~/.cache/warp``). The selection and error tests at the top run without Warp.
 """
 
 from __future__ import annotations
