@@ -30,13 +30,13 @@ import time
 
 
 def bench(n: int, phi: float, steps: int, warm: int, skin: float | None = None,
-          chunks: int | None = None) -> dict:
+          chunks: int | None = None, backend: str = "cpu") -> dict:
     from msmill.dem import Simulation
     from msmill.dem.reference import lattice_gas
 
     pos, vel, side, r = lattice_gas(n, phi)
     sim = Simulation((0, 0, 0), (side, side, side), periodic=(True, True, True),
-                     gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin, n_chunks=chunks)
+                     gravity_m_s2=(0, 0, 0), neighbor_skin_m=skin, n_chunks=chunks, backend=backend)
     sim.add_material("rock", youngs_modulus_pa=2e10, poisson_ratio=0.25, density_kg_m3=2700)
     sim.set_interaction("rock", "rock", restitution=0.5, friction=0.4)
     sim.add_particles(pos, r, vel, material="rock")

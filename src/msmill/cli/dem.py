@@ -63,6 +63,9 @@ def run_cmd(
     checkpoint_every_s: Annotated[float, typer.Option(
         "--checkpoint-every-s", help="Wall time between checkpoints (s), kept in OUT/checkpoint while the run "
         "lasts: a run that is stopped continues with --resume OUT, losing at most this much work.")] = 600.0,
+    backend: Annotated[str, typer.Option(
+        "--backend", help="Step kernels: cpu (numba, the default), cuda (NVIDIA Warp on the GPU; "
+        "pip install 'msmill[gpu]'), warp-cpu (the Warp kernels on the CPU, for checks).")] = "cpu",
     resume: Annotated[Path | None, typer.Option(
         "--resume", help="Continue the stopped run whose --out was this folder from its checkpoint, with the "
         "settings it was started with (only --checkpoint-every-s, --vtk and --no-progress may be given).")] = None,
@@ -92,7 +95,8 @@ def run_cmd(
     else:
         machine, op, settings, warm, out = _fresh_inputs(
             machine_toml, size_mm, out, feed_tph, speed_rpm, bottom_factor, gate_deg, max_time_s, measure_s, seed,
-            adaptive, max_measure_s, feed_speed_m_s, start, window_from, checkpoint_every_s, warm_start)
+            adaptive, max_measure_s, feed_speed_m_s, start, window_from, checkpoint_every_s, warm_start,
+            backend)
         ckpt = out / CHECKPOINT_SUBDIR
         if has_checkpoint(ckpt):
             raise MsmillInputError("--out", str(out), f"a folder without the checkpoint of a stopped run (continue "
@@ -103,7 +107,7 @@ def run_cmd(
                                                     progress=cb, start=warm, checkpoint_dir=ckpt))
         run_settings = {"size_mm": size_mm, "mode": mode, "operating_point": op.model_dump(), "seed": seed,
                         "max_time_s": max_time_s, "measure_s": measure_s, "vtk": vtk, "start": start,
-                        "window_from": window_from, "adaptive": adaptive}
+                        "window_from": window_from, "adaptive": adaptive, "backend": backend}
         inputs_files = [] if str(machine_toml) == "default" else [machine_toml]
     from msmill.plots.dem import plot_run
 
@@ -140,10 +144,12 @@ def _option(ctx: typer.Context, name: str) -> str:
 def _fresh_inputs(machine_toml: Path | None, size_mm: float | None, out: Path | None, feed_tph: float,
                   speed_rpm: float, bottom_factor: float, gate_deg: float, max_time_s: float | None,
                   measure_s: float, seed: int, adaptive: bool, max_measure_s: float | None, feed_speed_m_s: float,
-                  start: str, window_from: str, checkpoint_every_s: float, warm_start: Path | None) -> tuple:
+                  start: str, window_from: str, checkpoint_every_s: float, warm_start: Path | None,
+                  backend: str = "cpu") -> tuple:
     """Machine, operating point, settings, warm start and output folder of a new run, every one checked
     (and --out probed for writing) before the (long) simulation starts."""
     from msmill.cli.output import check_writable
+    from msmill.dem.backend import check_backend
     from msmill.dem.mill.checks import check_run_inputs
     from msmill.dem.mill.run import RunSettings
     from msmill.machine import Machine, OperatingPoint
@@ -166,7 +172,8 @@ def _fresh_inputs(machine_toml: Path | None, size_mm: float | None, out: Path | 
     extra = {} if max_measure_s is None else {"max_measure_s": max_measure_s}
     settings = RunSettings(max_time_s=max_time_s or 0.0, measure_s=measure_s, seed=seed, adaptive=adaptive,
                            feed_speed_m_s=feed_speed_m_s, start=start, window_from=window_from,
-                           checkpoint_every_s=checkpoint_every_s, **extra)
+                           checkpoint_every_s=checkpoint_every_s, backend=backend, **extra)
+    check_backend(backend, "--backend")  # this machine runs it: Warp installed, a GPU for cuda
     check_run_inputs(machine, settings, size_mm)
     out = check_writable(out, "--out")
     warm = None

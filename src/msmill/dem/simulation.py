@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
+from msmill.dem.backend import check_backend, stepper
 from msmill.dem.contact import hertz_contact_time, pair_table
 from msmill.dem.geometry import (
     BOX,
@@ -182,6 +183,11 @@ class Simulation:
     parallel : bool, optional
         Force the threaded (True) or serial (False) step kernels; default:
         time both and use the faster (results are identical either way).
+    backend : str
+        Step kernels (:mod:`msmill.dem.backend`): ``"cpu"`` (numba, default),
+        ``"warp-cpu"`` or ``"cuda"`` (NVIDIA Warp on its CPU device or a GPU;
+        the rebuilds stay in numba). One that is unknown or unavailable here
+        raises a one-line :class:`MsmillInputError`.
     """
 
     def __init__(self, domain_min_m=(0.0, 0.0, 0.0), domain_max_m=(1.0, 1.0, 1.0),
@@ -189,7 +195,10 @@ class Simulation:
                  neighbor_skin_m: float | None = None, sort_every: int = 10,
                  n_chunks: int | None = None, max_contacts_per_particle: int = 16,
                  max_geometry_contacts: int = 8, parallel_min_particles: int = 1000,
-                 event_buffer_rows: int = 4096, parallel: bool | None = None) -> None:
+                 event_buffer_rows: int = 4096, parallel: bool | None = None,
+                 backend: str = "cpu") -> None:
+        self._backend = check_backend(backend)
+        self._step_fn = None  # the backend's step loop (backend.stepper), made at the first run
         self._lo = vec3("domain_min_m", domain_min_m)
         self._hi = vec3("domain_max_m", domain_max_m)
         if np.any(self._hi <= self._lo):
@@ -259,10 +268,13 @@ class Simulation:
         # the slot-field views alias the slot records: pickled, they would become copies the kernels
         # write while the records (which _keep permutes) stay behind; they are bound again on load
         state = self.__dict__.copy()
+        state["_step_fn"] = None  # a Warp backend's device state is made again after loading
         state["_p"] = {k: v for k, v in self._p.items() if k not in _SLOT_VIEWS}
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
+        state.setdefault("_backend", "cpu")  # checkpoints written before the backends
+        state.setdefault("_step_fn", None)
         self.__dict__.update(state)
         _slot_views(self._p)
 
@@ -994,8 +1006,10 @@ class Simulation:
         diag[:] = 0.0
         use_par = self._choose_parallel()
         self._last_par = use_par  # the next rebuild follows the step kernels' choice
+        if self._step_fn is None:
+            self._step_fn = stepper(self._backend)
         tic = _time.perf_counter()
-        k, reason = K.advance(
+        k, reason = self._step_fn(
             self._time, dt, limit, self._skin, self._disp, p["pos"], p["vel"], p["omg"], p["rad"],
             p["mass"], p["invm"], p["invi"], p["mat"], p["pid"], p["frc"], p["trq"], self._kind,
             *self._work, p["flag"], p["flag_t"], self._nb[0], self._nb[1], self._nb[2],
@@ -1069,6 +1083,11 @@ class Simulation:
     def dt_s(self) -> float | None:
         """Time step of the last run (s)."""
         return self._dt
+
+    @property
+    def backend(self) -> str:
+        """The step kernels in use (:data:`msmill.dem.backend.BACKENDS`)."""
+        return self._backend
 
     @property
     def n_particles(self) -> int:

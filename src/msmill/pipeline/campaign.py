@@ -123,6 +123,7 @@ def run_settings_dict(values: dict[str, Any], defaults: dict[str, Any] | None = 
         Fields added where ``values`` does not set them; None (default):
         :data:`CAMPAIGN_RUN_DEFAULTS`; ``{}`` validates ``values`` alone.
     """
+    from msmill.dem.backend import check_backend
     from msmill.dem.mill.checks import check_start, check_window_from
     from msmill.dem.mill.run import RunSettings
 
@@ -144,6 +145,8 @@ def run_settings_dict(values: dict[str, Any], defaults: dict[str, Any] | None = 
             raise MsmillInputError(k, v, f"a {type(d).__name__}") from None
     check_start(out.get("start", "empty"))
     check_window_from(out.get("window_from", "detection"))
+    if "backend" in out:
+        check_backend(out["backend"], here=False)  # the workers' machines check that they can run it
     return out
 
 

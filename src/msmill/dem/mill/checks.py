@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from msmill.dem.backend import check_backend
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, size_mm_to_radius_m
 from msmill.validate import LIMITS, integer, number, one_of
@@ -59,6 +60,8 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     check_window_from(getattr(settings, "window_from", "detection"), "--window-from")
     number(getattr(settings, "settle_s", 0.0), "settings.settle_s", unit="s", ge=0)
     number(getattr(settings, "checkpoint_every_s", 600.0), "--checkpoint-every-s", unit="s", ge=0)
+    # the name only: a campaign's runs may execute elsewhere (the engine checks the machine, Simulation)
+    check_backend(getattr(settings, "backend", "cpu"), "backend", here=False)
     t_fall = fall_time_s(machine)
     if 0 < settings.max_time_s < t_fall:
         shown = math.ceil(t_fall * 100) / 100  # the figure printed is itself allowed

@@ -153,6 +153,8 @@ class RunSettings:
     # wall time (s) between checkpoints of a run given a checkpoint directory (issue 35): a kill loses at
     # most this much work; a checkpoint costs what the run recorded since the last one (docs/campaign.md)
     checkpoint_every_s: float = 600.0
+    # step kernels of the engine (msmill.dem.backend.BACKENDS): "cpu" (numba), "warp-cpu", "cuda" (NVIDIA Warp)
+    backend: str = "cpu"
 
     def targets(self) -> dict[str, float]:
         """Targets of the adaptive window, keyed like :func:`sampling_errors_reached`."""
@@ -296,7 +298,8 @@ def run_mill(
     clock = _PartClock()
     commit0 = git_commit()  # the code the run starts from (HEAD may move while it runs)
     scene = build_scene(machine, op, size_mm=size_mm, feed_psd=feed_psd, mode=mode, rock=rock, ore=ore,
-                        max_overlap_fraction=rs.max_overlap_fraction, feed_speed_m_s=rs.feed_speed_m_s, seed=rs.seed)
+                        max_overlap_fraction=rs.max_overlap_fraction, feed_speed_m_s=rs.feed_speed_m_s, seed=rs.seed,
+                        backend=rs.backend)
     check_run_budget(scene, rs)  # step count and rocks fed within msmill.validate.LIMITS
     if start is not None:
         warm = place_warm_start(scene, start, seed=rs.seed)
@@ -369,6 +372,8 @@ def run_inputs(machine: Machine, op: OperatingPoint, size_mm: float | None, feed
     checkpoint interval, which a resumed run may change)."""
     rs = asdict(settings)
     rs.pop("checkpoint_every_s")
+    if rs.get("backend") == "cpu":  # the default: the inputs of a numba run read as before the backends
+        rs.pop("backend")
     feed = None if feed_psd is None else [np.asarray(x, float).tolist() for x in feed_psd]
     warm = None
     if start is not None:

@@ -215,6 +215,7 @@ def build_scene(
     approach_margin_m_s: float = 5.0,
     feed_speed_m_s: float = 2.0,
     seed: int = 0,
+    backend: str = "cpu",
 ) -> MillScene:
     """Build the engine scene of the mill at one design point.
 
@@ -243,6 +244,8 @@ def build_scene(
         Downward speed of fed rock leaving the source in the chute (m/s).
     seed : int
         Seed of the feed source.
+    backend : str
+        Step kernels of the engine (:mod:`msmill.dem.backend`; ``RunSettings.backend``).
     """
     from msmill.dem import Simulation
 
@@ -267,6 +270,7 @@ def build_scene(
     sim = Simulation(
         domain_min_m=(-hw - 0.02, y0, -0.15), domain_max_m=(hw + 0.02, y1, top + 0.02),
         periodic=(False, mode == "slice", False), gravity_m_s2=(0.0, 0.0, -9.81), neighbor_skin_m=skin,
+        backend=backend,
     )
     sim.add_material("rock", youngs_modulus_pa=e_used, poisson_ratio=rock.poisson_ratio,
                      density_kg_m3=rock.density_kg_m3)
