@@ -45,7 +45,7 @@ def git_state() -> dict[str, object]:
 def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
           groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table"):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
-    from msmill.pipeline.export import read_export, split_runs
+    from msmill.pipeline.export import read_export, runs_machine, split_runs
     from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
     from msmill.surrogate.fidelity import SliceToFullBias, match_pairs
     from msmill.surrogate.stage_model import StageSurrogate
@@ -69,6 +69,7 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
         measured = {}
     report = loo_scores(model, refit=loo == "refit")
     dom = model.domain_
+    machine = runs_machine([*slices, *fulls])
     prov = {
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
         **git_state(),
@@ -76,6 +77,8 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
                    "n_documents": len(runs), "n_steady_slice": len(slices), "n_steady_full": len(fulls),
                    "n_pairs": len(pairs),
                    "excluded": sorted(r.path.name for r in runs if r.outcome != "steady")},
+        "machine": {"name": machine.name, "rotation_sense": machine.rotation_sense,
+                    "geometry_hash": machine.geometry_hash()},
         "runs": [{"file": r.path.name, "content_hash": r.content_hash, "size_mm": r.statistics.design.size_mm,
                   "feed_tph": r.statistics.design.feed_tph, "speed_rpm": r.statistics.design.speed_rpm,
                   "gate_deg": r.statistics.design.gate_deg, "wall_s": r.wall_s} for r in slices],

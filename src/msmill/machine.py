@@ -64,6 +64,8 @@ from msmill.validate import InputModel
 __all__ = ["DESIGN_SPACE", "Deflector", "Machine", "OperatingPoint"]
 
 Sweep = Literal["down", "up"]
+#: the rotation sense of ``Machine.default()``: counter-rotating pairs sweeping down through the centre
+DEFAULT_ROTATION_SENSE = "down_down"
 
 #: Design space of the surrogate (paper Table 2, domain-notes Section 1).
 DESIGN_SPACE: dict[str, tuple[float, float]] = {
@@ -323,6 +325,40 @@ class Machine(_Model):
             Path(path).write_text(text, encoding="utf-8")
         return text
 
+    # ------------------------------------------------------------ identity
+    def geometry_hash(self) -> str:
+        """SHA-256 (16 hex digits) of what the DEM sees: every field but ``name`` and ``description``,
+        the rotation sense written out (``central_sweep`` None and all ``("down", "down")`` hash alike).
+
+        Two machines with equal geometry hashes give the same DEM runs; a surrogate records the hash of
+        the machine it was trained on, so a prediction for another machine can say so.
+        """
+        import hashlib
+        import json
+
+        d = self.model_dump(mode="json", exclude={"name", "description"})
+        d["central_sweep"] = [list(self.sweep(s)) for s in range(1, self.n_stages + 1)]
+        text = json.dumps(d, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    @property
+    def rotation_sense(self) -> str:
+        """Name of the rotation-sense configuration (:func:`rotation_senses`) this machine's sweeps match,
+        ``"custom"`` for any other pattern."""
+        mine = [self.sweep(s) for s in range(1, self.n_stages + 1)]
+        for name, sweeps in rotation_senses().items():
+            if _sense_pattern(sweeps, self.n_stages) == mine:
+                return name
+        return "custom"
+
+    def with_rotation_sense(self, sense: str, field: str = "rotation_sense") -> Machine:
+        """This machine with the rotors turning as configuration ``sense`` (:func:`rotation_senses`)."""
+        senses = rotation_senses()
+        if sense not in senses:
+            raise MsmillInputError(field, sense, ", ".join(senses))
+        sweeps = _sense_pattern(senses[sense], self.n_stages)
+        return self.model_copy(update={"central_sweep": None if sense == DEFAULT_ROTATION_SENSE else sweeps})
+
     # ------------------------------------------------------------ geometry
     @property
     def half_width_m(self) -> float:
@@ -567,3 +603,24 @@ def _warn_outside(name: str, value: float) -> bool:
 def check_size_mm(size_mm: float) -> None:
     """Warn (:class:`OutOfDomainWarning`) if a rock size lies outside 2-30 mm."""
     _warn_outside("size_mm", float(size_mm))
+
+
+def rotation_senses() -> dict[str, list[tuple[str, str]]]:
+    """Rotation-sense configurations of the rotation-sense study (issue 37; its machines are ``data/machines``): name ->
+    per-stage (left, right) central-gap sweeps, the first stage's pair then the others'
+    (``down_down``: all down, today's default; ``up_up``: all up; ``down_up`` / ``up_down``: the top
+    stage one way, the rest the other; ``co_rotating``: left down, right up)."""
+    return {name: [tuple(p) for p in pattern] for name, pattern in _ROTATION_SENSES.items()}
+
+
+#: the study's configurations as (top stage, other stages) pairs of sweeps
+_ROTATION_SENSES: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
+    "down_down": (("down", "down"), ("down", "down")), "up_up": (("up", "up"), ("up", "up")),
+    "down_up": (("down", "down"), ("up", "up")), "up_down": (("up", "up"), ("down", "down")),
+    "co_rotating": (("down", "up"), ("down", "up"))}
+
+
+def _sense_pattern(sweeps: list[tuple[str, str]], n_stages: int) -> list[tuple[str, str]]:
+    """Per-stage sweeps of a configuration on a machine of ``n_stages``."""
+    top, rest = sweeps
+    return [tuple(top)] + [tuple(rest)] * (n_stages - 1)

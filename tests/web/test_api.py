@@ -239,3 +239,24 @@ def test_openapi_describes_the_request_and_the_error_body_returned(client: TestC
     r = client.post("/predict", json=bad)
     assert r.status_code == 422
     assert ErrorBody.model_validate(r.json()).detail.field.endswith("operating.gate_deg")  # the body the schema names
+
+
+def test_rotation_sense_is_offered_and_a_sense_without_a_surrogate_says_so(client: TestClient) -> None:
+    """Issue 37: the page lists the rotation senses (GET /rotation-senses); a request for a sense whose
+    surrogate is not shipped yet is a 422 whose one line names the field and the sense."""
+    senses = client.get("/rotation-senses").json()
+    assert [s["name"] for s in senses if s["default"]] == ["down_down"]
+    assert {s["name"] for s in senses} >= {"down_down", "up_up"}
+    assert next(s for s in senses if s["name"] == "down_down")["surrogate_shipped"]
+    req = _example()
+    req["machine"] = {"rotation_sense": "up_up"}
+    r = client.post("/predict", json=req)
+    shipped = next(s for s in senses if s["name"] == "up_up")["surrogate_shipped"]
+    if shipped:
+        assert r.status_code == 200, r.text
+    else:
+        assert r.status_code == 422
+        d = r.json()["detail"]
+        assert d["field"].endswith("stage_parameters.file") and "rotation sense 'up_up'" in d["message"]
+    req["machine"] = {"rotation_sense": "down_down"}
+    assert client.post("/predict", json=req).status_code == 200

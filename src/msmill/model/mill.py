@@ -31,6 +31,7 @@ from msmill.model.providers import (
     HeldBelow,
     StageParameterProvider,
     load_provider,
+    machine_mismatch,
     smallest_covered_mm,
 )
 from msmill.model.result import MillResult, time_to_steady_state, with_band
@@ -164,6 +165,9 @@ class Mill:
         if machine is not None and getattr(machine, "n_stages", self.provider.n_stages) != self.provider.n_stages:
             raise MsmillInputError("machine.n_stages", machine.n_stages,
                                    f"{self.provider.n_stages} (the stages of the stage parameters)")
+        self.machine_note = machine_mismatch(self.provider, machine)
+        if self.machine_note:
+            warnings.warn(self.machine_note, InputWarning, stacklevel=2)
         self.transport = sm.resolve("transport", transport, self.ore)
         self.impacts = sm.resolve("impacts", impacts, self.ore)
         self.breakage = sm.resolve("breakage", breakage, self.ore)
@@ -359,6 +363,7 @@ class Mill:
         tonnes_per_step = op.feed_tph * dt / 3600.0
         brk_notes = getattr(getattr(self.breakage, "ore", None), "notes", ())  # e.g. a sub-model's default
         notes = [*dict.fromkeys([*self.ore.notes, *brk_notes]), f"stage parameters: {params.source}"]
+        notes += [self.machine_note] if self.machine_note else []
         notes += [streams.note] if streams.note else []
         if not self.solver.moves_by_fill and getattr(streams, "filling", None) is not None:
             notes.append(f"transport: the {self.solver.name} solver moves rock by the steady matrix throughout "

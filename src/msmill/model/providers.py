@@ -62,8 +62,10 @@ __all__ = [
     "TableProvider",
     "WithFillingCurves",
     "load_provider",
+    "machine_mismatch",
     "named_parameter_path",
     "read_simple_table",
+    "sense_surrogate_path",
 ]
 
 _REL_TOL = 0.01  # relative difference of an operating value that triggers a warning
@@ -686,13 +688,63 @@ def default_surrogate_path() -> Path | None:
     return p if p.is_file() else None
 
 
-def named_parameter_path(name: str, field: str = "stage_parameters") -> Path | None:
+def sense_surrogate_path(sense: str) -> Path | None:
+    """The shipped surrogate of the default machine turning as rotation sense ``sense``
+    (``msmill/data/surrogates/<sense>.json``; the default sense's is ``default.json``), None when none is."""
+    from msmill.machine import DEFAULT_ROTATION_SENSE
+
+    if sense == DEFAULT_ROTATION_SENSE:
+        return default_surrogate_path()
+    p = default_surrogate_path_dir() / f"{sense}.json"
+    return p if p.is_file() else None
+
+
+def default_surrogate_path_dir() -> Path:
+    """Folder of the shipped surrogates (``msmill/data/surrogates``)."""
+    from importlib import resources
+
+    return Path(str(resources.files("msmill").joinpath("data/surrogates")))
+
+
+def _sense_names() -> list[str]:
+    from msmill.machine import rotation_senses
+
+    return list(rotation_senses())
+
+
+def machine_mismatch(provider: Any, machine: Any) -> str | None:
+    """A note when ``provider``'s DEM runs were made on another machine than ``machine``, else None.
+
+    Only providers that record their machine (:attr:`msmill.surrogate.provider.SurrogateProvider.
+    trained_machine`) can be checked; the note names both rotation senses.
+    """
+    trained = getattr(provider, "trained_machine", None)
+    if machine is None or not trained or trained["geometry_hash"] == machine.geometry_hash():
+        return None
+    return (f"stage parameters from DEM runs of another machine: {trained['name']} (rotation sense "
+            f"{trained['rotation_sense']}), not this {machine.name} (rotation sense {machine.rotation_sense}); "
+            "the streams can differ by a factor of 2-5 between senses (docs/mill-dem.md)")
+
+
+def _other_sense(machine: Any) -> str | None:
+    """The rotation sense of ``machine`` when it is the default machine turning another way, else None."""
+    from msmill.machine import DEFAULT_ROTATION_SENSE, Machine
+
+    if machine is None or machine.rotation_sense in (DEFAULT_ROTATION_SENSE, "custom"):
+        return None
+    same = machine.with_rotation_sense(DEFAULT_ROTATION_SENSE).geometry_hash() == Machine.default().geometry_hash()
+    return machine.rotation_sense if same else None
+
+
+def named_parameter_path(name: str, field: str = "stage_parameters", machine: Any = None) -> Path | None:
     """The packaged file a name stands for, None for other values.
 
     ``"default"``: the shipped surrogate trained on the DEM campaign, or, when
     it is not installed, the single-point table with a ``UserWarning`` saying
-    so; ``"table"``: the single-point DEM table
-    (``msmill/data/stage_parameters/default.json``).
+    so; for the default machine turning another way (``machine``, e.g.
+    ``Machine.default().with_rotation_sense("up_up")``) that sense's shipped surrogate
+    (:func:`sense_surrogate_path`), a one-line error where none is shipped;
+    ``"table"``: the single-point DEM table (``msmill/data/stage_parameters/default.json``).
     """
     import warnings
 
@@ -700,6 +752,13 @@ def named_parameter_path(name: str, field: str = "stage_parameters") -> Path | N
         return default_table_path(field)
     if name != DEFAULT_TABLE:
         return None
+    sense = _other_sense(machine)
+    if sense is not None:
+        p = sense_surrogate_path(sense)
+        if p is None:
+            raise MsmillInputError(field, name, f"a surrogate file of rotation sense '{sense}' (none is shipped yet: "
+                                   "its DEM campaign is under way, docs/campaign.md)")
+        return p
     p = default_surrogate_path()
     if p is None:
         table = default_table_path(field)  # raises first when the table is missing too
@@ -727,6 +786,8 @@ def load_provider(path: str | Path) -> Any:
         prov = SurrogateProvider.from_file(p)
         if p == default_surrogate_path():  # its name only: what it does, the file says (filling_curves)
             prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
+        elif p.parent == default_surrogate_path_dir() and p.stem in _sense_names():
+            prov.source = f"shipped surrogate of rotation sense {p.stem} ({prov.surrogate.training_.n_runs} DEM runs)"
         if prov.surrogate.filling_curves == TABLE_NAME:  # runs from a filled mill: the table's (cold runs)
             table = TableProvider.from_file(default_table_path())
             table.source = "the shipped stage table (cold DEM runs)"

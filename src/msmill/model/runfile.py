@@ -24,6 +24,9 @@ Layout (every section but ``[feed]`` and ``[operating]`` is optional)::
 
     [machine]
     file = "my_mill.toml"        # optional; default Machine.default()
+    rotation_sense = "up_up"     # optional: the rotors turning as one of msmill.machine.rotation_senses()
+                                 # ("down_down" is the default's; stage_parameters "default" then names
+                                 # that sense's shipped surrogate, a one-line error while none is shipped)
 
     [stage_parameters]
     file = "default"             # the shipped surrogate ("table": the single-point DEM table), or a path
@@ -153,6 +156,8 @@ class OperatingSection(_Section):
 
 class MachineSection(_Section):
     file: str | None = None
+    rotation_sense: str | None = Field(default=None, description="rotation-sense configuration "
+                                       "(msmill.machine.rotation_senses); default the machine's own")
 
 
 class StageParametersSection(_Section):
@@ -239,16 +244,20 @@ class MillSpec(_Section):
         from msmill.machine import Machine
 
         if self.machine.file is None:
-            return Machine.default()
-        p = self.path(self.machine.file)
-        if not p.is_file():
-            raise MsmillInputError(f"{self.name}.machine.file", self.machine.file, "an existing machine TOML file")
-        return Machine.from_toml(p)
+            machine = Machine.default()
+        else:
+            p = self.path(self.machine.file)
+            if not p.is_file():
+                raise MsmillInputError(f"{self.name}.machine.file", self.machine.file, "an existing machine TOML file")
+            machine = Machine.from_toml(p)
+        if self.machine.rotation_sense is not None:
+            machine = machine.with_rotation_sense(self.machine.rotation_sense, f"{self.name}.machine.rotation_sense")
+        return machine
 
     def stage_parameter_path(self) -> Path:
         """The stage-parameter file (the packaged default table for ``"default"``)."""
         v = self.stage_parameters.file
-        named = named_parameter_path(v, f"{self.name}.stage_parameters.file")
+        named = named_parameter_path(v, f"{self.name}.stage_parameters.file", self.machine_obj())
         if named is not None:
             return named
         p = self.path(v)

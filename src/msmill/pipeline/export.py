@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from msmill.errors import MsmillInputError
-from msmill.machine import DESIGN_SPACE
+from msmill.machine import DESIGN_SPACE, Machine
 from msmill.pipeline.store import Store
 from msmill.pipeline.store.hashing import read_statistics
 from msmill.pipeline.store.transfer import EXPORT_KIND, export_runs
@@ -105,6 +105,21 @@ def export_campaign(store: Store, out_dir: str | Path) -> tuple[list[Path], Path
     cpath.write_text(json.dumps({"kind": "msmill_campaigns", "format_version": 1, "campaigns": docs},
                                 indent=1, sort_keys=True, default=str) + "\n", encoding="utf-8")
     return runs, cpath
+
+
+def runs_machine(runs: list[ExportedRun]) -> Machine:
+    """The one machine (by :meth:`~msmill.machine.Machine.geometry_hash`) the exported runs were made on.
+
+    A surrogate or an envelope is for one machine: runs of several give a one-line error naming them.
+    """
+    machines: dict[str, Machine] = {}
+    for r in runs:
+        m = Machine.from_toml(json.loads(r.path.read_text(encoding="utf-8"))["machine_toml"])
+        machines.setdefault(m.geometry_hash(), m)
+    if len(machines) != 1:
+        names = ", ".join(f"{m.name} ({m.rotation_sense})" for m in machines.values()) or "none"
+        raise MsmillInputError("export", names, "runs of one machine (one export folder per machine)")
+    return next(iter(machines.values()))
 
 
 def read_export(folder: str | Path) -> list[ExportedRun]:

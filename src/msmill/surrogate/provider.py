@@ -76,6 +76,13 @@ class SurrogateProvider:
         return cls(load(path), source=Path(path).name)
 
     @property
+    def trained_machine(self) -> dict[str, str] | None:
+        """The machine of the training runs (``name``, ``rotation_sense``, ``geometry_hash``: see
+        :meth:`msmill.machine.Machine.geometry_hash`) as the build recorded it; None if it did not."""
+        m = getattr(self.surrogate, "provenance_", {}).get("machine")
+        return dict(m) if isinstance(m, dict) and "geometry_hash" in m else None
+
+    @property
     def covered_sizes_mm(self) -> tuple[float, float]:
         """Smallest and largest rock size (mm) of the training runs."""
         lo, hi = self.surrogate.domain_[0]

@@ -146,6 +146,16 @@ def create_app(service: PredictionService | None = None, max_request_bytes: int 
                         "l_ref_calibrated": not ore.l_ref_is_default})
         return out
 
+    @app.get("/rotation-senses")
+    def rotation_senses() -> list[dict[str, Any]]:
+        """The rotation-sense configurations (``[machine] rotation_sense``) and whether each has a shipped surrogate."""
+        from msmill.machine import DEFAULT_ROTATION_SENSE
+        from msmill.machine import rotation_senses as senses
+        from msmill.model.providers import sense_surrogate_path
+
+        return [{"name": s, "default": s == DEFAULT_ROTATION_SENSE, "surrogate_shipped": sense_surrogate_path(s) is not None}
+                for s in senses()]
+
     @app.get("/defaults")
     def defaults() -> dict[str, Any]:
         """The shipped UG2 example as a request body."""
