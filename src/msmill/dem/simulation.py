@@ -186,7 +186,7 @@ class Simulation:
     backend : str
         Step kernels (:mod:`msmill.dem.backend`): ``"cpu"`` (numba, default),
         ``"warp-cpu"`` or ``"cuda"`` (NVIDIA Warp on its CPU device or a GPU;
-        the rebuilds stay in numba). One that is unknown or unavailable here
+        state, step and rebuild on that device). One that is unknown or unavailable here
         raises a one-line :class:`MsmillInputError`.
     """
 

@@ -17,9 +17,9 @@ come from the same pair table (:func:`msmill.dem.contact.pair_table`); the
 force formula is written twice, here and in ``kernels.contact_law``
 (``tests/dem/test_warp_backend.py`` checks that the two agree).
 
-Not on the device yet: the neighbour and geometry-candidate rebuilds, sorting,
-sources and sinks run in the numba engine between calls (``Simulation._rebuild``),
-so on CUDA the arrays are copied to the device at each call and back after it.
+:meth:`WarpStepper.run` steps on arrays already on the device: with a Warp backend the
+state and the neighbour rebuild stay there (:mod:`msmill.dem.warp_rebuild`); :meth:`advance`
+(numba rebuilds, arrays copied in and out per call) is the previous data path.
 
 Floating point: the module is compiled without FMA contraction (``fuse_fp``)
 and without fast math, like the numba kernels (``fastmath=False``).
