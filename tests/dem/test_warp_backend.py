@@ -268,6 +268,7 @@ def test_the_gpu_way_of_stepping_agrees_on_the_cpu_device(warp_default):
     for gpu_way in (False, True):
         sim = te.gas(5, 0.004, 0.0105, 3.0, e=0.5, mu=0.4)
         sim.add_sink((0.0, 0.0, 0.0), (0.01, 0.01, 0.01), tag="corner")  # flags: a stop mid-batch
+        sim._on_device = False  # numba rebuilds, the step through _step_fn
         if gpu_way:
             sim._step_fn = WarpStepper("cpu", share=False, steps_per_check=16).advance
         sim.run(2e-3, dt_s=1e-6, progress=False)

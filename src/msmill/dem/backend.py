@@ -79,3 +79,11 @@ def stepper(backend: str) -> Callable[..., tuple[int, int]]:
     from msmill.dem.warp_kernels import WarpStepper
 
     return WarpStepper(_WARP_DEVICE[backend]).advance
+
+
+def device_engine(backend: str) -> Any:
+    """A :class:`msmill.dem.warp_rebuild.DeviceEngine` on ``backend``'s Warp device (``"warp-cpu"``, ``"cuda"``)."""
+    check_backend(backend)
+    from msmill.dem.warp_rebuild import DeviceEngine
+
+    return DeviceEngine(_WARP_DEVICE[backend])

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
-from msmill.dem.backend import check_backend, stepper
+from msmill.dem.backend import check_backend, device_engine, stepper
 from msmill.dem.contact import hertz_contact_time, pair_table
 from msmill.dem.geometry import (
     BOX,
@@ -186,7 +186,7 @@ class Simulation:
     backend : str
         Step kernels (:mod:`msmill.dem.backend`): ``"cpu"`` (numba, default),
         ``"warp-cpu"`` or ``"cuda"`` (NVIDIA Warp on its CPU device or a GPU;
-        the rebuilds stay in numba). One that is unknown or unavailable here
+        state, step and rebuild on that device). One that is unknown or unavailable here
         raises a one-line :class:`MsmillInputError`.
     """
 
@@ -199,6 +199,10 @@ class Simulation:
                  backend: str = "cpu") -> None:
         self._backend = check_backend(backend)
         self._step_fn = None  # the backend's step loop (backend.stepper), made at the first run
+        # Warp backends: the state, the step and the rebuild on the Warp device (DeviceEngine,
+        # made at the first rebuild); False: numba rebuilds, the step loop through _step_fn
+        self._on_device = self._backend != "cpu"
+        self._dev = None
         self._lo = vec3("domain_min_m", domain_min_m)
         self._hi = vec3("domain_max_m", domain_max_m)
         if np.any(self._hi <= self._lo):
@@ -243,7 +247,7 @@ class Simulation:
         self._time = 0.0
         self._dt: float | None = None
         self._next_id = 0
-        self._p = self._empty_particles()
+        self._pd = self._empty_particles()  # the particle arrays (read them through _p)
         if int(event_buffer_rows) < 8:
             raise MsmillInputError("event_buffer_rows", event_buffer_rows, "an integer >= 8")
         self._rec = EventRecorder(self._nch, int(event_buffer_rows))
@@ -267,20 +271,42 @@ class Simulation:
     def __getstate__(self) -> dict[str, Any]:
         # the slot-field views alias the slot records: pickled, they would become copies the kernels
         # write while the records (which _keep permutes) stay behind; they are bound again on load
+        if self._dev is not None:
+            self._host_view(lists=True)  # everything, lists included, as the numba engine keeps it
         state = self.__dict__.copy()
         state["_step_fn"] = None  # a Warp backend's device state is made again after loading
-        state["_p"] = {k: v for k, v in self._p.items() if k not in _SLOT_VIEWS}
+        state["_dev"] = None
+        state["_p"] = {k: v for k, v in state.pop("_pd").items() if k not in _SLOT_VIEWS}
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         state.setdefault("_backend", "cpu")  # checkpoints written before the backends
         state.setdefault("_step_fn", None)
+        state.setdefault("_on_device", state["_backend"] != "cpu")
+        state["_dev"] = None
+        state["_pd"] = state.pop("_p")
         self.__dict__.update(state)
-        _slot_views(self._p)
+        _slot_views(self._pd)
+
+    @property
+    def _p(self) -> dict[str, np.ndarray]:
+        """The particle arrays, up to date, for reading and writing (a Warp device's copy is then stale)."""
+        p = self._host_view()
+        if self._dev is not None:
+            self._dev.dev_ok = False
+        return p
+
+    def _host_view(self, lists: bool = False) -> dict[str, np.ndarray]:
+        """The particle arrays (and events, geometry poses; ``lists``: the lists), up to date, to read only."""
+        if self._dev is not None:
+            self._settle_forces()
+            self._dev.to_host(self, lists)
+        return self._pd
 
     def append_only_lists(self) -> dict[str, list]:
         """The run's records that only ever grow (finished events, removed particles, time series,
         snapshots): a checkpoint writes each item once (:mod:`msmill.dem.checkpoint`)."""
+        self._host_view()
         return {**self._rec.append_only_lists(), "removed": self._removed, "timeseries": self._ts,
                 "snapshots": self._snaps}
 
@@ -573,7 +599,7 @@ class Simulation:
         self._dirty = False
 
     def _r_min_max(self) -> tuple[float, float]:
-        radii = [self._p["rad"]] + [s["vals"] for s in self._sources]
+        radii = [self._pd["rad"]] + [s["vals"] for s in self._sources]
         allr = np.concatenate(radii) if radii else np.zeros(0)
         if allr.size == 0:
             return math.nan, math.nan
@@ -594,10 +620,10 @@ class Simulation:
         v = _pos_number("max_relative_speed_m_s", max_relative_speed_m_s)
         if self._dirty:
             self._pack()
-        mats = {int(m) for m in np.unique(self._p["mat"])} | {s["mat"] for s in self._sources}
+        mats = {int(m) for m in np.unique(self._pd["mat"])} | {s["mat"] for s in self._sources}
         rmin = {}
         for m in mats:
-            rs = [self._p["rad"][self._p["mat"] == m]] + [s["vals"] for s in self._sources
+            rs = [self._pd["rad"][self._pd["mat"] == m]] + [s["vals"] for s in self._sources
                                                           if s["mat"] == m]
             rmin[m] = float(np.concatenate(rs).min())
         tc = math.inf
@@ -670,7 +696,7 @@ class Simulation:
         # follows the particle count (a sparse mill slice would otherwise sweep
         # ~1e5 empty cells per rebuild). Coarsen the longest axis first; cells
         # only grow, so they stay >= the cut-off.
-        n = len(self._p["rad"])
+        n = len(self._pd["rad"])
         cap = max(4096, CELLS_PER_PARTICLE * n)
         while np.prod(nc) > cap:
             a = int(np.argmax(nc))
@@ -695,23 +721,47 @@ class Simulation:
         Needs the kinds and partner shares of that pass: call before they are
         replaced (rebuild) or the particles reordered.
         """
-        if self._frc_stale:
-            p = self._p
+        if self._frc_stale and self._dev is not None:
+            self._frc_stale = False
+            self._dev.settle(self)
+        elif self._frc_stale:
+            p = self._pd
             K.settle_forces(self._kind, p["mass"], self._gravity, p["frc"], p["trq"], self._pair[3],
                             self._stamp)
             self._frc_stale = False
 
+    def _resize_cells(self) -> None:
+        """Coarser cells for a larger radius, finer ones for a grown population (``_cells``)."""
+        rad = self._pd["rad"]
+        rmax = float(rad.max()) if rad.size else 0.0
+        if rmax > self._rmax_cells:
+            self._rmax_cells = rmax
+            self._cells(rmax)
+        elif rad.size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
+            self._cells(self._rmax_cells)
+
+    def _geometry_grid(self) -> None:
+        """Poses at the rebuild's time; the coarse geometry grid again if the cut-off changed."""
+        K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
+        margin = self._rmax_cells + self._skin
+        if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
+            L = self._hi - self._lo
+            size = float(L.max()) / GEOM_CELLS_LONG_AXIS
+            self._gnc = np.clip(np.ceil(L / size), 1, GEOM_CELLS_LONG_AXIS).astype(np.int64)
+            self._gcl = L / self._gnc
+            self._ggrid = K.build_geom_grid(self._gcur, self._grot, self._gkind, self._gbound,
+                                            self._lo, self._gcl, self._gnc, margin)
+            self._ggrid_margin = margin
+
     def _rebuild(self) -> None:
+        if self._on_device:
+            self._rebuild_on_device()
+            return
         self._settle_forces()
         p = self._p
         K.wrap_positions(p["pos"], self._lo, self._box_len, self._periodic, p["g_gid"], p["g_n"],
                          self._gspan)
-        rmax = float(p["rad"].max()) if p["rad"].size else 0.0
-        if rmax > self._rmax_cells:
-            self._rmax_cells = rmax
-            self._cells(rmax)
-        elif p["rad"].size > 2 * max(self._cells_n, 512):  # population grew: finer cells pay off
-            self._cells(self._rmax_cells)
+        self._resize_cells()
         _cell, start, order, cell = K.bin_cells(p["pos"], self._lo, self._cell_len, self._ncell)
         par = self._last_par and threads_usable()  # rebuilds follow the step kernels' choice
         if self._n_rebuilds % self._sort_every == 0 and p["pos"].shape[0] > 0:
@@ -727,16 +777,7 @@ class Simulation:
         # (the fourth: the step in which each particle last got a partner share)
         self._pair = (np.zeros(m, np.int64), np.zeros((m, 3)), np.zeros((m, 3)),
                       np.zeros(p["pos"].shape[0], np.int64))
-        K.update_geometry(self._gref, self._grot, self._gkind, self._time, self._gcur)
-        margin = self._rmax_cells + self._skin
-        if getattr(self, "_ggrid_margin", None) != margin or self._ggrid is None:
-            L = self._hi - self._lo
-            size = float(L.max()) / GEOM_CELLS_LONG_AXIS
-            self._gnc = np.clip(np.ceil(L / size), 1, GEOM_CELLS_LONG_AXIS).astype(np.int64)
-            self._gcl = L / self._gnc
-            self._ggrid = K.build_geom_grid(self._gcur, self._grot, self._gkind, self._gbound,
-                                            self._lo, self._gcl, self._gnc, margin)
-            self._ggrid_margin = margin
+        self._geometry_grid()
         self._gc = K.build_geom_candidates(p["pos"], p["rad"], self._skin, self._gcur,
                                            self._grot, self._gkind, self._gbound, self._gspan,
                                            self._periodic, self._box_len, self._img_box, self._lo,
@@ -747,9 +788,28 @@ class Simulation:
                                       p["vel"], p["omg"])
         self._work = K.work_lists(self._kind, self._nch)
         self._disp[0] = 0.0
+        self._rebuilt()
+
+    def _rebuilt(self) -> None:
         self._n_rebuilds += 1
         self.stats["rebuilds"] += 1
         self._need_rebuild = False
+
+    def _rebuild_on_device(self) -> None:
+        """The rebuild of a Warp backend, on its device (:class:`msmill.dem.warp_rebuild.DeviceEngine`)."""
+        self._device()
+        self._settle_forces()
+        self._resize_cells()
+        self._geometry_grid()
+        sort = self._n_rebuilds % self._sort_every == 0 and self.n_particles > 0
+        self._dev.rebuild(self, sort)
+        self._rebuilt()
+
+    def _device(self):
+        """The Warp backend's :class:`~msmill.dem.warp_rebuild.DeviceEngine`, made at first use."""
+        if self._dev is None:
+            self._dev = device_engine(self._backend)
+        return self._dev
 
     # ------------------------------------------------------------------ removal / insertion
     def _handle_flags(self) -> None:
@@ -819,12 +879,13 @@ class Simulation:
             lo, hi = s["lo"], s["hi"]
             u = s["rng"].random((n, s["tries"], 3))
             cand = lo + radii[:, None, None] + u * (hi - lo - 2 * radii[:, None, None])
-            pos = self._p["pos"]
-            reach = float(radii.max()) + (float(self._p["rad"].max()) if pos.size else 0.0)
+            p = self._host_view()
+            pos = p["pos"]
+            reach = float(radii.max()) + (float(p["rad"].max()) if pos.size else 0.0)
             inside = (pos >= lo - reach) & (pos <= hi + reach)
             inside[:, self._periodic.astype(bool)] = True  # periodic images may reach the region
             near = np.all(inside, axis=1)
-            out, ok = K.place_without_overlap(cand, radii, pos[near], self._p["rad"][near],
+            out, ok = K.place_without_overlap(cand, radii, pos[near], p["rad"][near],
                                               self._box_len, self._periodic)
             placed = masses[:n][ok].sum()
             s["debt"] -= masses[:n].sum()
@@ -1002,10 +1063,12 @@ class Simulation:
 
     def _advance(self, dt: float, limit: int, diag: np.ndarray) -> tuple[int, int]:
         """Up to ``limit`` steps in the compiled loop (threaded or serial, as tuned); ``(steps, reason)``."""
-        p = self._p
         diag[:] = 0.0
         use_par = self._choose_parallel()
         self._last_par = use_par  # the next rebuild follows the step kernels' choice
+        if self._on_device:
+            return self._advance_on_device(dt, limit, diag)
+        p = self._p
         if self._step_fn is None:
             self._step_fn = stepper(self._backend)
         tic = _time.perf_counter()
@@ -1021,11 +1084,20 @@ class Simulation:
             p["h_ds"], p["h_n"], p["h_tch"], p["g_gid"], p["g_st"], p["g_ev"],
             p["g_pk"], p["g_ds"], p["g_n"], p["g_tch"], self._rec.evf, self._rec.evi,
             self._rec.evn, diag, use_par)
-        elapsed = _time.perf_counter() - tic
+        self._stepped(use_par, _time.perf_counter() - tic, k)
+        return k, reason
+
+    def _stepped(self, use_par: bool, elapsed: float, k: int) -> None:
         if k > 0:
             self._frc_stale = True  # see _settle_forces
         self.stats["loop_time_s"] += elapsed
         self._tune(use_par, elapsed, k)
+
+    def _advance_on_device(self, dt: float, limit: int, diag: np.ndarray) -> tuple[int, int]:
+        """Up to ``limit`` steps on the Warp device, the state staying there; ``(steps, reason)``."""
+        tic = _time.perf_counter()
+        k, reason = self._device().advance(self, dt, limit, diag)
+        self._stepped(False, _time.perf_counter() - tic, k)
         return k, reason
 
     def _check_periodic_spans(self, pad: float) -> None:
@@ -1067,7 +1139,7 @@ class Simulation:
             self._warn_once("events", "event buffer overflowed; some events were not recorded")
 
     def _record_ts(self) -> None:
-        p = self._p
+        p = self._host_view()
         ke = float(0.5 * np.sum(p["mass"] * np.sum(p["vel"] ** 2, axis=1))
                    + 0.5 * np.sum(np.sum(p["omg"] ** 2, axis=1) / p["invi"]))
         self._ts.append((self._time, self.n_particles, float(p["mass"].sum()), ke,
@@ -1092,24 +1164,26 @@ class Simulation:
     @property
     def n_particles(self) -> int:
         """Number of particles in the domain."""
-        return int(self._p["pid"].shape[0])
+        return int(self._pd["pid"].shape[0])
 
     def particle_arrays(self) -> dict[str, np.ndarray]:
         """Copies of per-particle arrays: ``pid``, ``pos`` (m), ``vel`` (m/s), ``omg`` (rad/s),
         ``rad`` (m), ``mass`` (kg), ``frc`` (N) and ``trq`` (N m) of the last force pass."""
         self._settle_forces()
-        return {k: self._p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass", "frc",
+        p = self._host_view()
+        return {k: p[k].copy() for k in ("pid", "pos", "vel", "omg", "rad", "mass", "frc",
                                                "trq")}
 
     def kinetic_energy_j(self) -> float:
         """Translational plus rotational kinetic energy (J)."""
-        p = self._p
+        p = self._host_view()
         return float(0.5 * np.sum(p["mass"] * np.sum(p["vel"] ** 2, axis=1))
                      + 0.5 * np.sum(np.sum(p["omg"] ** 2, axis=1) / p["invi"]))
 
     def momentum_kg_m_s(self) -> np.ndarray:
         """Total linear momentum (kg m/s)."""
-        return np.sum(self._p["mass"][:, None] * self._p["vel"], axis=0)
+        p = self._host_view()
+        return np.sum(p["mass"][:, None] * p["vel"], axis=0)
 
     def contact_energy_j(self) -> float:
         """Elastic energy stored in the normal contacts now (J)."""
@@ -1119,7 +1193,7 @@ class Simulation:
             if not hasattr(self, "_rmax_cells") or self._skin is None:
                 return 0.0
             self._rebuild()
-        p = self._p
+        p = self._host_view(lists=True)
         return float(K.contact_potential_energy(
             p["pos"], p["rad"], p["pid"], p["mat"], self._nb[0], self._nb[1], self._nb[2],
             self._box_len, self._ptab, self._gc[0], self._gc[1], self._gcur, self._gkind,
@@ -1130,6 +1204,7 @@ class Simulation:
 
         ``since_s`` (s): only the contacts opened at or after it (None: all).
         """
+        self._host_view()
         df = self._rec.frame(since_s)
         geo = self.geometry()
         tag = np.full(len(df), "", dtype=object)
@@ -1161,7 +1236,7 @@ class Simulation:
 
     def snapshot(self) -> pd.DataFrame:
         """Particles now: id, position (m), velocity (m/s), angular velocity (rad/s), radius (m)."""
-        p = self._p
+        p = self._host_view()
         return pd.DataFrame({
             "particle_id": p["pid"].copy(), "x_m": p["pos"][:, 0].copy(),
             "y_m": p["pos"][:, 1].copy(), "z_m": p["pos"][:, 2].copy(),
@@ -1194,7 +1269,7 @@ class Simulation:
 
     def write_vtu(self, path: str | Path) -> Path:
         """Write the particles now as a VTK ``.vtu`` file for ParaView."""
-        p = self._p
+        p = self._host_view()
         return write_vtu(path, p["pos"], {"particle_id": p["pid"], "radius_m": p["rad"],
                                           "velocity_m_s": p["vel"],
                                           "angular_velocity_rad_s": p["omg"],

@@ -17,9 +17,9 @@ come from the same pair table (:func:`msmill.dem.contact.pair_table`); the
 force formula is written twice, here and in ``kernels.contact_law``
 (``tests/dem/test_warp_backend.py`` checks that the two agree).
 
-Not on the device yet: the neighbour and geometry-candidate rebuilds, sorting,
-sources and sinks run in the numba engine between calls (``Simulation._rebuild``),
-so on CUDA the arrays are copied to the device at each call and back after it.
+:meth:`WarpStepper.run` steps on arrays already on the device: with a Warp backend the
+state and the neighbour rebuild stay there (:mod:`msmill.dem.warp_rebuild`); :meth:`advance`
+(numba rebuilds, arrays copied in and out per call) is the previous data path.
 
 Floating point: the module is compiled without FMA contraction (``fuse_fp``)
 and without fast math, like the numba kernels (``fastmath=False``).
@@ -924,20 +924,39 @@ class WarpStepper:
     def advance(self, *args):
         """Same arguments and result as :func:`msmill.dem.kernels.advance` (``parallel`` is ignored)."""
         a = dict(zip(ADVANCE_ARGS, args, strict=True))
-        nsteps = int(a["nsteps"])
-        if nsteps <= 0:
+        if int(a["nsteps"]) <= 0:
             return 0, K.R_DONE
         arr = {k: self._array(v) for k, v in a.items() if k not in _SCALARS}
+        steps, reason = self.run(arr, float(a["t0"]), float(a["dt"]), int(a["nsteps"]),
+                                 float(a["skin"]), int(a["stamp0"]), _weight_free(a["gravity"]))
+        self._copy_back(a, arr)
+        return steps, reason
+
+    def run(self, arr: dict, t0: float, dt: float, nsteps: int, skin: float, stamp0: int,
+            no_weight: bool) -> tuple[int, int]:
+        """Up to ``nsteps`` steps on Warp arrays already on the device; ``(steps, reason)``.
+
+        Parameters
+        ----------
+        arr : dict of str to warp.array
+            The array arguments of :func:`msmill.dem.kernels.advance`, by name, on ``self.device``.
+        t0, dt, skin : float
+            Time of the first step (s), the step (s) and the Verlet skin (m).
+        nsteps, stamp0 : int
+            Most steps to run; stamp of the first (``kernels.advance``).
+        no_weight : bool
+            Every gravity component is +0.0 (``kernels._weight_free``).
+        """
+        if nsteps <= 0:
+            return 0, K.R_DONE
         dev = self.device
         ctl = wp.array(np.array([-1, 0], np.int32), dtype=wp.int32, device=dev)
         red_f = wp.zeros(1, dtype=wp.float64, device=dev)
         red_i = wp.zeros(1, dtype=wp.int32, device=dev)
-        n = a["pos"].shape[0]
-        nch = a["diag"].shape[0]
-        t0, dt = float(a["t0"]), float(a["dt"])
-        stamp0 = int(a["stamp0"])
-        ng = a["gref"].shape[0]
-        n_own = a["own_idx"].shape[0]
+        n = arr["pos"].shape[0]
+        nch = arr["diag"].shape[0]
+        ng = arr["gref"].shape[0]
+        n_own = arr["own_idx"].shape[0]
         geom = wp.launch(update_geometry_k, dim=max(ng, 1), device=dev, record_cmd=True,
                          inputs=[ctl, arr["gref"], arr["grot"], arr["gkind"], 0.0, arr["gcur"]])
         force = wp.launch(force_k, dim=max(n_own, 1), device=dev, record_cmd=True, inputs=[
@@ -950,13 +969,13 @@ class WarpStepper:
                 "g_gid", "g_st", "g_ev", "g_pk", "g_ds", "g_n", "g_tch", "evf", "evi", "evn",
                 "diag"))])
         integ = wp.launch(integrate_k, dim=max(n, 1), device=dev, record_cmd=True, inputs=[
-            ctl, 0.0, dt, int(_weight_free(a["gravity"])), nch,
+            ctl, 0.0, dt, int(no_weight), nch,
             *(arr[k] for k in ("pos", "vel", "omg", "frc", "trq", "kind", "mass", "gravity",
                                "rv_start")), 0,
             *(arr[k] for k in ("pc", "shs", "pf", "pt", "invm", "invi", "flag", "flag_t", "lo",
                                "hi", "periodic", "sinks", "diag")), red_f, red_i])
         control = wp.launch(control_k, dim=1, device=dev, record_cmd=True, inputs=[
-            ctl, dt, 0.5 * float(a["skin"]), a["evf"].shape[1] // 2, arr["disp"], arr["evn"],
+            ctl, dt, 0.5 * skin, arr["evf"].shape[1] // 2, arr["disp"], arr["evn"],
             red_f, red_i])
         every = self._every
         for step in range(nsteps):
@@ -977,7 +996,6 @@ class WarpStepper:
             if ((step + 1) % every == 0 or step == nsteps - 1) and ctl.numpy()[0] >= 0:
                 break
         state = ctl.numpy()
-        self._copy_back(a, arr)
         steps = int(state[1])
         return steps, (int(state[0]) if state[0] >= 0 else K.R_DONE)
 
