@@ -28,3 +28,30 @@ def test_a_stated_width_is_kept():
     out = subprocess.run([sys.executable, "-m", "msmill", "sweep", "--help"], capture_output=True, text=True,
                          timeout=120, env=env, check=True).stdout
     assert max(len(line) for line in out.splitlines()) <= 80
+
+
+def _commands(cmd, path=()):
+    yield path, cmd
+    if hasattr(cmd, "commands"):  # a group (typer carries its own click)
+        for name, sub in cmd.commands.items():
+            yield from _commands(sub, (*path, name))
+
+
+def test_no_help_text_loses_a_bracketed_word_to_rich_markup():
+    """Rich reads ``[gpu]`` in a help string as a style tag and drops it (``pip install 'msmill[gpu]'`` showed
+    as ``'msmill'``): every bracketed word of every option's help must be escaped (``\\\\[gpu]``)."""
+    import re
+
+    import typer
+
+    from msmill.cli.main import _register, app
+
+    _register()
+    bad, seen = [], []
+    for path, cmd in _commands(typer.main.get_command(app)):
+        for p in cmd.params:
+            seen.append(p)
+            for m in re.finditer(r"(?<!\\)\[([A-Za-z_][\w.-]*)\]", getattr(p, "help", None) or ""):
+                bad.append(f"{' '.join(path)} {'/'.join(getattr(p, 'opts', [p.name]))}: [{m.group(1)}]")
+    assert not bad, bad
+    assert len(seen) > 100  # the walk reached the sub-commands' options

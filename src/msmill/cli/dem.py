@@ -65,7 +65,7 @@ def run_cmd(
         "lasts: a run that is stopped continues with --resume OUT, losing at most this much work.")] = 600.0,
     backend: Annotated[str, typer.Option(
         "--backend", help="Step kernels: cpu (numba, the default), cuda (NVIDIA Warp on the GPU; "
-        "pip install 'msmill[gpu]'), warp-cpu (the Warp kernels on the CPU, for checks).")] = "cpu",
+        "pip install 'msmill\\[gpu]'), warp-cpu (the Warp kernels on the CPU, for checks).")] = "cpu",
     resume: Annotated[Path | None, typer.Option(
         "--resume", help="Continue the stopped run whose --out was this folder from its checkpoint, with the "
         "settings it was started with (only --checkpoint-every-s, --vtk and --no-progress may be given).")] = None,

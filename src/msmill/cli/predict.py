@@ -26,7 +26,7 @@ def predict(
         "--capacity-check/--no-capacity-check", help="Warn when the feed rate exceeds the envelope's capacity.")
     ] = True,
     ore_file: Annotated[Path | None, typer.Option(
-        "--ore-file", help="Your own ore TOML (msmill ore show --help) instead of the run file's [ore].")] = None,
+        "--ore-file", help="Your own ore TOML (msmill ore show --help) instead of the run file's \\[ore].")] = None,
 ) -> None:
     """Predict the product PSD, hold-up and impact energy of a mill run file."""
     from msmill.cli.output import atomic_output, check_writable
