@@ -14,15 +14,15 @@ from msmill.errors import MsmillInputError
 
 
 def _parse_senses(rest: str, field: str) -> list[str]:
-    """``s1,s2,...`` -> rotation senses (a range ``a:b`` is refused: the sense is categorical)."""
+    """``s1,s2,...`` -> names (a range ``a:b`` is refused: the sense is categorical; the names are checked by
+    ``msmill.model.operating.mills_by_sense``)."""
     from msmill.machine import rotation_senses
-    from msmill.model.operating import SENSE, check_senses
+    from msmill.model.operating import SENSE
 
-    field = f"{field} {SENSE}"
     if ":" in rest:
-        raise MsmillInputError(field, rest, "rotation senses separated by commas (no range), of "
+        raise MsmillInputError(f"{field} {SENSE}", rest, "rotation senses separated by commas (no range), of "
                                + ", ".join(rotation_senses()))
-    return check_senses([v.strip() for v in rest.split(",")], field)
+    return [v.strip() for v in rest.split(",")]
 
 
 def _parse_range(text: str, field: str, with_count: bool) -> tuple[str, list]:
