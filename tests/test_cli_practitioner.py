@@ -114,6 +114,79 @@ def test_sweep_and_optimize_respect_the_envelope(tmp_path, capsys):
     assert not pd.read_csv(tmp_path / "s2" / "sweep.csv")["above_capacity"].any()
 
 
+def _ug2(tmp_path, stage_parameters: str) -> Path:
+    text = (ROOT / "examples" / "ug2.toml").read_text(encoding="utf-8")
+    run_file = tmp_path / "ug2.toml"
+    run_file.write_text(text.replace('file = "default"', f'file = "{stage_parameters}"'), encoding="utf-8")
+    return run_file
+
+
+def test_sweep_over_rotation_senses_says_what_each_rests_on(tmp_path, capsys, monkeypatch):
+    from msmill.plots import validation
+
+    plotted = []
+    real = validation.sweep_plot
+    monkeypatch.setattr(validation, "sweep_plot", lambda t, x, y, hue=None: plotted.append((x, hue)) or real(t, x, y, hue))
+    run_file = _ug2(tmp_path, "table")  # the single-point table: no record of its machine, so both senses run
+    assert run(["sweep", str(run_file), "--var", "rotation_sense=down_down,up_up", "--var", "speed_rpm=1300:1700:3",
+                "--out", str(tmp_path / "s")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    t = pd.read_csv(tmp_path / "s" / "sweep.csv")
+    assert list(t["rotation_sense"]) == ["down_down"] * 3 + ["up_up"] * 3
+    assert set(t["stage_parameters"]) == {"default.json"}
+    # the table's statistics are the default machine's for both senses: the same numbers, and the output says why
+    assert t["p80_mm"].iloc[:3].tolist() == t["p80_mm"].iloc[3:].tolist()
+    assert "stage parameters of up_up: default.json; they do not record their machine" in out
+    assert "down_down, up_up rest on the same stage parameters (default.json)" in out
+    assert "up_up: capacity: no DEM envelope" in out  # the shipped envelope is the default machine's
+    assert set(plotted) == {("speed_rpm", "rotation_sense")}  # the hue is the sense
+    assert (tmp_path / "s" / "sweep_p80_mm.png").is_file()
+
+
+def test_sweep_over_a_sense_without_stage_parameters_stops_in_one_line(tmp_path, capsys):
+    run_file = _ug2(tmp_path, "default")
+    for var in (["--var", "rotation_sense=down_down,up_up"],
+                ["--var", "speed_rpm=1300:1700:3", "--var", "rotation_sense=down_down,up_up"]):
+        assert run(["sweep", str(run_file), *var, "--out", str(tmp_path / "s")]) == 2
+        cap = capsys.readouterr()
+        assert cap.out == "" and len(cap.err.strip().splitlines()) == 1
+        assert cap.err.startswith("error: ug2.toml.stage_parameters.file: got 'default'") and "'up_up'" in cap.err
+        assert not (tmp_path / "s").exists()
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--bound",
+                "rotation_sense=up_up,down_down", "--goal", "min_energy", "--target-p80-mm", "18",
+                "--out", str(tmp_path / "o")]) == 2
+    assert "stage_parameters.file" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    for value, allowed in (("down_down,sideways", "allowed: down_down, up_up"),
+                           ("down_down:up_up", "allowed: rotation senses separated by commas (no range)")):
+        assert run(["sweep", str(run_file), "--var", f"rotation_sense={value}", "--out", str(tmp_path / "s")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: --var rotation_sense: got ") and allowed in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "s").exists()
+
+
+def test_optimize_over_rotation_senses_reports_each_and_the_best(tmp_path, capsys):
+    run_file = _ug2(tmp_path, "table")
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--bound",
+                "rotation_sense=up_up,down_down", "--goal", "min_energy", "--target-p80-mm", "18", "--n-grid", "4",
+                "--out", str(tmp_path / "o")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "rotation sense up_up: meets P80 <= 18 mm; best: speed_rpm = " in out
+    assert "rotation sense down_down: meets P80 <= 18 mm" in out
+    assert "best of every rotation sense: up_up (min_energy, P80 <= 18 mm)" in out  # a tie: the first given
+    assert "up_up, down_down rest on the same stage parameters (default.json)" in out
+    s = pd.read_csv(tmp_path / "o" / "senses.csv")
+    assert list(s["rotation_sense"]) == ["up_up", "down_down"] and list(s["best"]) == [True, False]
+    assert s["meets_target"].all() and (s["p80_mm"] <= 18).all()
+    c = pd.read_csv(tmp_path / "o" / "candidates.csv")
+    assert set(c["rotation_sense"]) == {"up_up", "down_down"}
+    assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--bound",
+                "rotation_sense=up_up,down_down", "--goal", "min_energy", "--target-p80-mm", "0.5", "--n-grid", "3",
+                "--out", str(tmp_path / "o2")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "rotation sense up_up: misses P80 <= 0.5 mm; the closest: speed_rpm = 1900" in out
+    assert "no rotation sense (up_up, down_down) reaches P80 <= 0.5 mm" in out
+
+
 def test_calibrate_reports_every_submodel_for_a_users_ore(tmp_path, capsys, own_ore_file):
     from msmill.model.fitting import FITTABLE
 

@@ -3,7 +3,10 @@
 Variables (``VARIABLES``): ``speed_rpm`` (upper stages; the bottom stage keeps
 ``bottom_speed_factor``), ``feed_tph``, ``gate_deg`` and ``feed_scale`` (all
 feed sizes multiplied by this factor: a coarser or finer feed of the same
-shape). Every point is one steady-state expected-value prediction; outputs:
+shape); and the categorical ``rotation_sense`` (:data:`SENSE`): one mill per
+rotation sense (:func:`mills_by_sense`), the numeric variables swept
+(:func:`sweep_senses`) or optimised (:func:`optimize_senses`) for each. Every
+point is one steady-state expected-value prediction; outputs:
 P80, throughput, specific energy (impact power plus the stated no-load term,
 per tonne; ``msmill.model.power``), hold-up, % passing at a size, whether the
 point is inside the design space, and whether it is feasible.
@@ -32,7 +35,7 @@ import dataclasses
 import itertools
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,10 +45,13 @@ import pandas as pd
 from msmill.errors import MsmillInputError, OutOfDomainWarning
 from msmill.psd import PSD, SizeGrid
 
-__all__ = ["VARIABLES", "OptimumResult", "capacity_feasible", "evaluate_point", "optimize", "optimize_settings",
-           "pareto_front", "sweep"]
+__all__ = ["SENSE", "VARIABLES", "OptimumResult", "SenseOptimum", "capacity_feasible", "check_senses",
+           "evaluate_point", "mills_by_sense", "optimize", "optimize_senses", "optimize_settings", "pareto_front",
+           "stage_parameter_lines", "sweep", "sweep_senses"]
 
 VARIABLES = ("speed_rpm", "feed_tph", "gate_deg", "feed_scale")
+#: the categorical variable: the machine's rotation sense (one mill per value, :func:`mills_by_sense`)
+SENSE = "rotation_sense"
 GOALS = ("max_feed", "min_energy")
 Feasible = Callable[[Any, Any], bool]
 
@@ -260,7 +266,7 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     for vals in itertools.product(*axes):
         s = dict(zip(names, (float(v) for v in vals), strict=True))
         rows.append({**evaluate(s), **s})
-    score = (lambda r: r["throughput_tph"]) if goal == "max_feed" else (lambda r: -r["specific_energy_kwh_t"])
+    score = _score(goal)
     ok = [r for r in rows if r["feasible"] and margin(r) >= 0]
     best = max(ok, key=score) if ok else None
     drive = "feed_tph" if goal == "max_feed" else ("speed_rpm" if "speed_rpm" in bounds else None)
@@ -276,6 +282,13 @@ def optimize_settings(evaluate: Callable[[dict[str, float]], dict[str, Any]],
     if best is None and rows:  # what the bounds can reach: the nearest miss, feasible points first
         closest = max(rows, key=lambda r: (bool(r["feasible"]), margin(r)))
     return OptimumResult(settings, best, cand, front, goal, target, dict(bounds), closest)
+
+
+def _score(goal: str) -> Callable[[dict], float]:
+    """The goal as a score of a result row (higher is better): throughput, or minus specific energy."""
+    if goal == "max_feed":
+        return lambda r: r["throughput_tph"]
+    return lambda r: -r["specific_energy_kwh_t"]
 
 
 def _refine_all(evaluate, ok, names, drive, axis, margin, rows, tol, score, goal) -> dict:
@@ -360,3 +373,172 @@ def optimum_sensitivity(make_mill: Callable[[float], Any], l_ref_mm: float, l_re
         res = optimize(make_mill(L), feed, base_op, bounds, **options)
         rows.append({"case": case, "l_ref_mm": L, **(res.row or {})})
     return pd.DataFrame(rows)
+
+
+# ----------------------------------------------------------------- the rotation sense, a categorical variable
+def check_senses(values: Iterable[str], field: str = SENSE) -> list[str]:
+    """``values`` as a list of rotation senses (:func:`msmill.machine.rotation_senses`), each once.
+
+    Raises
+    ------
+    MsmillInputError
+        One line naming ``field``, the bad value and the allowed names.
+    """
+    from msmill.machine import rotation_senses
+
+    allowed = ", ".join(rotation_senses())
+    out: list[str] = []
+    for v in values:
+        if v not in rotation_senses():
+            raise MsmillInputError(field, v, allowed)
+        if v in out:
+            raise MsmillInputError(field, v, "each rotation sense once")
+        out.append(v)
+    if not out:
+        raise MsmillInputError(field, "", f"one or more of {allowed}")
+    return out
+
+
+def mills_by_sense(run_file: Any, senses: Iterable[str], field: str = SENSE) -> dict[str, Any]:
+    """One mill per rotation sense: the run file's machine turned each way, stage parameters resolved for it.
+
+    Parameters
+    ----------
+    run_file : msmill.model.runfile.RunFile
+        The run file; each sense's mill is built from
+        ``run_file.with_rotation_sense(sense)`` exactly as :meth:`RunFile.build` builds one.
+    senses : iterable of str
+        Rotation senses (:func:`check_senses`).
+    field : str
+        Field named by an error about the senses themselves.
+
+    Returns
+    -------
+    dict
+        ``{sense: Mill}`` in the order given.
+
+    Notes
+    -----
+    Every sense's stage parameters are resolved before any mill is built, so a
+    sense without them (``stage_parameters = "default"`` and no shipped
+    surrogate of that sense) stops in one line before any work is done.
+    """
+    specs = {s: run_file.with_rotation_sense(s) for s in check_senses(senses, field)}
+    for spec in specs.values():
+        spec.stage_parameter_path()
+    return {s: spec.build()[0] for s, spec in specs.items()}
+
+
+def stage_parameter_lines(mills: Mapping[str, Any]) -> list[str]:
+    """Where each rotation sense's stage parameters come from (``provider.source``) and whose machine they are.
+
+    One line per sense; then, for senses that share one source, a line saying their rows rest on the
+    same DEM data (a table does not record its machine, so :func:`machine_mismatch` cannot say so).
+    """
+    from msmill.model.providers import machine_mismatch
+
+    lines, by_source = [], {}
+    for sense, mill in mills.items():
+        source = mill.provider.source
+        by_source.setdefault(source, []).append(sense)
+        note = machine_mismatch(mill.provider, mill.machine)
+        if note is None and getattr(mill.provider, "trained_machine", None) is None:
+            note = "they do not record their machine: not checked against this sense"
+        lines.append(f"stage parameters of {sense}: {source}" + (f"; {note}" if note else "; this machine's"))
+    for source, senses in by_source.items():
+        if len(senses) > 1:
+            lines.append(f"{', '.join(senses)} rest on the same stage parameters ({source}): their rows are the same "
+                         "DEM data, not a comparison of the senses")
+    return lines
+
+
+def sweep_senses(mills: Mapping[str, Any], feed: PSD, base_op: Any, axes: dict[str, Any],
+                 **options: Any) -> pd.DataFrame:
+    """:func:`sweep` for each rotation sense's mill; the rows tagged ``rotation_sense`` and ``stage_parameters``.
+
+    Parameters
+    ----------
+    mills : mapping
+        ``{sense: Mill}`` (:func:`mills_by_sense`).
+    feed, base_op, options
+        As for :func:`sweep`.
+    axes : dict
+        At most one numeric variable (the sense is the other); none: each sense at ``base_op``.
+    """
+    if len(axes) > 1:
+        raise MsmillInputError("sweep variables", [SENSE, *axes], f"{SENSE} and at most one of " + ", ".join(VARIABLES))
+    tables = []
+    for sense, mill in mills.items():
+        t = (sweep(mill, feed, base_op, axes, **options) if axes
+             else pd.DataFrame([evaluate_point(mill, feed, base_op, {}, **options)]))
+        t.insert(0, SENSE, sense)
+        t.insert(1, "stage_parameters", mill.provider.source)
+        tables.append(t)
+    return pd.concat(tables, ignore_index=True)
+
+
+@dataclass(frozen=True)
+class SenseOptimum:
+    """Result of :func:`optimize_senses`: the optimum of every rotation sense and the best of them.
+
+    Attributes
+    ----------
+    by_sense : dict[str, OptimumResult]
+        ``{sense: optimum}`` in the order searched.
+    best_sense : str or None
+        The sense whose optimum scores best on the goal (None when no sense meets the target).
+    sources : dict[str, str]
+        ``{sense: provider.source}`` of each sense's stage parameters.
+    """
+
+    by_sense: dict[str, OptimumResult]
+    best_sense: str | None
+    sources: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def best(self) -> OptimumResult | None:
+        """The best sense's :class:`OptimumResult` (None when no sense meets the target)."""
+        return None if self.best_sense is None else self.by_sense[self.best_sense]
+
+    def summary(self) -> pd.DataFrame:
+        """One row per sense: ``meets_target``, ``best``, its optimum's settings and outputs (the closest miss
+        when it does not meet the target) and ``stage_parameters``."""
+        rows = []
+        for sense, res in self.by_sense.items():
+            row = res.row if res.row is not None else (res.closest or {})
+            rows.append({SENSE: sense, "meets_target": res.settings is not None, "best": sense == self.best_sense,
+                         **row, "stage_parameters": self.sources.get(sense, "")})
+        return pd.DataFrame(rows)
+
+    def candidates(self) -> pd.DataFrame:
+        """Every evaluated point of every sense, tagged ``rotation_sense``."""
+        tables = []
+        for sense, res in self.by_sense.items():
+            t = res.candidates.copy()
+            t.insert(0, SENSE, sense)
+            tables.append(t)
+        return pd.concat(tables, ignore_index=True)
+
+    def front(self) -> pd.DataFrame:
+        """Pareto front of P80 against specific energy among the feasible candidates of all senses."""
+        c = self.candidates()
+        feas = c[c["feasible"]]
+        return pareto_front(feas) if len(feas) else feas
+
+
+def optimize_senses(mills: Mapping[str, Any], feed: PSD, base_op: Any, bounds: dict[str, tuple[float, float]],
+                    goal: str = "max_feed", **options: Any) -> SenseOptimum:
+    """:func:`optimize` within ``bounds`` for each rotation sense's mill; the best sense by ``goal``.
+
+    Parameters
+    ----------
+    mills : mapping
+        ``{sense: Mill}`` (:func:`mills_by_sense`).
+    feed, base_op, bounds, goal, options
+        As for :func:`optimize` (``bounds`` may be empty: each sense at ``base_op``).
+    """
+    by_sense = {s: optimize(m, feed, base_op, bounds, goal, **options) for s, m in mills.items()}
+    score = _score(goal)
+    met = [s for s, r in by_sense.items() if r.row is not None]
+    best = max(met, key=lambda s: score(by_sense[s].row)) if met else None
+    return SenseOptimum(by_sense, best, {s: m.provider.source for s, m in mills.items()})

@@ -54,7 +54,7 @@ from __future__ import annotations
 import math
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from pydantic import (
@@ -253,6 +253,14 @@ class MillSpec(_Section):
         if self.machine.rotation_sense is not None:
             machine = machine.with_rotation_sense(self.machine.rotation_sense, f"{self.name}.machine.rotation_sense")
         return machine
+
+    def with_rotation_sense(self, sense: str) -> Self:
+        """A copy whose ``[machine] rotation_sense`` is ``sense`` (checked where the machine is built).
+
+        Its machine and stage parameters then resolve as this spec's would for that sense
+        (:meth:`machine_obj`, :meth:`stage_parameter_path`): a sweep over senses builds its mills from these.
+        """
+        return self.model_copy(update={"machine": self.machine.model_copy(update={"rotation_sense": sense})})
 
     def stage_parameter_path(self) -> Path:
         """The stage-parameter file (the packaged default table for ``"default"``)."""

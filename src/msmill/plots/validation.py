@@ -76,14 +76,19 @@ def overlay(measured: Any, predicted: Any, title: str, feed: Any = None, band: A
     return fig
 
 
+def _label(value: Any) -> str:
+    """A legend value: a number in ``:g`` form, a category (a rotation sense) as it is."""
+    return value if isinstance(value, str) else f"{value:g}"
+
+
 def sweep_plot(table: Any, x: str, y: str = "p80_mm", hue: str | None = None, title: str = "") -> Any:
-    """One output of a sweep against one operating variable (lines per value of ``hue``)."""
+    """One output of a sweep against one operating variable (lines per value of ``hue``, numeric or a category)."""
     fig = _figure()
     ax = fig.add_subplot()
     groups = [(None, table)] if hue is None else list(table.groupby(hue, sort=True))
     for key, g in groups:
         g = g.sort_values(x)
-        ax.plot(g[x], g[y], marker="o", label=None if key is None else f"{hue} = {key:g}")
+        ax.plot(g[x], g[y], marker="o", label=None if key is None else f"{hue} = {_label(key)}")
     ax.set_xlabel(x)
     ax.set_ylabel(y)
     ax.grid(True, alpha=0.3)
