@@ -328,3 +328,14 @@ def test_binary_stage_parameter_file_and_sieves_in_the_wrong_unit(tmp_path, caps
     assert run(["predict", str(f), "--out", str(tmp_path / "o2")]) == 0
     err = capsys.readouterr().err
     assert "wider than the mill's feed chute (160 mm): check the sieve sizes (mm)" in err
+
+
+@pytest.mark.parametrize("argv", [["db", "info", "--db", "~0"], ["predict", "~0/run.toml"],
+                                  ["predict", str(EXAMPLE), "--out", "~0/out"],
+                                  ["circuit", "~nosuchuser/c.toml"]])
+def test_a_home_that_does_not_exist_is_one_line(argv, capsys):
+    """``~0`` names user 0's home, which pathlib cannot find: it raised RuntimeError, reported as an internal
+    error (found by tests/test_fuzz_cli.py's store-URL fuzzing)."""
+    assert run(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "allowed: a path whose ~user names a user with a home folder" in err[0], err

@@ -183,13 +183,21 @@ def exclusive(field_a: str, a: Any, field_b: str, b: Any) -> None:
         raise MsmillInputError(f"{field_a}/{field_b}", "both given", f"one of {field_a} or {field_b}, not both")
 
 
+def user_path(path: str | Path, field: str) -> Path:
+    """``path`` with ``~`` / ``~user`` expanded; a user without a home (``~0``) is a one-line error naming ``field``."""
+    try:
+        return Path(path).expanduser()
+    except RuntimeError:  # pathlib: "Could not determine home directory"
+        raise MsmillInputError(field, str(path), "a path whose ~user names a user with a home folder") from None
+
+
 def existing_file(path: Any, field: str, kind: str = "file") -> Path:
     """An existing regular file (not a directory)."""
     if path is None or (isinstance(path, str) and not path.strip()):
         raise MsmillInputError(field, path, f"a path of an existing {kind}")
     if not isinstance(path, str | Path):
         raise MsmillInputError(field, type(path).__name__, f"a path of an existing {kind}")
-    p = Path(path).expanduser()
+    p = user_path(path, field)
     if p.is_dir():
         raise MsmillInputError(field, str(path), f"an existing {kind} (this is a directory)")
     if not p.is_file():
@@ -201,7 +209,7 @@ def existing_dir(path: Any, field: str, kind: str = "directory") -> Path:
     """An existing directory."""
     if not isinstance(path, str | Path) or not str(path).strip():
         raise MsmillInputError(field, path, f"a path of an existing {kind}")
-    p = Path(path).expanduser()
+    p = user_path(path, field)
     if not p.is_dir():
         raise MsmillInputError(field, str(path), f"an existing {kind}")
     return p

@@ -41,6 +41,7 @@ from typing import Any
 
 from msmill._version import __version__
 from msmill.errors import MsmillInputError
+from msmill.validate import user_path
 
 MANIFEST = "msmill-manifest.json"
 _STAGE_PREFIX = ".msmill-stage-"
@@ -55,7 +56,7 @@ def check_writable(folder: str | Path, field: str = "--out") -> Path:
     """
     if not str(folder).strip():
         raise MsmillInputError(field, str(folder), "a folder path")
-    p = Path(folder).expanduser()
+    p = user_path(folder, field)
     if p.exists() and not p.is_dir():
         raise MsmillInputError(field, str(folder), "a folder (this is an existing file)")
     probe = p
@@ -179,7 +180,7 @@ def _umask() -> int:
 
 def atomic_write_bytes(path: str | Path, data: bytes, field: str = "--out") -> Path:
     """Write one file atomically: a hidden temporary file beside it, then ``os.replace``."""
-    p = Path(path).expanduser()
+    p = user_path(path, field)
     if p.is_dir():
         raise MsmillInputError(field, str(path), "a file path (this is a directory)")
     check_writable(p.parent if str(p.parent) else Path("."), field)

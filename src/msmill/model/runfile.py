@@ -69,7 +69,7 @@ from pydantic import (
 from msmill.errors import MsmillInputError, from_validation_error
 from msmill.model.mill import MIN_MC_STEPS
 from msmill.model.providers import DEFAULT_TABLE, named_parameter_path
-from msmill.validate import InputModel, InputWarning, limit, read_toml
+from msmill.validate import InputModel, InputWarning, limit, read_toml, user_path
 
 
 class _Section(InputModel):
@@ -226,7 +226,7 @@ class MillSpec(_Section):
 
     def path(self, value: str) -> Path:
         """A path from the run file, relative to its folder."""
-        q = Path(value).expanduser()
+        q = user_path(value, f"{self.name} path")
         return q if q.is_absolute() else self.base_dir / q
 
     def operating_point(self, feed_tph: float):
@@ -346,7 +346,7 @@ class RunFile(MillSpec):
     def from_toml(cls, path: str | Path) -> RunFile:
         """Read and validate a run file; errors are one line naming the field."""
         data = read_toml(path, "run file", "TOML file")
-        p = Path(path).expanduser()
+        p = user_path(path, "run file")
         return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
 
     @classmethod

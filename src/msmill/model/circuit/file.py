@@ -75,7 +75,7 @@ from msmill.model.circuit.units import (
 )
 from msmill.model.mill import DEFAULT_BAND_SAMPLES, MAX_BAND_SAMPLES
 from msmill.model.runfile import GridSection
-from msmill.validate import InputModel, read_toml
+from msmill.validate import InputModel, read_toml, user_path
 
 
 class _Section(InputModel):
@@ -190,7 +190,7 @@ class CircuitFile:
     def from_toml(cls, path: str | Path) -> CircuitFile:
         """Read and validate a circuit file; errors are one line naming the field."""
         data = read_toml(path, "circuit file", "TOML file")
-        p = Path(path).expanduser()
+        p = user_path(path, "circuit file")
         return cls.from_mapping(data, name=p.name, base_dir=p.resolve().parent)
 
     @classmethod

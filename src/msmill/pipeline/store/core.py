@@ -50,6 +50,7 @@ from msmill.pipeline.store.schema import (
     utcnow,
 )
 from msmill.stageparams import DESIGN_INPUTS, DesignPoint, RunStatistics
+from msmill.validate import user_path
 
 __all__ = [
     "DEFAULT_DB_ENV",
@@ -93,7 +94,7 @@ def _normalise_url(url: str | None, create: bool = True) -> str:
     if "\x00" in url:
         raise MsmillInputError("--db", url.replace("\x00", "\\x00"), "a SQLite file or a database URL without NUL characters")
     if "://" not in url:  # a plain path: a SQLite file
-        url = f"sqlite:///{Path(url).expanduser().resolve()}"
+        url = f"sqlite:///{user_path(url, '--db').resolve()}"
     if url.startswith("postgresql://") or url.startswith("postgres://"):
         url = "postgresql+psycopg://" + url.split("://", 1)[1]
     if url.startswith("sqlite:///") and not url.startswith("sqlite:///:memory:"):
