@@ -682,9 +682,7 @@ def posterior_samples(provider: Any, n_samples: int, seed: int = 0) -> list[Post
 
 def default_surrogate_path() -> Path | None:
     """Path of the shipped default surrogate (``msmill/data/surrogates/default.json``), None when absent."""
-    from importlib import resources
-
-    p = Path(str(resources.files("msmill").joinpath("data/surrogates/default.json")))
+    p = default_surrogate_path_dir() / "default.json"
     return p if p.is_file() else None
 
 
@@ -704,12 +702,6 @@ def default_surrogate_path_dir() -> Path:
     from importlib import resources
 
     return Path(str(resources.files("msmill").joinpath("data/surrogates")))
-
-
-def _sense_names() -> list[str]:
-    from msmill.machine import rotation_senses
-
-    return list(rotation_senses())
 
 
 def machine_mismatch(provider: Any, machine: Any) -> str | None:
@@ -781,12 +773,13 @@ def load_provider(path: str | Path) -> Any:
     from msmill.surrogate.persist import is_surrogate_file
 
     if is_surrogate_file(p):  # a trained GP surrogate (msmill surrogate fit)
+        from msmill.machine import rotation_senses
         from msmill.surrogate.provider import SurrogateProvider
 
         prov = SurrogateProvider.from_file(p)
         if p == default_surrogate_path():  # its name only: what it does, the file says (filling_curves)
             prov.source = f"shipped default surrogate ({prov.surrogate.training_.n_runs} DEM runs)"
-        elif p.parent == default_surrogate_path_dir() and p.stem in _sense_names():
+        elif p.parent == default_surrogate_path_dir() and p.stem in rotation_senses():
             prov.source = f"shipped surrogate of rotation sense {p.stem} ({prov.surrogate.training_.n_runs} DEM runs)"
         if prov.surrogate.filling_curves == TABLE_NAME:  # runs from a filled mill: the table's (cold runs)
             table = TableProvider.from_file(default_table_path())
