@@ -179,7 +179,8 @@ def calibrate(
                 files[f"{ore_name}_stage_samples.csv"] = cal.stage_params.to_csv(index_label="sample").encode()
             fitted_rows += [{"ore": ore_name, "parameter": k, "value": cal.params[k], "se": cal.std_errors[k],
                              "se_jackknife": cal.jackknife_std_errors[k], "se_stage": cal.stage_std_errors[k],
-                             "se_jacobian": cal.jacobian_std_errors[k], "stage_samples": cal.stage_samples}
+                             "se_jacobian": cal.jacobian_std_errors[k], "stage_samples": cal.stage_samples,
+                             "dof": cal.dof[k], "ci95_low": cal.interval(k)[0], "ci95_high": cal.interval(k)[1]}
                             for k in cal.fitted]
             _print_calibration(con, cal, time.perf_counter() - t1)
         if fitted_rows:
@@ -216,13 +217,14 @@ def _print_calibration(con, cal, seconds: float) -> None:
 
     t = Table(title=f"{cal.ore}: {len(cal.table)} surveys, {cal.n_points} operating points, "
                     f"objective {cal.objective} ({seconds:.1f} s)")
-    for col in ("parameter", "value", "s.e.", "of it: surveys (jackknife)",
+    for col in ("parameter", "value", "s.e.", "95 % interval (t)", "of it: surveys (jackknife)",
                 f"stage parameters ({cal.stage_samples} posterior samples)", "s.e. (Jacobian)"):
         t.add_column(col)
     for k in cal.fitted:
         stage = f"{cal.stage_std_errors[k]:.2g}" if cal.stage_samples else "not drawn"
-        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{cal.jackknife_std_errors[k]:.2g}",
-                  stage, f"{cal.jacobian_std_errors[k]:.2g}")
+        lo, hi = cal.interval(k)
+        t.add_row(k, f"{cal.params[k]:.4g}", f"{cal.std_errors[k]:.2g}", f"{lo:.4g}-{hi:.4g} ({cal.dof[k]:.0f} dof)",
+                  f"{cal.jackknife_std_errors[k]:.2g}", stage, f"{cal.jacobian_std_errors[k]:.2g}")
     con.print(t)
     if not cal.stage_samples:
         con.print("  s.e. without the stage parameters' uncertainty (a table has no posterior samples, "

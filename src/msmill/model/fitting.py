@@ -568,6 +568,30 @@ SURVEY_FITTABLE: dict[str, tuple[float, float]] = {
 }
 
 
+#: Confidence level of :meth:`SurveyCalibration.interval` unless told.
+INTERVAL_LEVEL = 0.95
+
+
+def _normal_quantile(level: float) -> float:
+    from scipy.stats import norm
+
+    return float(norm.ppf(0.5 + level / 2.0))
+
+
+def welch_satterthwaite_dof(parts: Sequence[tuple[float, float]]) -> float:
+    """Effective degrees of freedom of ``sqrt(sum s_i^2)`` from parts ``(s_i, dof_i)``.
+
+    ``(sum s_i^2)^2 / sum(s_i^4 / dof_i)``; parts with NaN or zero ``s_i`` are skipped, and
+    ``inf`` when none is left.
+    """
+    num, den = 0.0, 0.0
+    for s, nu in parts:
+        if s == s and s > 0.0 and nu > 0:
+            num += s * s
+            den += s ** 4 / nu
+    return num * num / den if den > 0.0 else math.inf
+
+
 @dataclass(frozen=True)
 class SurveyCalibration:
     """Result of :func:`calibrate_surveys` for one ore.
@@ -608,6 +632,11 @@ class SurveyCalibration:
         Posterior samples of the stage parameters behind :attr:`stage_std_errors` (0: none).
     stage_params : pandas.DataFrame
         The parameters fitted with each posterior sample (one row per sample).
+    dof : dict[str, float]
+        Degrees of freedom of :attr:`std_errors` (Welch-Satterthwaite over the ``n - 1`` of the
+        jackknife and the ``stage_samples - 1`` of the posterior spread): both parts are estimated
+        from a handful of refits, so an interval is ``t`` quantiles of these, not normal ones
+        (:meth:`interval`).
     """
 
     ore: str
@@ -624,10 +653,31 @@ class SurveyCalibration:
     stage_std_errors: dict[str, float] = field(default_factory=dict)
     stage_samples: int = 0
     stage_params: pd.DataFrame = field(default_factory=pd.DataFrame)
+    dof: dict[str, float] = field(default_factory=dict)
+
+    def interval(self, name: str, level: float = INTERVAL_LEVEL) -> tuple[float, float]:
+        """Two-sided ``level`` confidence interval of a fitted parameter: value -+ t quantile x s.e.
+
+        The quantile is Student's ``t`` with :attr:`dof` degrees of freedom (normal when ``dof`` is
+        unknown): with 8 surveys and 8 posterior samples a 95 % interval is about 2.3 s.e. wide each
+        side, not 1.96.
+        """
+        from scipy.stats import t
+
+        if not 0.0 < level < 1.0:
+            raise MsmillInputError("level", level, "a confidence level between 0 and 1")
+        nu = self.dof.get(name, math.inf)
+        q = float(t.ppf(0.5 + level / 2.0, nu)) if math.isfinite(nu) else _normal_quantile(level)
+        v, se = self.params[name], self.std_errors[name]
+        return v - q * se, v + q * se
 
     def provenance(self) -> str:
         """One-line provenance text for the calibrated ore file."""
-        fit = ", ".join(f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g}" for k in self.fitted)
+        def one(k: str) -> str:
+            lo, hi = self.interval(k)
+            return f"{k} = {self.params[k]:.4g} +- {self.std_errors[k]:.2g} (95 % {lo:.4g}-{hi:.4g})"
+
+        fit = ", ".join(one(k) for k in self.fitted)
         how = ("jackknife s.e." if not self.stage_samples else
                f"s.e. of the jackknife and of {self.stage_samples} stage-parameter posterior samples")
         return (f"msmill calibrate: {fit} ({how}), objective {self.objective}, "
@@ -781,9 +831,10 @@ def calibrate_surveys(model: Any, fit: Sequence[str] = ("l_ref_mm",), objective:
                               for member in posterior_samples(model.provider, n_samples, seed)])
         stage_se = {f: float(draws[f].std(ddof=1)) for f in fit}
     total = {f: float(math.hypot(se[f], stage_se[f])) if n_samples else se[f] for f in fit}
+    dof = {f: welch_satterthwaite_dof([(se[f], n - 1), (stage_se[f], n_samples - 1)]) for f in fit}
     return SurveyCalibration(model.ore.name, fit, best, total, jse, objective, table, interp_ks,
                              time.perf_counter() - t0, model.n_points, jackknife_std_errors=se,
-                             stage_std_errors=stage_se, stage_samples=n_samples, stage_params=draws)
+                             stage_std_errors=stage_se, stage_samples=n_samples, stage_params=draws, dof=dof)
 
 
 def _jacobian_se(model: Any, predict: Callable, l_ref_mm: float, h: float = 1e-3) -> float:
