@@ -218,7 +218,11 @@ def test_shipped_example_prints_only_the_extrapolation_warning(tmp_path, capsys)
         assert run(["predict", str(f), "--out", str(tmp_path / "o")]) == 0
     cap = capsys.readouterr()
     lines = [ln for ln in cap.err.splitlines() if "warning" in ln]
-    assert len(lines) == 1 and "rests on stage statistics extrapolated" in lines[0], cap.err
+    # since the 121-run surrogate (one run at 2.2 mm), the 2.89 mm class between it and the 3.5 mm runs is
+    # thin data too: that warning is also what the prediction rests on, and the only other one allowed
+    assert any("rests on stage statistics extrapolated" in ln for ln in lines), cap.err
+    assert all("rests on stage statistics extrapolated" in ln or "thin data:" in ln for ln in lines), cap.err
+    assert len(lines) <= 2, cap.err
     assert "extrapolated stage statistics (%)" in cap.out  # sizes outside the trained ones: a summary line
 
 
