@@ -572,12 +572,6 @@ SURVEY_FITTABLE: dict[str, tuple[float, float]] = {
 INTERVAL_LEVEL = 0.95
 
 
-def _normal_quantile(level: float) -> float:
-    from scipy.stats import norm
-
-    return float(norm.ppf(0.5 + level / 2.0))
-
-
 def welch_satterthwaite_dof(parts: Sequence[tuple[float, float]]) -> float:
     """Effective degrees of freedom of ``sqrt(sum s_i^2)`` from parts ``(s_i, dof_i)``.
 
@@ -666,8 +660,7 @@ class SurveyCalibration:
 
         if not 0.0 < level < 1.0:
             raise MsmillInputError("level", level, "a confidence level between 0 and 1")
-        nu = self.dof.get(name, math.inf)
-        q = float(t.ppf(0.5 + level / 2.0, nu)) if math.isfinite(nu) else _normal_quantile(level)
+        q = float(t.ppf(0.5 + level / 2.0, self.dof.get(name, math.inf)))  # inf dof: the normal quantile
         v, se = self.params[name], self.std_errors[name]
         return v - q * se, v + q * se
 
