@@ -101,7 +101,7 @@ def amend_filling_curves(path: Path, value: str | None) -> None:
     import json
 
     from msmill.provenance import git_commit
-    from msmill.surrogate.persist import from_dict
+    from msmill.surrogate.persist import from_dict, write_document
 
     doc = json.loads(path.read_text(encoding="utf-8"))
     doc["filling_curves"] = value
@@ -110,9 +110,7 @@ def amend_filling_curves(path: Path, value: str | None) -> None:
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]), "git_commit": git_commit() or "unknown",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "change": f"filling_curves = {value!r} (was keyed on the file's path in msmill.model.providers)"})
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    write_document(doc, path)
     print(f"wrote {path}: filling_curves={value!r}")
 
 
