@@ -180,7 +180,7 @@ def calibrate(
             fitted_rows += [{"ore": ore_name, "parameter": k, "value": cal.params[k], "se": cal.std_errors[k],
                              "se_jackknife": cal.jackknife_std_errors[k], "se_stage": cal.stage_std_errors[k],
                              "se_jacobian": cal.jacobian_std_errors[k], "stage_samples": cal.stage_samples,
-                             "dof": cal.dof[k], "ci95_low": cal.interval(k)[0], "ci95_high": cal.interval(k)[1]}
+                             "dof": cal.dof[k], **dict(zip(("ci95_low", "ci95_high"), cal.interval(k), strict=True))}
                             for k in cal.fitted]
             _print_calibration(con, cal, time.perf_counter() - t1)
         if fitted_rows:
