@@ -114,7 +114,8 @@ def one_round(st, a) -> str | None:
     from msmill.surrogate.accuracy import FINE_SIZE_MM
 
     if not a.no_run and (st.counts(a.campaign)["planned"] or st.counts(a.campaign)["running"]):
-        rep = run_campaign(st, a.campaign, scheduler=a.scheduler, n_workers=a.workers, stale_s=a.stale_s)
+        rep = run_campaign(st, a.campaign, scheduler=a.scheduler, n_workers=a.workers, stale_s=a.stale_s,
+                           threads_per_run=a.threads_per_run)
         print(f"ran: recorded {rep.recorded}, failed attempts {rep.failed_attempts}, {rep.elapsed_s:.0f} s")
         export(st, a)
     state = progress_state(st, a.campaign)
@@ -152,6 +153,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--target-kl", type=float, default=0.012, help="stop at this LOO mean velocity KL")
     ap.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a LocalCluster)")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--threads-per-run", type=int, default=1, help="numba threads of each run (default 1)")
     ap.add_argument("--stale-s", type=float, default=120.0)
     ap.add_argument("--no-run", action="store_true", help="plan but do not run")
     ap.add_argument("--git-commit", action="store_true", help="commit the export folder after each batch")

@@ -20,6 +20,8 @@ WorkersOpt = Annotated[int | None, typer.Option("--workers", help="Local worker 
 StaleOpt = Annotated[float, typer.Option("--stale-s", help="Heartbeat age after which a running run is re-planned (s).")]
 MaxRunsOpt = Annotated[int | None, typer.Option("--max-runs", help="Stop after recording this many runs.")]
 HeartOpt = Annotated[float, typer.Option("--heartbeat-s", help="Heartbeat interval of held runs (s).")]
+ThreadsOpt = Annotated[int, typer.Option("--threads-per-run", help="Numba threads of each run's step kernels; "
+                                         "local workers default to the cores over this.")]
 QuietOpt = Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
 
 
@@ -165,13 +167,16 @@ def plan_cmd(
 
 
 def _execute(name: str, db: str | None, scheduler: str | None, workers: int | None, stale_s: float,
-             heartbeat_s: float, max_runs: int | None, retry_failed: bool, no_progress: bool) -> None:
+             heartbeat_s: float, max_runs: int | None, retry_failed: bool, no_progress: bool,
+             threads_per_run: int = 1) -> None:
     from msmill.pipeline.campaign import run_campaign
 
+    if threads_per_run < 1:
+        raise MsmillInputError("--threads-per-run", threads_per_run, "an integer >= 1")
     st = open_store(db)
     st.campaign(name)  # fails early on an unknown name
     kw = {"scheduler": scheduler, "n_workers": workers, "stale_s": stale_s, "heartbeat_s": heartbeat_s,
-          "max_runs": max_runs, "retry_failed": retry_failed}
+          "max_runs": max_runs, "retry_failed": retry_failed, "threads_per_run": threads_per_run}
     if no_progress:
         rep = run_campaign(st, name, **kw)
     else:
@@ -203,9 +208,9 @@ def _execute(name: str, db: str | None, scheduler: str | None, workers: int | No
 @app.command("run")
 def run_cmd(name: NameArg, db: DbOpt = None, scheduler: SchedOpt = None, workers: WorkersOpt = None,
             stale_s: StaleOpt = 120.0, heartbeat_s: HeartOpt = 10.0, max_runs: MaxRunsOpt = None,
-            no_progress: QuietOpt = False) -> None:
+            no_progress: QuietOpt = False, threads_per_run: ThreadsOpt = 1) -> None:
     """Execute the campaign's planned runs on Dask until none is left."""
-    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, False, no_progress)
+    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, False, no_progress, threads_per_run)
 
 
 @app.command("resume")
@@ -213,10 +218,11 @@ def resume_cmd(
     name: NameArg, db: DbOpt = None, scheduler: SchedOpt = None, workers: WorkersOpt = None,
     stale_s: StaleOpt = 120.0, heartbeat_s: HeartOpt = 10.0, max_runs: MaxRunsOpt = None,
     retry_failed: Annotated[bool, typer.Option("--retry-failed", help="Also retry runs that failed.")] = False,
-    no_progress: QuietOpt = False,
+    no_progress: QuietOpt = False, threads_per_run: ThreadsOpt = 1,
 ) -> None:
     """Continue after a crash: re-plan runs with a stale heartbeat, then run what is planned."""
-    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, retry_failed, no_progress)
+    _execute(name, db, scheduler, workers, stale_s, heartbeat_s, max_runs, retry_failed, no_progress,
+             threads_per_run)
 
 
 @app.command("status")

@@ -177,7 +177,9 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
     ``task`` holds ``machine_toml``, ``design`` (DesignPoint fields), ``mode``,
     ``run_settings`` (RunSettings fields), ``options`` (``ore``; ``raw_dir``:
     save the raw run folder there), ``run_id``/``attempt`` and ``checkpoint_dir``
-    (None: no checkpoints). A checkpoint there from an earlier attempt of the
+    (None: no checkpoints) and ``threads`` (numba threads of the run's step kernels, default 1: one
+    core per worker; more gives a long fine-rock run the cores that idle workers would leave, and the
+    kernels' results do not depend on it). A checkpoint there from an earlier attempt of the
     run (a killed worker, a stopped machine) is continued if it matches the
     run's inputs and the code, and otherwise removed, with a ``note`` saying
     why; the driver removes the checkpoint once the result is recorded.
@@ -185,7 +187,7 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
     try:
         import numba
 
-        numba.set_num_threads(1)
+        numba.set_num_threads(int(task.get("threads", 1)))
     except (ImportError, ValueError):
         pass
     from msmill._version import __version__
@@ -238,15 +240,16 @@ class CampaignReport:
     counts: dict[str, int] = field(default_factory=dict)
 
 
-def _cluster_client(scheduler: str | None, n_workers: int | None) -> tuple[Any, Any]:
+def _cluster_client(scheduler: str | None, n_workers: int | None, threads_per_run: int = 1) -> tuple[Any, Any]:
     from distributed import Client, LocalCluster
 
     if scheduler:
         return Client(scheduler), None
-    n = n_workers or os.cpu_count() or 1
-    one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    n = n_workers or max(1, (os.cpu_count() or 1) // threads_per_run)
+    env = {"NUMBA_NUM_THREADS": str(threads_per_run), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+           "OPENBLAS_NUM_THREADS": "1"}  # one run per worker process; numba's pool sized for it
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           env=one, silence_logs=50)  # task errors are recorded in the store
+                           env=env, silence_logs=50)  # task errors are recorded in the store
     return Client(cluster), cluster
 
 
@@ -275,10 +278,10 @@ def run_checkpoint_dir(base: Path, run_id: int) -> Path:
     return base / f"run{run_id:06d}"
 
 
-def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None) -> dict[str, Any]:
+def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None, threads: int = 1) -> dict[str, Any]:
     return {"machine_toml": store_info.machine_toml, "design": claim.design.model_dump(), "mode": store_info.mode,
             "run_settings": dict(store_info.run_settings, seed=claim.seed), "options": store_info.options,
-            "run_id": claim.run_id, "attempt": claim.attempt,
+            "run_id": claim.run_id, "attempt": claim.attempt, "threads": threads,
             "checkpoint_dir": None if ckpt_base is None else str(run_checkpoint_dir(ckpt_base, claim.run_id))}
 
 
@@ -286,8 +289,9 @@ class _Driver:
     """State of one driver session (kept small: the store holds the truth)."""
 
     def __init__(self, store: Store, name: str, client: Any, executor: Callable[[dict[str, Any]], dict[str, Any]],
-                 heartbeat_s: float, stale_s: float, max_runs: int | None) -> None:
+                 heartbeat_s: float, stale_s: float, max_runs: int | None, threads: int = 1) -> None:
         self.store, self.name, self.client, self.executor = store, name, client, executor
+        self.threads = threads
         self.heartbeat_s, self.stale_s, self.max_runs = heartbeat_s, stale_s, max_runs
         self.token = new_token()
         self.me = f"driver {socket.gethostname()}:{os.getpid()}"
@@ -308,7 +312,7 @@ class _Driver:
         if free <= 0:
             return
         for c in self.store.claim(self.name, free, self.me, self.token):
-            fut = self.client.submit(self.executor, _task(self.info, c, self.ckpt_base), pure=False,
+            fut = self.client.submit(self.executor, _task(self.info, c, self.ckpt_base, self.threads), pure=False,
                                      key=f"msmill-run{c.run_id}-a{c.attempt}-{self.token[:8]}")
             self.inflight[fut] = c
 
@@ -368,7 +372,7 @@ def run_campaign(
     store: Store, name: str, *, scheduler: str | None = None, n_workers: int | None = None, client: Any = None,
     executor: Callable[[dict[str, Any]], dict[str, Any]] = execute_run, heartbeat_s: float = 10.0,
     stale_s: float = DEFAULT_STALE_S, max_runs: int | None = None, retry_failed: bool = False,
-    progress: Callable[[dict[str, int], CampaignReport], None] | None = None,
+    progress: Callable[[dict[str, int], CampaignReport], None] | None = None, threads_per_run: int = 1,
 ) -> CampaignReport:
     """Execute the planned runs of a campaign until none is left (or ``max_runs`` are recorded).
 
@@ -378,7 +382,7 @@ def run_campaign(
         The store and the campaign.
     scheduler : str, optional
         Address of a running Dask scheduler; default: a LocalCluster of ``n_workers``
-        single-threaded worker processes (default one per core).
+        worker processes (default: the cores over ``threads_per_run``).
     client : distributed.Client, optional
         Use this client (tests, benchmarks) instead of making one.
     executor : callable
@@ -392,13 +396,19 @@ def run_campaign(
         First re-plan the campaign's failed runs with a fresh attempt count.
     progress : callable, optional
         Called after every event with the campaign's status counts and the report.
+    threads_per_run : int
+        Numba threads of each run's step kernels (default 1), for when one long fine-rock run, not
+        many short ones, is what a session can finish (the kernels' gain from a second core:
+        ``benchmarks/dem_throughput.py --threads 2``).
     """
+    if not isinstance(threads_per_run, int) or threads_per_run < 1:
+        raise MsmillInputError("threads_per_run", threads_per_run, "an integer >= 1")
     t0 = time.monotonic()
     made = client is None
     own = None
     if made:
-        client, own = _cluster_client(scheduler, n_workers)
-    drv = _Driver(store, name, client, executor, heartbeat_s, stale_s, max_runs)
+        client, own = _cluster_client(scheduler, n_workers, threads_per_run)
+    drv = _Driver(store, name, client, executor, heartbeat_s, stale_s, max_runs, threads_per_run)
     if retry_failed:
         store.retry_failed(name)
     drv.report.replanned_stale += store.replan_stale(name, stale_s)
