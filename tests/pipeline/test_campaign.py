@@ -241,3 +241,47 @@ def test_active_planner_moves_past_a_failed_point(tmp_path) -> None:
     key = (first[0].size_mm, first[0].feed_tph, first[0].speed_rpm, first[0].gate_deg)
     assert (again[0].size_mm, again[0].feed_tph, again[0].speed_rpm, again[0].gate_deg) != key
     assert st.add_points("al", again)[0] == 1
+
+
+def test_threads_per_run_reach_the_worker_and_its_kernels(store, client, monkeypatch):
+    """``run_campaign(threads_per_run=2)`` hands each task 2 threads; the worker sets numba's pool to them
+    (a worker that ignored the field would leave a long fine-rock run on one core)."""
+    import numba
+
+    import msmill.dem.mill.run as run_mod
+    from msmill.errors import MsmillInputError
+    from msmill.pipeline import campaign as cm
+
+    def recording(task: dict) -> dict:  # Dask pickles the executor: what it saw comes back in the result
+        return stand_in(task) | {"worker": f"threads={task['threads']}"}
+
+    _plan(store, [10.0, 11.0])
+    rep = run_campaign(store, "c", client=client, executor=recording, heartbeat_s=0.2, threads_per_run=2)
+    assert rep.recorded == 2
+    assert [r.worker for r in store.runs(campaign="c")] == ["threads=2", "threads=2"]
+    with pytest.raises(MsmillInputError, match="threads_per_run"):
+        run_campaign(store, "c", client=client, executor=recording, threads_per_run=0)
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba's pool has one thread on this machine")
+    kernels = {}
+
+    class FakeRun:
+        stats = type("S", (), {"run": make_stats(20.0)})()
+        extra = {"outcome": "steady", "git_commit": None}
+        wall_s = 1.0
+
+    def fake_run_mill(*args, **kw):
+        kernels["threads"] = numba.get_num_threads()
+        return FakeRun()
+
+    monkeypatch.setattr(run_mod, "run_mill", fake_run_mill)
+    before = numba.get_num_threads()
+    store.add_points("c", design_grid(MACHINE, [20.0], [30.0], [1500.0], [40.0]))
+    [claim] = store.claim("c", 1, "w", new_token())
+    try:
+        for threads in (2, 1):
+            cm.execute_run(cm._task(store.campaign("c"), claim, threads=threads))
+            assert kernels["threads"] == threads
+    finally:
+        numba.set_num_threads(before)
