@@ -200,3 +200,20 @@ def test_a_layout_with_other_quantile_levels_is_refused_in_one_line():
     doc["levels"] = [(j + 0.5) / 12 for j in range(12)]
     with pytest.raises(MsmillInputError, match=r"12 quantile levels.*retrain"):
         tg.TargetLayout.from_dict(doc)
+
+
+def test_stored_sigma_factor_is_the_least_kl_width():
+    """The stored width factor is the float the KL search returns (exactly: the shipped surrogate's
+    predictions stay bitwise those of the search) and is a minimum: widths 2 % either side lose more."""
+    c = tg.least_kl_sigma_factor()
+    assert tg.SIGMA_FACTOR == c and tg.sigma_factor() == c
+    q = stats.norm.ppf(tg.LEVELS)
+
+    def round_trip_kl(factor: float) -> float:
+        v = np.linspace(-8, 8, 4001)
+        sd = factor * tg._spacing(q)
+        r = np.mean(stats.norm.pdf((v[:, None] - q) / sd) / sd, axis=1)
+        p = stats.norm.pdf(v)
+        return float(np.trapezoid(p * np.log(p / r), v))
+
+    assert round_trip_kl(c) < min(round_trip_kl(0.98 * c), round_trip_kl(1.02 * c))

@@ -44,11 +44,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
+from functools import cached_property
 from typing import Any
 
 import numpy as np
-from scipy import optimize, special
+from scipy import special  # scipy.optimize (0.1 s to import) only in the functions that solve
 
 from msmill.errors import MsmillInputError
 from msmill.sampling import default_between_run, statistic_kind
@@ -96,6 +96,8 @@ def mixture_quantiles(weights, means, sigmas, levels=LEVELS) -> np.ndarray:
     def cdf(v: float) -> float:
         return float(np.dot(w, special.ndtr((v - mu) / sd)))
 
+    from scipy import optimize
+
     return np.array([optimize.brentq(lambda v, p=p: cdf(v) - p, lo, hi, xtol=1e-10) for p in levels])
 
 
@@ -127,13 +129,17 @@ def normal_pdf(x: np.ndarray) -> np.ndarray:
     return np.exp(-x**2 / 2.0) / np.sqrt(2 * np.pi)
 
 
-@lru_cache(maxsize=1)
-def sigma_factor() -> float:
-    """Width factor ``c`` of :func:`mixture_from_quantiles` (``sigma_j = c * spacing_j``).
+#: Width factor ``c`` of :func:`mixture_from_quantiles` (``sigma_j = c * spacing_j``) at
+#: :data:`N_LEVELS` levels: the value :func:`least_kl_sigma_factor` returns, stored so that a command
+#: does not solve for it (and import ``scipy.optimize``, 0.13 s together) on every start;
+#: ``tests/surrogate/test_targets.py`` checks the two are the same float.
+SIGMA_FACTOR = 0.9756139131749254
 
-    Chosen so that a normal distribution survives the round trip with the
-    least KL divergence (quadrature on a grid); computed once.
-    """
+
+def least_kl_sigma_factor() -> float:
+    """Width factor ``c`` with which a normal distribution survives the quantile round trip
+    (:func:`mixture_from_quantiles` of its quantiles at :data:`LEVELS`) with the least KL divergence
+    (quadrature on a grid; bounded Brent search over 0.2-2)."""
     q = special.ndtri(LEVELS)
     h = _spacing(q)
     v = np.linspace(-8, 8, 4001)
@@ -143,7 +149,14 @@ def sigma_factor() -> float:
         r = np.mean(normal_pdf((v[:, None] - q) / (c * h)) / (c * h), axis=1)
         return float(np.trapezoid(p * np.log(p / np.maximum(r, 1e-300)), v))
 
+    from scipy import optimize
+
     return float(optimize.minimize_scalar(kl, bounds=(0.2, 2.0), method="bounded").x)
+
+
+def sigma_factor() -> float:
+    """Width factor ``c`` of :func:`mixture_from_quantiles` (:data:`SIGMA_FACTOR`)."""
+    return SIGMA_FACTOR
 
 
 def mixture_from_quantiles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -214,6 +227,8 @@ def count_from_summary(mean: float, var_ratio: float, p_zero: float) -> tuple[np
     sign = np.flatnonzero(np.sign(err[:-1]) != np.sign(err[1:]))
     if sign.size:
         i = int(sign[0])
+        from scipy import optimize
+
         w = optimize.brentq(lambda x: p0(x) - p_zero, grid[i], grid[i + 1])
     else:
         w = float(grid[int(np.argmin(np.abs(err)))])
