@@ -98,7 +98,8 @@ def test_interval_covers_plants_whose_stage_parameters_are_posterior_draws():
     # the stage parameters' part from 8 other draws, t quantiles of its Welch-Satterthwaite dof) covers at
     # least 6 of 8 (7.6 expected; P(<= 5 of 8) = 0.6 % for a true 95 % interval). 98-run surrogate: 3 of 8
     # and 7 of 8 within 2 s.e.; 121-run surrogate: 5 of 8 within 2 s.e. (|z| 2.08, 2.68, 2.88 outside), 6 of
-    # 8 in the t interval (about 2.3 s.e. at 7-8 dof). One draw alone is no test: which one lands where
+    # 8 in the t interval (about 2.3 s.e. at 7-8 dof); the 122-run surrogate (a 3.12 mm run added) passes
+    # too. One draw alone is no test: which one lands where
     # changes with every rebuild of the surrogate.
     from msmill.model.providers import load_provider, posterior_samples
 
