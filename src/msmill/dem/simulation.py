@@ -1157,6 +1157,23 @@ class Simulation:
         return self._dt
 
     @property
+    def neighbor_skin_m(self) -> float | None:
+        """Verlet skin of the neighbour lists (m); None until the first run picks the default.
+
+        Setting it between runs re-sizes the cells and rebuilds the lists at the next step (the
+        trajectory stays a valid one; it is not bitwise the one of the old skin: candidate order
+        changes the summation order of contact forces).
+        """
+        return self._skin
+
+    @neighbor_skin_m.setter
+    def neighbor_skin_m(self, skin_m: float) -> None:
+        self._skin = _pos_number("neighbor_skin_m", skin_m)
+        if getattr(self, "_rmax_cells", 0.0) > 0.0:
+            self._cells(self._rmax_cells)
+        self._need_rebuild = True
+
+    @property
     def backend(self) -> str:
         """The step kernels in use (:data:`msmill.dem.backend.BACKENDS`)."""
         return self._backend
