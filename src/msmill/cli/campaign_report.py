@@ -166,6 +166,40 @@ def p80_table(provider: Any) -> list[str]:
     return rows
 
 
+def sense_table() -> list[str]:
+    """The UG2 example's prediction with each rotation sense that has a shipped surrogate (issue 37 item 4)."""
+    from msmill.machine import rotation_senses
+    from msmill.model.providers import sense_surrogate_path
+    from msmill.model.runfile import RunFile
+
+    path = checkout_root() / "examples/ug2.toml"
+    if not path.is_file():
+        return [f"`{path}` not found: the table needs a source checkout of msmill."]
+    rows = ["| rotation sense | surrogate (runs) | P80 (mm) | 5-95 % band (mm) | passing 75 um (%) | residence (s) | "
+            "time to steady state (s) | impact energy (kWh/t) | product on extrapolated statistics (%) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    base = RunFile.from_toml(path)
+    for sense in rotation_senses():
+        if sense_surrogate_path(sense) is None:
+            rows.append(f"| {sense} | none shipped | | | | | | | |")
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mill, feed, op = base.with_rotation_sense(sense).build()
+            res = mill.run(feed, op)
+        lo, hi = res.p80_band_mm
+        residence_s = 3600.0 * float(res.stages["holdup_t"].sum()) / res.feed_tph
+        runs = getattr(mill.provider, "surrogate", None)
+        n = len(runs.training_.runs) if runs is not None and runs.training_ is not None else "?"
+        rows.append(f"| {sense} | {n} | {res.p80_mm:.2f} | {lo:.2f}-{hi:.2f} | {float(res.product_psd.passing_at(0.075)):.2f} | "
+                    f"{residence_s:.3f} | {res.time_to_steady_state_s:.2f} | {res.specific_impact_energy_kwh_t:.3f} | "
+                    f"{res.extrapolated_product_pct:.1f} |")
+    return [*rows, "", "`examples/ug2.toml` as shipped (30 t/h, 1500/3000 rpm, gates 40 deg, 64 posterior samples in "
+                       "the band) with `[machine] rotation_sense` set to each sense; residence = mass held in the mill "
+                       "over the feed rate. A sense without a shipped surrogate has no prediction "
+                       "(`msmill predict` says so in one line)."]
+
+
 def pair_table(slices: list, fulls: list) -> list[str]:
     """Slice against full-mill values of the paired runs, stage by stage."""
     from msmill.surrogate.fidelity import match_pairs
@@ -556,6 +590,7 @@ def render(r: CampaignReport, img: Path) -> str:
     """The Markdown page of a computed :class:`CampaignReport` (writes the capacity figure into ``img``)."""
     lines = [*_header(r), *_learning(r), *_design_and_trends(r),
              "## Operating point: product P80 of `examples/ug2.toml`", "", *p80_table(r.provider), "",
+             "## Rotation sense: the UG2 prediction per sense", "", *sense_table(), "",
              *_slice_to_full(r),
              "## Capacity (operating envelope)", "", *capacity_section(r.envelope_path, r.campaign.all_runs, img)]
     return "\n".join(lines) + "\n"
