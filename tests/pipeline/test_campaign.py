@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import ClassVar
 
 import pytest
 from test_store import MACHINE, make_stats
@@ -268,7 +269,7 @@ def test_threads_per_run_reach_the_worker_and_its_kernels(store, client, monkeyp
 
     class FakeRun:
         stats = type("S", (), {"run": make_stats(20.0)})()
-        extra = {"outcome": "steady", "git_commit": None}
+        extra: ClassVar[dict] = {"outcome": "steady", "git_commit": None}
         wall_s = 1.0
 
     def fake_run_mill(*args, **kw):
