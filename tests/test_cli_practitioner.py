@@ -145,15 +145,15 @@ def test_sweep_over_rotation_senses_says_what_each_rests_on(tmp_path, capsys, mo
 
 def test_sweep_over_a_sense_without_stage_parameters_stops_in_one_line(tmp_path, capsys):
     run_file = _ug2(tmp_path, "default")
-    for var in (["--var", "rotation_sense=down_down,up_up"],
-                ["--var", "speed_rpm=1300:1700:3", "--var", "rotation_sense=down_down,up_up"]):
+    for var in (["--var", "rotation_sense=down_down,down_up"],  # down_up: no surrogate shipped
+                ["--var", "speed_rpm=1300:1700:3", "--var", "rotation_sense=down_down,down_up"]):
         assert run(["sweep", str(run_file), *var, "--out", str(tmp_path / "s")]) == 2
         cap = capsys.readouterr()
         assert cap.out == "" and len(cap.err.strip().splitlines()) == 1
-        assert cap.err.startswith("error: ug2.toml.stage_parameters.file: got 'default'") and "'up_up'" in cap.err
+        assert cap.err.startswith("error: ug2.toml.stage_parameters.file: got 'default'") and "'down_up'" in cap.err
         assert not (tmp_path / "s").exists()
     assert run(["optimize", str(run_file), "--bound", "speed_rpm=1200:1900", "--bound",
-                "rotation_sense=up_up,down_down", "--goal", "min_energy", "--target-p80-mm", "18",
+                "rotation_sense=down_up,down_down", "--goal", "min_energy", "--target-p80-mm", "18",
                 "--out", str(tmp_path / "o")]) == 2
     assert "stage_parameters.file" in capsys.readouterr().err and not (tmp_path / "o").exists()
     for value, allowed in (("down_down,sideways", "allowed: down_down, up_up"),

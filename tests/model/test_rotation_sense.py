@@ -46,18 +46,18 @@ def test_an_unknown_sense_is_one_line():
 
 
 def test_default_names_the_sense_surrogate_or_says_none_is_shipped(tmp_path, monkeypatch):
-    up = Machine.default().with_rotation_sense("up_up")
+    up = Machine.default().with_rotation_sense("down_up")  # a sense whose surrogate is not shipped
     assert P.named_parameter_path("default", "f", Machine.default()) == P.default_surrogate_path()
     assert P.named_parameter_path("default", "f", None) == P.default_surrogate_path()
     with pytest.raises(MsmillInputError, match=r"^f: got 'default'; allowed: a surrogate file of rotation sense "
-                                               r"'up_up' \(none is shipped yet"):
+                                               r"'down_up' \(none is shipped yet"):
         P.named_parameter_path("default", "f", up)
     # a machine of its own geometry is no sense of the default: "default" stays the shipped surrogate
     own = up.model_copy(update={"headroom_m": 0.25})
     assert P.named_parameter_path("default", "f", own) == P.default_surrogate_path()
-    shutil.copy(P.default_surrogate_path(), tmp_path / "up_up.json")
+    shutil.copy(P.default_surrogate_path(), tmp_path / "down_up.json")
     monkeypatch.setattr(P, "default_surrogate_path_dir", lambda: tmp_path)
-    assert P.named_parameter_path("default", "f", up) == tmp_path / "up_up.json"
+    assert P.named_parameter_path("default", "f", up) == tmp_path / "down_up.json"
 
 
 def _provider_of(machine: Machine):
@@ -96,10 +96,10 @@ def test_run_file_rotation_sense(tmp_path):
 
     src = (P.Path(__file__).resolve().parents[2] / "examples" / "ug2.toml").read_text()
     f = tmp_path / "r.toml"
-    f.write_text(src.replace("[stage_parameters]", '[machine]\nrotation_sense = "up_up"\n\n[stage_parameters]'))
+    f.write_text(src.replace("[stage_parameters]", '[machine]\nrotation_sense = "down_up"\n\n[stage_parameters]'))
     rf = RunFile.from_toml(f)
-    assert rf.machine_obj().rotation_sense == "up_up"
-    with pytest.raises(MsmillInputError, match=r"^r.toml.stage_parameters.file: got 'default'; allowed: .*'up_up'"):
+    assert rf.machine_obj().rotation_sense == "down_up"
+    with pytest.raises(MsmillInputError, match=r"^r.toml.stage_parameters.file: got 'default'; allowed: .*'down_up'"):
         rf.stage_parameter_path()
     f.write_text(src.replace("[stage_parameters]", '[machine]\nrotation_sense = "left"\n\n[stage_parameters]'))
     with pytest.raises(MsmillInputError, match=r"^r.toml.machine.rotation_sense: got 'left'; allowed: down_down"):
@@ -154,8 +154,8 @@ def test_a_sense_without_stage_parameters_stops_before_any_mill_is_built(tmp_pat
     monkeypatch.setattr(RunFile, "build", lambda self: built.append(self.machine.rotation_sense) or real(self))
     rf = _run_file(tmp_path, "default")
     with pytest.raises(MsmillInputError, match=r"^r.toml.stage_parameters.file: got 'default'; allowed: a surrogate "
-                                               r"file of rotation sense 'up_up'"):
-        operating.mills_by_sense(rf, ["down_down", "up_up"])
+                                               r"file of rotation sense 'down_up'"):
+        operating.mills_by_sense(rf, ["down_down", "down_up"])
     assert built == []  # down_down's surrogate was not even loaded
 
 
