@@ -21,6 +21,8 @@ import argparse
 import time
 import warnings
 
+import numba
+
 import msmill.dem  # noqa: F401  (chooses numba's threading layer first)
 from msmill.dem.mill.scene import build_scene
 from msmill.dem.mill.warmstart import place_table_start
@@ -42,8 +44,6 @@ def main() -> None:
                     help="compare these Verlet skins (multiples of the smallest radius; default 0.5) instead")
     args = ap.parse_args()
     if args.threads:
-        import numba
-
         numba.set_num_threads(args.threads)
     warnings.simplefilter("ignore")  # the transient's overlap warnings are not the point here
     sc = build_scene(Machine.default(), OperatingPoint(feed_tph=args.feed_tph, speed_rpm=args.speed_rpm,
@@ -68,8 +68,6 @@ def main() -> None:
             best[threaded] = min(best[threaded], (w, k))
             print(f"{'threaded' if threaded else 'serial  '}: {w:.0f} ns/rock-step wall, kernel {k:.0f}, "
                   f"{per:.1f} steps/rebuild, {sim.n_particles} rocks")
-    import numba
-
     print(f"threaded best: {best[True][0]:.0f} ns/rock-step wall, kernel {best[True][1]:.0f} "
           f"({numba.get_num_threads()} threads)")
     w, k = best[False]
