@@ -748,6 +748,18 @@ class RunStatistics(_JsonDocument):
             return None
         return np.array([self.inlet_destinations] + [s.destinations for s in self.stages], dtype=float)
 
+    def compartment_residence_s(self) -> list[float] | None:
+        """Steady residence (mean hold-up / mass rate out, s) of the inlet zone and stages 1..n.
+
+        What a table start near this point places (``RunSettings.start_residence_s``): the hold-up is
+        this times the new point's feed. None when the run lacks the hold-ups or the rate.
+        """
+        rate = self.mass_out_rate_kg_s
+        hold = [self.inlet_holdup_kg] + [s.mean_holdup_kg for s in self.stages]
+        if not rate or any(h is None for h in hold):
+            return None
+        return [float(h) / float(rate) for h in hold]
+
     def window_reference(self) -> tuple[float, float] | None:
         """``(holdup_kg, residence_steps)`` of the measurement window: what a filling curve is relative to.
 

@@ -150,6 +150,37 @@ def test_residence_interpolates_in_log_size_and_scales_with_feed():
         table_residence_s(20.0, 5, bare)
 
 
+def test_a_given_residence_replaces_the_tables():
+    """``residence_s`` (a finished run's steady residence per compartment) sets the targets: feed x residence."""
+    sc = _scene(10.0, 30.0)
+    res = [0.28, 0.32, 0.11, 0.09, 0.06, 0.05]
+    rep = place_table_start(sc, seed=2, residence_s=res)
+    target = np.array(rep["compartment_target_kg"])
+    assert np.allclose(target, sc.feed_kg_s * np.array(res))
+    assert not np.allclose(target, sc.feed_kg_s * table_residence_s(10.0, M.n_stages)[0])
+    pos, rad = _rocks(sc)
+    placed = np.bincount(stage_of_z(M, pos[:, 2]), weights=RHO * 4 / 3 * np.pi * rad**3, minlength=M.n_stages + 2)
+    assert np.all(np.abs(placed[:-1] - target) <= RHO * np.pi / 6 * 0.010**3)  # within one rock
+    assert "given residence" in rep["source"] and "table_sizes_mm" not in rep
+    for bad in ([0.3] * M.n_stages, [0.3] * M.n_stages + [-0.1], [0.3] * M.n_stages + [float("nan")], "fast"):
+        with pytest.raises(MsmillInputError, match="residence_s"):
+            place_table_start(_scene(10.0, 30.0), residence_s=bad)
+    with pytest.raises(MsmillInputError, match=r"settings\.start_residence_s"):
+        run_mill(M, OperatingPoint(feed_tph=30, speed_rpm=1500), size_mm=30.0,
+                 settings=RunSettings(start="table", start_residence_s=[0.3, 0.3]))
+
+
+def test_a_runs_compartment_residence_adds_up_to_its_residence_time():
+    """The start a finished run offers (hold-up / rate per compartment) sums to its measured residence time."""
+    run = default_stage_table().runs[0]
+    res = run.compartment_residence_s()
+    assert res is not None and len(res) == run.n_stages + 1 and min(res) > 0
+    hold = run.inlet_holdup_kg + sum(st.mean_holdup_kg for st in run.stages)
+    assert sum(res) == pytest.approx(hold / run.mass_out_rate_kg_s, rel=1e-12)
+    assert sum(res) == pytest.approx(run.residence_time_s, rel=0.02)
+    assert run.model_copy(update={"mass_out_rate_kg_s": None}).compartment_residence_s() is None
+
+
 def test_refuses_a_used_scene_and_bad_inputs():
     sc = _scene()
     place_table_start(sc)
@@ -175,7 +206,7 @@ def test_run_mill_starts_from_the_table_and_records_it(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         run = run_mill(M, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40), size_mm=30.0, settings=rs)
-    assert seen == [{"seed": 7}]
+    assert seen == [{"seed": 7, "residence_s": None}]
     assert run.timeseries["mass_kg"].iloc[0] == pytest.approx(run.extra["warm_start"]["placed_kg"])
     prov = run.stats.run.provenance
     assert prov["warm_start"]["kind"] == "table" and prov["run_settings"]["start"] == "table"

@@ -58,6 +58,7 @@ def check_run_inputs(machine: Machine, settings: Any, size_mm: float | None = No
     number(getattr(settings, "feed_speed_m_s", 2.0), "--feed-speed-m-s", unit="m/s", gt=0, le=MAX_FEED_SPEED_M_S)
     check_start(getattr(settings, "start", "empty"), "--start")
     check_window_from(getattr(settings, "window_from", "detection"), "--window-from")
+    check_start_residence(getattr(settings, "start_residence_s", None), machine.n_stages)
     number(getattr(settings, "settle_s", 0.0), "settings.settle_s", unit="s", ge=0)
     number(getattr(settings, "checkpoint_every_s", 600.0), "--checkpoint-every-s", unit="s", ge=0)
     # the name only: a campaign's runs may execute elsewhere (the engine checks the machine, Simulation)
@@ -84,6 +85,19 @@ START_KINDS = ("empty", "table")
 def check_start(start: Any, field: str = "settings.start") -> None:
     """Raise :class:`MsmillInputError` unless ``start`` is a kind of start (``RunSettings.start``)."""
     one_of(start, field, START_KINDS)
+
+
+def check_start_residence(residence_s: Any, n_stages: int, field: str = "settings.start_residence_s") -> None:
+    """Raise :class:`MsmillInputError` unless ``residence_s`` is None or ``n_stages + 1`` finite times >= 0 (s)."""
+    if residence_s is None:
+        return
+    allowed = f"None or {n_stages + 1} residence times >= 0 (s; inlet zone, stages 1..{n_stages})"
+    try:
+        values = [float(v) for v in residence_s]
+    except (TypeError, ValueError):
+        raise MsmillInputError(field, residence_s, allowed) from None
+    if len(values) != n_stages + 1 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise MsmillInputError(field, residence_s, allowed)
 
 
 #: where a run's measurement window starts (``RunSettings.window_from``)

@@ -143,6 +143,10 @@ class RunSettings:
     target_holdup_rel_se: float = math.inf
     # start of the run (issue 12): "empty" or "table" (msmill.dem.mill.warmstart.START_KINDS)
     start: str = "empty"
+    # a table start's residence (hold-up / feed, s) per compartment (inlet zone, stages 1..n) instead of the
+    # default stage table's: the steady residence a finished run near this point measured
+    # (msmill.stageparams.RunStatistics.compartment_residence_s). None: the table's
+    start_residence_s: list[float] | None = None
     # start of the measurement window (issue 12): "detection" (the time steady state is detected) or
     # "onset" (the start of the two windows that passed the criterion, at the earliest settle_s)
     window_from: str = "detection"
@@ -304,7 +308,7 @@ def run_mill(
     if start is not None:
         warm = place_warm_start(scene, start, seed=rs.seed)
     elif rs.start == "table":
-        warm = place_table_start(scene, seed=rs.seed)
+        warm = place_table_start(scene, seed=rs.seed, residence_s=rs.start_residence_s)
     else:
         warm = None
     loop = _Loop(limit_s=rs.time_limit_s(scene.size_mm), inputs=inputs,

@@ -84,6 +84,7 @@ the first runs of a campaign cold; the table start needs neither.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -92,7 +93,7 @@ import numpy as np
 import pandas as pd
 
 from msmill.dem import kernels as K
-from msmill.dem.mill.checks import START_KINDS
+from msmill.dem.mill.checks import START_KINDS, check_start_residence
 from msmill.dem.mill.saved import load_raw
 from msmill.errors import MsmillInputError
 from msmill.machine import Machine, rpm_to_rad_s, size_mm_to_radius_m
@@ -311,7 +312,8 @@ def _draw_radii(rng: np.random.Generator, radii: np.ndarray, weights: np.ndarray
 
 
 def place_table_start(scene: Any, table: StageParameterTable | None = None, seed: int = 0,
-                      speed_m_s: float = 2.0, n_tries: int = 50, fill: float = 1.0) -> dict[str, Any]:
+                      speed_m_s: float = 2.0, n_tries: int = 50, fill: float = 1.0,
+                      residence_s: Sequence[float] | None = None) -> dict[str, Any]:
     """Fill a freshly built scene with the stage table's expected steady hold-up; returns a report.
 
     Parameters
@@ -328,6 +330,10 @@ def place_table_start(scene: Any, table: StageParameterTable | None = None, seed
         Candidate positions per rock.
     fill : float
         Multiplies the target hold-up (1: the table's steady hold-up).
+    residence_s : sequence of float, optional
+        Residence (hold-up / feed, s) per compartment (inlet zone, stages 1..n) instead of the table's,
+        for example the steady one a finished run near this point measured
+        (:meth:`msmill.stageparams.RunStatistics.compartment_residence_s`).
 
     Returns
     -------
@@ -347,7 +353,12 @@ def place_table_start(scene: Any, table: StageParameterTable | None = None, seed
         raise MsmillInputError("fill", fill, "a finite factor >= 0")
     if int(n_tries) < 1:
         raise MsmillInputError("n_tries", n_tries, "an integer >= 1")
-    residence, src = table_residence_s(sc.size_mm, m.n_stages, table)
+    if residence_s is None:
+        residence, src = table_residence_s(sc.size_mm, m.n_stages, table)
+    else:
+        check_start_residence(residence_s, m.n_stages, "residence_s")
+        residence = np.asarray(residence_s, dtype=float)
+        src = {"source": "given residence per compartment (s): " + ", ".join(f"{v:.4g}" for v in residence)}
     target = sc.feed_kg_s * residence * fill
     if sim._dirty:
         sim._pack()  # the geometry at t = 0
