@@ -15,8 +15,13 @@ slows them alike:
 * ``web_first``: ``msmill serve`` started, the first ``POST /predict`` timed (wall) once the server
   answers ``/health`` or ``/``.
 
-The first round warms the user's caches (a loaded surrogate's factorisations, numba's cache) and is
-not counted. Last line (CPU seconds of the whole process; ``web_first_s`` the request's wall time):
+The first round warms the user's caches (a loaded surrogate's factorisations, numba's cache, Python's
+bytecode cache) and is not counted. The processes run without ``PYTHONDONTWRITEBYTECODE`` (set in some
+sandboxes, never by a user's shell): ``pip install`` writes the bytecode of the installed files, and an
+editable install writes it on the first run, so a user's later commands do not compile the package again.
+A ``floor`` line gives the CPU time of a Python process that only imports the libraries ``predict``
+uses (numpy, scipy.sparse.linalg, pandas, matplotlib's Agg figure, typer, rich): what no change inside
+msmill can take away. Last line (CPU seconds of the whole process; ``web_first_s`` the request's wall time):
 ``predict_s=<a> ore_list_s=<b> report_s=<c> sweep_per_point_s=<d> optimize_s=<e> score_s=<f>
 web_first_s=<g>``.
 
@@ -57,12 +62,20 @@ def commands(out: Path) -> dict[str, list[str]]:
     }
 
 
-def run_timed(args: list[str]) -> tuple[float, float, int]:
-    """Wall and CPU time (s) of one ``python -m msmill ARGS`` process, and its exit status."""
+#: the third-party imports of ``msmill predict`` (the floor line)
+FLOOR_IMPORTS = ("numpy, scipy.sparse.linalg, pandas, matplotlib.figure, matplotlib.backends.backend_agg, typer, "
+                 "rich.table")
+#: a user's environment: Python writes its bytecode cache (module docstring)
+ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+
+
+def run_timed(args: list[str], python_args: list[str] | None = None) -> tuple[float, float, int]:
+    """Wall and CPU time (s) of one ``python -m msmill ARGS`` process (or ``python PYTHON_ARGS``), and its
+    exit status."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "msmill", *args], stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL, cwd=ROOT, check=False)
+    cmd = [sys.executable, *python_args] if python_args is not None else [sys.executable, "-m", "msmill", *args]
+    p = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT, env=ENV, check=False)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -79,7 +92,7 @@ def web_first_request() -> float:
     """Wall time (s) of the first POST /predict after ``msmill serve`` answers."""
     port = free_port()
     srv = subprocess.Popen([sys.executable, "-m", "msmill", "serve", "--port", str(port)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT, env=ENV)
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 120
@@ -112,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         cmds = commands(Path(tmp))
         keys = [k for k in cmds if (a.only is None or k in a.only) and not (a.skip_score and k == "score")]
         res: dict[str, list[tuple[float, float]]] = {k: [] for k in keys}
+        floor = []
         for rnd in range(a.repeats + 1):
             for k in keys:
                 wall, cpu, code = run_timed(cmds[k])
@@ -119,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{k}: exit {code} ({' '.join(cmds[k])})")
                 if rnd:  # round 0 warms the caches
                     res[k].append((wall, cpu))
+            if rnd:
+                floor.append(run_timed([], ["-c", f"import {FLOOR_IMPORTS}"])[1])
         web = []
         if a.only is None or "web_first" in a.only:
             web = [web_first_request() for _ in range(a.repeats)]
@@ -137,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     line = " ".join(f"{names[k]}={out[k]:.3f}" for k in names if k in out)
     if web:
         line += f" web_first_s={np.median(web):.3f}"
+    if floor:
+        print(f"floor: importing {FLOOR_IMPORTS} costs {np.median(floor):.2f} s CPU (median of {len(floor)})")
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
     print(line)
     return 0
