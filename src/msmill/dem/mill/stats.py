@@ -426,6 +426,46 @@ def tagged_moves(
     return _tag_pairs(machine, snaps, removed, times, lag, rock_density_kg_m3, first_stage=0)
 
 
+def slot_streams(
+    machine: Machine, snapshots: list[tuple[float, pd.DataFrame]] | pd.DataFrame, removed: pd.DataFrame,
+    lag: int, slot_s: float = 0.2, rock_density_kg_m3: float = 2700.0,
+) -> pd.DataFrame:
+    """Streams and hold-up of every compartment in consecutive slots of the whole record: how a run settles.
+
+    The tagged moves (:func:`tagged_moves`, ``lag`` snapshots) grouped by the slot ``floor(time / slot_s)``
+    of their tag time give each compartment's kickback, refeed and pass-through in that slot (the inlet
+    zone has no kickback); the hold-up is the compartment's mass averaged over the slot's snapshots.
+    ``docs/mill-dem.md`` (Section 3.2) reads the settle time after a table start off this table.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per slot and compartment: ``slot_start_s``, ``stage`` (0 inlet zone, 1..n),
+        ``kickback``, ``refeed``, ``pass_through``, ``tagged_kg`` (mass the fractions rest on) and
+        ``holdup_kg``.
+    """
+    if not slot_s > 0:
+        raise MsmillInputError("slot_s", slot_s, "a slot length > 0 (s)")
+    snaps = snapshots_frame(snapshots)
+    pairs = tagged_moves(machine, snaps, removed, lag, rock_density_kg_m3)
+    pairs = pairs.assign(slot=np.floor(pairs["time_s"].to_numpy() / slot_s + 1e-9).astype(np.int64))
+    streams = _streams(pairs, ["slot", "stage_from"]).rename(columns={"mass_kg": "tagged_kg"})
+    streams.index = streams.index.set_names(["slot", "stage"])
+    comp = stage_of_z(machine, snaps["z_m"].to_numpy())
+    mass = rock_density_kg_m3 * 4.0 / 3.0 * np.pi * snaps["radius_m"].to_numpy() ** 3
+    inside = comp <= machine.n_stages
+    per_snap = (pd.DataFrame({"time_s": snaps["time_s"].to_numpy()[inside], "stage": comp[inside],
+                              "mass_kg": mass[inside]})
+                .pivot_table(index="time_s", columns="stage", values="mass_kg", aggfunc="sum", fill_value=0.0)
+                .reindex(columns=range(machine.n_stages + 1), fill_value=0.0))
+    slot = np.floor(per_snap.index.to_numpy() / slot_s + 1e-9).astype(np.int64)
+    hold = per_snap.groupby(slot).mean().stack().rename("holdup_kg")
+    hold.index = hold.index.set_names(["slot", "stage"])
+    out = streams.join(hold, how="outer").reset_index()
+    out.insert(0, "slot_start_s", out.pop("slot") * slot_s)
+    return out.sort_values(["slot_start_s", "stage"], ignore_index=True)
+
+
 def destination_matrix(pairs: pd.DataFrame, n_stages: int) -> np.ndarray:
     """Mass-weighted destinations ``(n + 1, n + 2)`` of tagged moves (:func:`tagged_moves`); NaN rows untagged."""
     out = np.full((n_stages + 1, n_stages + 2), np.nan)
