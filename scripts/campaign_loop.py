@@ -61,7 +61,8 @@ def prepare(st, a) -> None:
         for line in restore_campaigns(st, a.export, raw_dir=a.raw_dir):
             print(line)
     if a.campaign not in {c.name for c in st.campaigns()}:
-        opts = {"size_range_mm": list(a.size_range_mm)} | ({"raw_dir": a.raw_dir} if a.raw_dir else {})
+        opts = ({"size_range_mm": list(a.size_range_mm)} | ({"raw_dir": a.raw_dir} if a.raw_dir else {})
+                | ({"start_from_nearest_run": True} if a.start_from_nearest_run else {}))
         machine = Machine.default() if a.machine == "default" else Machine.from_toml(Path(a.machine))
         st.create_campaign(a.campaign, machine, run_settings=run_settings_dict(_settings(a.set)),
                            max_attempts=a.max_attempts, options=opts)
@@ -144,6 +145,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--max-run-hours", type=float, default=None,
                     help="plan no point whose expected wall time exceeds this (h; default the campaign's option)")
     ap.add_argument("--set", action="append", default=[], help="RunSettings KEY=VALUE (new campaign only)")
+    ap.add_argument("--start-from-nearest-run", action="store_true",
+                    help="table starts from the nearest finished run's residence (new campaign only)")
     ap.add_argument("--max-attempts", type=int, default=3)
     ap.add_argument("--raw-dir", default=None, help="workers save raw run folders here")
     ap.add_argument("--batch", type=int, default=4, help="points per active-learning batch")

@@ -100,6 +100,11 @@ def test_cli_create_add_status_and_bad_input(tmp_path, capsys):
                                              "window_from": "onset"}
     assert {r.seed for r in st.runs(campaign="k")} == {2}
     assert cli(["campaign", "create", "bad", "--db", db, "--set", "warp=9"]) == 2
+    assert cli(["campaign", "create", "near", "--db", db, "--start-from-nearest-run"]) == 0
+    assert st.campaign("near").options.get("start_from_nearest_run") is True
+    assert not st.campaign("k").options.get("start_from_nearest_run")
+    assert cli(["campaign", "create", "cold", "--db", db, "--set", "start=empty", "--start-from-nearest-run"]) == 2
+    assert "--start-from-nearest-run" in capsys.readouterr().err
     assert cli(["campaign", "status", "nope", "--db", db]) == 2
     assert cli(["campaign", "plan", "k", "--db", db, "--planner", "oracle"]) == 2  # not a registered planner
     assert cli(["db", "list", "--db", db, "--size-mm", "abc"]) == 2
@@ -286,3 +291,69 @@ def test_threads_per_run_reach_the_worker_and_its_kernels(store, client, monkeyp
             assert kernels["threads"] == threads
     finally:
         numba.set_num_threads(before)
+
+
+def test_a_campaign_can_start_each_run_from_the_nearest_runs_residence(store, client):
+    """With ``start_from_nearest_run`` a table start places the steady residence of the finished run
+    nearest in the design cube (none before the first run finishes); without it the table's."""
+    import json
+
+    def recording(task: dict) -> dict:
+        size = task["design"]["size_mm"]
+        st = make_stats(size, seed=task["run_id"]).model_copy(update={"inlet_holdup_kg": 0.1 * size})
+        seen = task["run_settings"].get("start_residence_s")
+        return stand_in(task) | {"statistics": st.model_dump_json(), "worker": json.dumps(seen),
+                                 "note": task["start_residence_from"]}
+
+    store.create_campaign("c", MACHINE, run_settings={"max_time_s": 0.5, "start": "table"},
+                          options={"start_from_nearest_run": True})
+    store.add_points("c", design_grid(MACHINE, [10.0, 29.0], [30.0], [1500.0], [40.0]))
+    assert run_campaign(store, "c", client=client, executor=recording, heartbeat_s=0.2).recorded == 2
+    first = {r.design.size_mm: r for r in store.runs(campaign="c")}
+    assert {r.worker for r in first.values()} == {"null"}  # nothing had finished yet
+    store.add_points("c", design_grid(MACHINE, [12.0, 27.0], [30.0], [1500.0], [40.0]))
+    assert run_campaign(store, "c", client=client, executor=recording, heartbeat_s=0.2).recorded == 2
+    runs = {r.design.size_mm: r for r in store.runs(campaign="c")}
+    for size, nearest in ((12.0, 10.0), (27.0, 29.0)):
+        want = store.statistics(first[nearest].id).compartment_residence_s()
+        assert json.loads(runs[size].worker) == pytest.approx(want, rel=1e-12)
+        assert f"{nearest:.3g} mm" in runs[size].note
+    # off by default: the same campaign without the option leaves the table's residence
+    store.create_campaign("d", MACHINE, run_settings={"max_time_s": 0.5, "start": "table"})
+    store.add_points("d", design_grid(MACHINE, [12.0], [30.0], [1500.0], [40.0]))
+    run_campaign(store, "d", client=client, executor=recording, heartbeat_s=0.2)
+    assert [r.worker for r in store.runs(campaign="d")] == ["null"]
+
+
+def test_a_resumed_run_keeps_the_start_its_checkpoint_was_written_with(store, tmp_path, monkeypatch):
+    """The nearest finished run may change between attempts: a worker continuing a checkpoint takes the
+    residence the checkpoint's inputs hold, not the newer one, so the checkpoint still matches."""
+    import pickle
+
+    import msmill.dem.mill.run as run_mod
+    from msmill.dem.checkpoint import FORMAT, STATE
+    from msmill.pipeline import campaign as cm
+
+    seen = {}
+
+    class FakeRun:
+        stats = type("S", (), {"run": make_stats(20.0)})()
+        extra: ClassVar[dict] = {"outcome": "steady", "git_commit": None}
+        wall_s = 1.0
+
+    monkeypatch.setattr(run_mod, "run_mill", lambda *a, **kw: seen.update(kw) or FakeRun())
+    monkeypatch.setattr(run_mod, "check_checkpoint", lambda *a, **kw: None)  # the checkpoint's other inputs
+    store.create_campaign("c", MACHINE, run_settings={"start": "table"}, options={"start_from_nearest_run": True})
+    store.add_points("c", design_grid(MACHINE, [20.0], [30.0], [1500.0], [40.0]))
+    [claim] = store.claim("c", 1, "w", new_token())
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    old = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+    with open(ckpt / STATE, "wb") as f:
+        pickle.dump({"format": FORMAT, "inputs": {"settings": {"start_residence_s": old}}}, f)
+    task = cm._task(store.campaign("c"), claim, start=([1.0] * 6, "the run at 21 mm")) | {"checkpoint_dir": str(ckpt)}
+    out = cm.execute_run(task)
+    assert seen["settings"].start_residence_s == old
+    assert "21 mm" in out["note"]
+    cm.execute_run(cm._task(store.campaign("c"), claim, start=([1.0] * 6, "the run at 21 mm")))  # no checkpoint
+    assert seen["settings"].start_residence_s == [1.0] * 6

@@ -69,6 +69,10 @@ def create_cmd(
     max_run_hours: Annotated[float | None, typer.Option(
         "--max-run-hours", help="The planner chooses no point whose expected wall time (the cost model learnt "
                                 "from the runs) exceeds this (h); default no cap.")] = None,
+    start_from_nearest_run: Annotated[bool, typer.Option(
+        "--start-from-nearest-run", help="A table start places the steady residence per compartment of the "
+        "finished run nearest in the design cube instead of the stage table's (docs/mill-dem.md); fine rock "
+        "then starts near its steady hold-up.")] = False,
     db: DbOpt = None,
 ) -> None:
     """Create a campaign: machine, slice/full and the DEM run settings."""
@@ -90,6 +94,11 @@ def create_cmd(
     opts = {"ore": ore, "raw_dir": str(raw_dir.resolve()) if raw_dir else None,
             "checkpoint_dir": None if checkpoint_dir is None else
             "none" if checkpoint_dir.strip().lower() == "none" else str(Path(checkpoint_dir).resolve())}
+    if start_from_nearest_run:
+        if settings.get("start") != "table":
+            raise MsmillInputError("--start-from-nearest-run", True, "a campaign whose runs start from the table "
+                                   "(--set start=table, the default)")
+        opts["start_from_nearest_run"] = True
     if opts["checkpoint_dir"] is not None and not checkpoint_dir.strip():
         raise MsmillInputError("--checkpoint-dir", checkpoint_dir, "a folder path or 'none'")
     if size_range_mm is not None:

@@ -45,19 +45,24 @@ import os
 import socket
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from msmill.errors import MsmillInputError
 from msmill.pipeline.store import Store
 from msmill.pipeline.store.hashing import file_sha256, outcome_of, read_statistics
 from msmill.pipeline.store.queue import Claim, new_token
-from msmill.stageparams import DesignPoint, design_inputs
+from msmill.stageparams import DesignPoint, RunStatistics, design_inputs
+
+if TYPE_CHECKING:
+    from msmill.surrogate.space import DesignSpace
 
 __all__ = ["CAMPAIGN_RUN_DEFAULTS", "DEFAULT_STALE_S", "PLANNERS", "CampaignReport", "checkpoint_base", "design_grid",
-           "execute_run", "run_campaign", "run_checkpoint_dir", "run_settings_dict"]
+           "execute_run", "nearest_run_start", "run_campaign", "run_checkpoint_dir", "run_settings_dict"]
 
 #: heartbeat age after which a running run is taken to be lost (s)
 DEFAULT_STALE_S = 120.0
@@ -202,6 +207,13 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
     opts = task.get("options", {})
     ckpt = task.get("checkpoint_dir")
     note = None
+    if ckpt and has_checkpoint(ckpt) and task.get("start_residence_from"):
+        # the nearest run may have changed since the attempt that wrote the checkpoint: keep its start
+        from msmill.dem.checkpoint import read_header
+
+        given = read_header(ckpt).get("inputs", {}).get("settings", {}).get("start_residence_s")
+        if given is not None:
+            settings = dataclasses.replace(settings, start_residence_s=list(given))
     if ckpt and has_checkpoint(ckpt):  # an earlier attempt was stopped: continue it if it is this run's
         try:
             check_checkpoint(ckpt, run_inputs(machine, op, d.size_mm, None, task["mode"], None, opts.get("ore"),
@@ -221,6 +233,8 @@ def execute_run(task: dict[str, Any]) -> dict[str, Any]:
         folder = save_run(run, Path(opts["raw_dir"]) / f"run{task['run_id']:06d}-a{task['attempt']}")
         raw = [{"kind": p.stem, "path": str(p.resolve()), "sha256": file_sha256(p), "size_bytes": p.stat().st_size}
                for p in sorted(folder.glob("*.parquet"))]
+    if task.get("start_residence_from"):
+        note = "; ".join(x for x in (note, f"started from the residence of {task['start_residence_from']}") if x)
     return {"statistics": stats.model_dump_json(), "outcome": run.extra.get("outcome") or outcome_of(stats),
             "wall_s": run.wall_s, "cpu_s": run.extra.get("cpu_s"), "note": note,
             "engine": f"msmill.dem {__version__}", "package_version": __version__,
@@ -278,11 +292,42 @@ def run_checkpoint_dir(base: Path, run_id: int) -> Path:
     return base / f"run{run_id:06d}"
 
 
-def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None, threads: int = 1) -> dict[str, Any]:
+def _task(store_info: Any, claim: Claim, ckpt_base: Path | None = None, threads: int = 1,
+          start: tuple[list[float], str] | None = None) -> dict[str, Any]:
+    settings = dict(store_info.run_settings, seed=claim.seed)
+    if start is not None:
+        settings["start_residence_s"] = start[0]
     return {"machine_toml": store_info.machine_toml, "design": claim.design.model_dump(), "mode": store_info.mode,
-            "run_settings": dict(store_info.run_settings, seed=claim.seed), "options": store_info.options,
+            "run_settings": settings, "options": store_info.options,
             "run_id": claim.run_id, "attempt": claim.attempt, "threads": threads,
-            "checkpoint_dir": None if ckpt_base is None else str(run_checkpoint_dir(ckpt_base, claim.run_id))}
+            "checkpoint_dir": None if ckpt_base is None else str(run_checkpoint_dir(ckpt_base, claim.run_id)),
+            "start_residence_from": None if start is None else start[1]}
+
+
+def nearest_run_start(runs: Sequence[RunStatistics], design: DesignPoint,
+                      space: DesignSpace | None = None) -> tuple[list[float], str] | None:
+    """The steady residence per compartment (:meth:`RunStatistics.compartment_residence_s`) of the run
+    nearest to ``design`` in the unit design cube (size in ln), and a line naming that run.
+
+    What a campaign with the ``start_from_nearest_run`` option places at the start of each run
+    (``RunSettings.start_residence_s``): the stage table's hold-up is off far from its 30 t/h point,
+    and the finer the rock the longer a run takes to drain or fill to its steady hold-up
+    (``docs/mill-dem.md``, "A start from a finished run's residence"). None without a run that has
+    the hold-ups and the rate.
+    """
+    from msmill.surrogate.space import DesignSpace
+
+    have = [(r, res) for r in runs if (res := r.compartment_residence_s()) is not None
+            and r.n_stages == len(design.stage_speeds_rpm)]
+    if not have:
+        return None
+    space = space or DesignSpace()
+    u = space.to_unit(np.array([r.design.inputs() for r, _ in have]))
+    d = np.linalg.norm(u - space.to_unit(np.array(design.inputs())), axis=1)
+    r, res = have[int(np.argmin(d))]
+    x = r.design
+    return res, (f"the run at {x.size_mm:.3g} mm, {x.feed_tph:.3g} t/h, {x.speed_rpm:.0f} rpm, gate "
+                 f"{x.gate_deg:.3g} deg ({float(np.min(d)):.2f} of the unit design cube away)")
 
 
 class _Driver:
@@ -311,10 +356,21 @@ class _Driver:
             free = min(free, self.max_runs - self.report.recorded - len(self.inflight))
         if free <= 0:
             return
+        runs = None
         for c in self.store.claim(self.name, free, self.me, self.token):
-            fut = self.client.submit(self.executor, _task(self.info, c, self.ckpt_base, self.threads), pure=False,
-                                     key=f"msmill-run{c.run_id}-a{c.attempt}-{self.token[:8]}")
+            start = None
+            if self._start_from_nearest_run():
+                if runs is None:
+                    runs = [st for _r, st in self.store.training_runs(machine_hash=self.info.machine_hash)]
+                start = nearest_run_start(runs, c.design)
+            fut = self.client.submit(self.executor, _task(self.info, c, self.ckpt_base, self.threads, start),
+                                     pure=False, key=f"msmill-run{c.run_id}-a{c.attempt}-{self.token[:8]}")
             self.inflight[fut] = c
+
+    def _start_from_nearest_run(self) -> bool:
+        rs = self.info.run_settings
+        return (bool(self.info.options.get("start_from_nearest_run")) and rs.get("start") == "table"
+                and rs.get("start_residence_s") is None)
 
     def collect(self, fut: Any) -> None:
         c = self.inflight.pop(fut)
