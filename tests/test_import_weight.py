@@ -34,3 +34,11 @@ def test_light_commands_do_not_load_heavy_libraries(command, allowed):
                          text=True, timeout=120, check=True)
     loaded = set(json.loads(out.stdout.strip().splitlines()[-1])) - set(allowed)
     assert not loaded, f"'{command}' imports {sorted(loaded)}"
+
+
+def test_a_command_in_a_pipe_does_not_load_the_help_formatting():
+    """Written to a pipe (a script, `| head`), a command does not import Typer's Rich help formatting (0.1-0.2 s)
+    just to set the help width it would use; help itself still gets the 100 columns (tests/test_cli_help.py)."""
+    out = subprocess.run([sys.executable, "-c", PROBE, "ore list", json.dumps(["typer.rich_utils", "markdown_it"])],
+                         capture_output=True, text=True, timeout=120, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []
