@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -39,6 +40,7 @@ def test_light_commands_do_not_load_heavy_libraries(command, allowed):
 def test_a_command_in_a_pipe_does_not_load_the_help_formatting():
     """Written to a pipe (a script, `| head`), a command does not import Typer's Rich help formatting (0.1-0.2 s)
     just to set the help width it would use; help itself still gets the 100 columns (tests/test_cli_help.py)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "TERMINAL_WIDTH", "LINES")}
     out = subprocess.run([sys.executable, "-c", PROBE, "ore list", json.dumps(["typer.rich_utils", "markdown_it"])],
-                         capture_output=True, text=True, timeout=120, check=True)
+                         capture_output=True, text=True, timeout=120, check=True, env=env)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
