@@ -43,7 +43,7 @@ def git_state() -> dict[str, object]:
 
 
 def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool = True,
-          groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table"):
+          groups: tuple[str, ...] | None = ("count",), filling_curves: str | None = "table", n_levels: int = 28):
     """Fit, correct and score; returns ``(model, report, provenance)``."""
     from msmill.pipeline.export import read_export, runs_machine, split_runs
     from msmill.surrogate.accuracy import FINE_SIZE_MM, loo_scores
@@ -54,7 +54,8 @@ def train(export: Path, loo: str = "refit", n_restarts: int = 2, correct: bool =
     slices, fulls = split_runs(runs)
     if len(slices) < 2:
         sys.exit(f"{export}: {len(slices)} steady slice runs; at least 2 are needed")
-    model = StageSurrogate(n_restarts=n_restarts, filling_curves=filling_curves).fit([r.statistics for r in slices])
+    model = StageSurrogate(n_restarts=n_restarts, filling_curves=filling_curves,
+                           n_levels=n_levels).fit([r.statistics for r in slices])
     pairs = match_pairs([r.statistics for r in slices], [r.statistics for r in fulls]) if correct else []
     if pairs:
         model.slice_to_full_ = SliceToFullBias.fit(model.training_.layout, pairs, groups=groups)
@@ -122,6 +123,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--loo", choices=("refit", "closed"), default="refit",
                     help="leave-one-out: refit every GP (honest) or closed form (fast)")
     ap.add_argument("--restarts", type=int, default=2, help="optimiser restarts per target")
+    ap.add_argument("--levels", type=int, default=28,
+                    help="quantile levels per velocity distribution (msmill.surrogate.targets.SIGMA_FACTORS)")
     ap.add_argument("--correct-groups", default="count",
                     help="target groups the slice-to-full correction is applied to, comma-separated, or 'all' "
                          "(default: count, the secondary impacts the slice is known to under-count)")
@@ -142,7 +145,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.process_time()
     groups = None if a.correct_groups == "all" else tuple(a.correct_groups.split(","))
     model, report, prov = train(a.export.resolve(), a.loo, a.restarts, not a.no_slice_to_full, groups,
-                                None if a.filling_curves == "own" else a.filling_curves)
+                                None if a.filling_curves == "own" else a.filling_curves, a.levels)
     prov["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     prov["cpu_s"] = round(time.process_time() - t0, 1)
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -66,3 +66,17 @@ def test_cached_factors_load_without_refitting_and_predict_the_same(fitted, save
     third = persist.load(saved)
     assert np.array_equal(third.predict_targets(X), fitted.predict_targets(X), equal_nan=True)
     assert persist.load(saved, cache=False).gp_.__dict__["_estimators"] is not None
+
+
+def test_a_surrogate_of_36_levels_saves_loads_and_predicts_36_quantiles(table_runs, tmp_path):
+    """The number of quantile levels travels in the file: a 36-level surrogate loads as one (and predicts the
+    same), next to the shipped 28-level ones."""
+    from msmill.surrogate.stage_model import StageSurrogate
+
+    fitted = StageSurrogate(n_restarts=0, n_levels=36).fit(table_runs)
+    loaded = persist.load(persist.save(fitted, tmp_path / "s36.json", {"note": "test"}))
+    assert loaded.n_levels == loaded.training_.layout.n_levels == 36
+    X = fitted.stage_inputs(np.geomspace(6, 30, 4), [1500.0] * 4 + [3000.0], 30.0, 40.0)
+    assert np.array_equal(fitted.predict_targets(X), loaded.predict_targets(X), equal_nan=True)
+    pred = loaded.decode(loaded.predict_targets(X))[0]
+    assert pred.primary_quantiles_m_s.shape[-1] == 36

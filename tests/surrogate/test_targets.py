@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
+from msmill.errors import MsmillInputError
 from msmill.surrogate import targets as tg
 from msmill.surrogate.accuracy import mixture_kl, poisson_kl
 
@@ -217,3 +218,41 @@ def test_stored_sigma_factor_is_the_least_kl_width():
         return float(np.trapezoid(p * np.log(p / r), v))
 
     assert round_trip_kl(c) < min(round_trip_kl(0.98 * c), round_trip_kl(1.02 * c))
+
+
+@pytest.mark.parametrize("n_levels", sorted(tg.SIGMA_FACTORS))
+def test_every_stored_sigma_factor_is_the_least_kl_width_of_its_levels(n_levels):
+    """Each stored factor (a surrogate may be built with another number of quantile levels) is the float the
+    KL search returns for its levels, and more levels survive the round trip of a normal with less KL."""
+    assert tg.SIGMA_FACTORS[n_levels] == tg.least_kl_sigma_factor(n_levels) == tg.sigma_factor(n_levels)
+    assert len(tg.quantile_levels(n_levels)) == n_levels
+
+
+def test_a_layout_carries_its_levels_through_encoding_decoding_and_its_file(table_runs):
+    """A 36-level layout encodes 36 quantiles per velocity distribution, rebuilds mixtures with 36 components
+    and the factor of 36 levels, and its dict (the surrogate file) reads back as 36 levels; a 28-level file
+    still reads as 28; levels that are not (j - 1/2)/M are refused in one line."""
+    run = table_runs[0]
+    lay = tg.TargetLayout(run.n_stages, n_levels=36)
+    assert lay.slices(1)["primary_velocity"].stop - lay.slices(1)["primary_velocity"].start == 36
+    y, nv = tg.encode_run(run, lay)
+    assert y.shape == nv.shape == (lay.n_targets,)
+    pred = tg.decode_stage(y[None], lay, 1)
+    w, mu, sd = pred.primary_velocity
+    assert w.shape == (1, 36) and np.allclose(w, 1 / 36)
+    q = tg.mixture_quantiles(*(np.asarray(a) for a in (run.stages[0].primary_velocity.weights,
+                                                      run.stages[0].primary_velocity.means_m_s,
+                                                      run.stages[0].primary_velocity.sigmas_m_s)),
+                             levels=tg.quantile_levels(36))
+    np.testing.assert_allclose(mu[0], q, rtol=1e-9)
+    np.testing.assert_allclose(sd[0], np.maximum(tg.SIGMA_FACTORS[36] * tg._spacing(q), 1e-6), rtol=1e-9)
+    assert tg.TargetLayout.from_dict(lay.to_dict()) == lay
+    assert tg.TargetLayout.from_dict(tg.TargetLayout(run.n_stages).to_dict()).n_levels == tg.N_LEVELS
+    bad = lay.to_dict() | {"levels": [0.1, 0.3, 0.6, 0.9]}
+    with pytest.raises(MsmillInputError, match="levels"):
+        tg.TargetLayout.from_dict(bad)
+    ts = tg.TrainingSet.from_runs(table_runs[:2], n_levels=36)
+    sl = ts.layout.slices(2)["secondary_velocity"]
+    assert ts.layout.n_levels == 36 and sl.stop - sl.start == 36 and ts.Y.shape[1] == ts.layout.n_targets
+    with pytest.raises(MsmillInputError, match="n_levels"):
+        tg.TargetLayout(run.n_stages, n_levels=12)

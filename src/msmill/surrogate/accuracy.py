@@ -137,7 +137,7 @@ def _loo_rows(model: StageSurrogate, refit: bool) -> np.ndarray:
     hyper = model.gp_.hyperparameters()
     for i in range(ts.n_runs):
         keep = [r for j, r in enumerate(ts.runs) if j != i]
-        sub = StageSurrogate(model.design_space, n_restarts=0).fit(keep, warm_start=hyper)
+        sub = StageSurrogate(model.design_space, n_restarts=0, n_levels=ts.layout.n_levels).fit(keep, warm_start=hyper)
         out[i] = sub.gp_.predict(ts.X[i:i + 1])[0]
     return out
 

@@ -141,7 +141,7 @@ def from_dict(doc: dict[str, Any], source: str = "surrogate", factors_key: str |
     filling = doc.get("filling_curves")
     if filling not in FILLING_CURVES:
         raise MsmillInputError(f"{source}.filling_curves", filling, " or ".join(map(str, FILLING_CURVES)))
-    model = StageSurrogate(space, filling_curves=filling)
+    model = StageSurrogate(space, filling_curves=filling, n_levels=layout.n_levels)
     model._set(ts, gp)
     model.provenance_ = dict(doc.get("provenance", {}))
     if doc.get("slice_to_full") is not None:

@@ -29,7 +29,7 @@ from msmill.errors import MsmillInputError
 from msmill.stageparams import RunStatistics
 from msmill.surrogate.gp import SurrogateGP
 from msmill.surrogate.space import INPUTS, DesignSpace
-from msmill.surrogate.targets import StagePrediction, TrainingSet, decode_stage
+from msmill.surrogate.targets import N_LEVELS, StagePrediction, TrainingSet, decode_stage
 
 #: A point is *thin in data* when the surrogate's posterior spread there exceeds this quantile of the
 #: spreads its training runs have with themselves left out: farther from the other runs than 90 % of
@@ -82,6 +82,10 @@ class StageSurrogate:
         from: None, the training runs' own (none when they carry none); ``"table"``, the packaged
         single-point DEM table's, for runs that start from a filled mill and so never measure filling.
         Saved in the surrogate file (:mod:`msmill.surrogate.persist`).
+    n_levels : int
+        Quantile levels per velocity distribution (:data:`msmill.surrogate.targets.SIGMA_FACTORS` lists
+        the supported ones; default 28): more levels lower the representation's own KL floor and add
+        GP targets. Saved in the file's target layout.
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -92,18 +96,19 @@ class StageSurrogate:
     """
 
     def __init__(self, design_space: DesignSpace | None = None, n_restarts: int = 2,
-                 random_state: int = 0, filling_curves: str | None = None) -> None:
+                 random_state: int = 0, filling_curves: str | None = None, n_levels: int = N_LEVELS) -> None:
         if filling_curves not in FILLING_CURVES:
             raise MsmillInputError("filling_curves", filling_curves, " or ".join(map(str, FILLING_CURVES)))
         self.design_space = design_space or DesignSpace()
         self.n_restarts = n_restarts
         self.random_state = random_state
         self.filling_curves = filling_curves
+        self.n_levels = n_levels
 
     def fit(self, runs: TrainingSet | Iterable[RunStatistics],
             warm_start: list[dict[str, Any]] | None = None) -> StageSurrogate:
         """Encode the runs and fit the GPs; returns ``self``."""
-        ts = runs if isinstance(runs, TrainingSet) else TrainingSet.from_runs(runs)
+        ts = runs if isinstance(runs, TrainingSet) else TrainingSet.from_runs(runs, self.n_levels)
         if ts.n_runs < 2:
             raise MsmillInputError("runs", ts.n_runs, "at least 2 runs to fit a surrogate")
         gp = SurrogateGP(self.design_space, n_restarts=self.n_restarts, warm_start=warm_start,

@@ -134,13 +134,21 @@ def normal_pdf(x: np.ndarray) -> np.ndarray:
 #: does not solve for it (and import ``scipy.optimize``, 0.13 s together) on every start;
 #: ``tests/surrogate/test_targets.py`` checks the two are the same float.
 SIGMA_FACTOR = 0.9756139131749254
+#: :data:`SIGMA_FACTOR` for other numbers of levels a surrogate may be built with (``TargetLayout.n_levels``),
+#: the same stored floats (``tests/surrogate/test_targets.py`` recomputes each)
+SIGMA_FACTORS = {N_LEVELS: SIGMA_FACTOR, 36: 0.9875837017566196}
 
 
-def least_kl_sigma_factor() -> float:
+def quantile_levels(n_levels: int = N_LEVELS) -> np.ndarray:
+    """The probability levels ``(j - 1/2) / M`` of ``M`` velocity quantiles."""
+    return (np.arange(int(n_levels)) + 0.5) / int(n_levels)
+
+
+def least_kl_sigma_factor(n_levels: int = N_LEVELS) -> float:
     """Width factor ``c`` with which a normal distribution survives the quantile round trip
-    (:func:`mixture_from_quantiles` of its quantiles at :data:`LEVELS`) with the least KL divergence
-    (quadrature on a grid; bounded Brent search over 0.2-2)."""
-    q = special.ndtri(LEVELS)
+    (:func:`mixture_from_quantiles` of its quantiles at ``n_levels`` levels, :func:`quantile_levels`) with
+    the least KL divergence (quadrature on a grid; bounded Brent search over 0.2-2)."""
+    q = special.ndtri(quantile_levels(n_levels))
     h = _spacing(q)
     v = np.linspace(-8, 8, 4001)
     p = normal_pdf(v)
@@ -154,9 +162,13 @@ def least_kl_sigma_factor() -> float:
     return float(optimize.minimize_scalar(kl, bounds=(0.2, 2.0), method="bounded").x)
 
 
-def sigma_factor() -> float:
-    """Width factor ``c`` of :func:`mixture_from_quantiles` (:data:`SIGMA_FACTOR`)."""
-    return SIGMA_FACTOR
+def sigma_factor(n_levels: int = N_LEVELS) -> float:
+    """Width factor ``c`` of :func:`mixture_from_quantiles` at ``n_levels`` levels (:data:`SIGMA_FACTORS`;
+    solved for when not stored: a study of other levels, no surrogate's)."""
+    c = SIGMA_FACTORS.get(int(n_levels))
+    if c is None:
+        c = least_kl_sigma_factor(n_levels)
+    return c
 
 
 def mixture_from_quantiles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,11 +183,11 @@ def mixture_from_quantiles(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     -------
     weights, means_m_s, sigmas_m_s : ndarray, shape (..., M)
         Equal weights ``1/M``, means at the quantiles, sigmas
-        ``sigma_factor() * local spacing`` (floored at 1e-6 m/s).
+        ``sigma_factor(M) * local spacing`` (floored at 1e-6 m/s).
     """
     q = np.asarray(q, dtype=float)
     w = np.full(q.shape, 1.0 / q.shape[-1])
-    sd = np.maximum(sigma_factor() * _spacing(q), 1e-6)
+    sd = np.maximum(sigma_factor(q.shape[-1]) * _spacing(q), 1e-6)
     return w, q.copy(), sd
 
 
@@ -330,9 +342,13 @@ class TargetLayout:
     with_dispersion: bool = False
     with_regions: bool = False
     with_destinations: bool = False
+    n_levels: int = N_LEVELS
     names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:
+        if self.n_levels not in SIGMA_FACTORS:
+            raise MsmillInputError("n_levels", self.n_levels, "one of " + ", ".join(map(str, sorted(SIGMA_FACTORS)))
+                                   + " (quantile levels per velocity distribution with a stored width factor)")
         names = []
         for s in range(1, self.n_stages + 1):
             for group, n in self.groups():
@@ -343,6 +359,11 @@ class TargetLayout:
         object.__setattr__(self, "names", tuple(names))
 
     @property
+    def levels(self) -> np.ndarray:
+        """Probability levels of the velocity quantiles (:func:`quantile_levels`)."""
+        return quantile_levels(self.n_levels)
+
+    @property
     def inlet_slice(self) -> slice:
         """Position of the inlet zone's destinations (run-level) in a target row."""
         start = self.n_stages * self.n_per_stage
@@ -350,7 +371,7 @@ class TargetLayout:
 
     def groups(self) -> list[tuple[str, int]]:
         """Per-stage target groups and their lengths."""
-        g = [("streams", 2), ("hit", 1), ("primary_velocity", N_LEVELS), ("secondary_velocity", N_LEVELS),
+        g = [("streams", 2), ("hit", 1), ("primary_velocity", self.n_levels), ("secondary_velocity", self.n_levels),
              ("count", 3 if self.with_dispersion else 1)]
         if self.with_regions:
             g += [("region_weights", N_REGIONS - 1), ("region_streams", 2 * N_REGIONS)]
@@ -387,18 +408,19 @@ class TargetLayout:
         """Plain dict for JSON."""
         return {"n_stages": self.n_stages, "with_dispersion": self.with_dispersion,
                 "with_regions": self.with_regions, "with_destinations": self.with_destinations,
-                "levels": [float(p) for p in LEVELS]}
+                "levels": [float(p) for p in self.levels]}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TargetLayout:
-        """Inverse of :meth:`to_dict` (checks the quantile levels match this version)."""
+        """Inverse of :meth:`to_dict` (the quantile levels must be ``(j - 1/2) / M`` for an ``M`` of
+        :data:`SIGMA_FACTORS`)."""
         got = np.asarray(d.get("levels", LEVELS), dtype=float)
-        if got.shape != LEVELS.shape or not np.allclose(got, LEVELS):
+        if got.ndim != 1 or got.size not in SIGMA_FACTORS or not np.allclose(got, quantile_levels(got.size)):
             raise MsmillInputError("surrogate.targets.levels", f"{got.size} quantile levels",
-                                   f"the {N_LEVELS} levels (j - 1/2)/{N_LEVELS} of this version "
-                                   "(a surrogate file from another version: retrain it)")
+                                   " or ".join(f"the {m} levels (j - 1/2)/{m}" for m in sorted(SIGMA_FACTORS))
+                                   + " of this version (a surrogate file from another version: retrain it)")
         return cls(int(d["n_stages"]), bool(d["with_dispersion"]), bool(d["with_regions"]),
-                   bool(d.get("with_destinations", False)))
+                   bool(d.get("with_destinations", False)), int(got.size))
 
 
 def _composition_targets(parts: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -413,9 +435,9 @@ def _composition_targets(parts: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
     return alr(p), v[:-1] + v[-1]
 
 
-def _mixture_targets(g: GaussianMixture, n: int) -> tuple[np.ndarray, np.ndarray]:
-    q = mixture_quantiles(g.weights, g.means_m_s, g.sigmas_m_s)
-    return quantile_vector(q), quantile_noise_var(g.weights, g.means_m_s, g.sigmas_m_s, n)
+def _mixture_targets(g: GaussianMixture, n: int, levels: np.ndarray = LEVELS) -> tuple[np.ndarray, np.ndarray]:
+    q = mixture_quantiles(g.weights, g.means_m_s, g.sigmas_m_s, levels)
+    return quantile_vector(q), quantile_noise_var(g.weights, g.means_m_s, g.sigmas_m_s, n, levels)
 
 
 def quantile_scatter(runs: list[RunStatistics]) -> tuple[float, int]:
@@ -493,7 +515,7 @@ def encode_run(run: RunStatistics, layout: TargetLayout) -> tuple[np.ndarray, np
         y[sl["hit"]] = logit(p)
         nv[sl["hit"]] = (se.get("primary_hit_probability", 0.0) / (p * (1 - p))) ** 2
         for grp, n in (("primary_velocity", st.n_primary_impacts), ("secondary_velocity", st.n_secondary_impacts)):
-            y[sl[grp]], nv[sl[grp]] = _mixture_targets(getattr(st, grp), n)
+            y[sl[grp]], nv[sl[grp]] = _mixture_targets(getattr(st, grp), n, layout.levels)
             nv[sl[grp]] *= q_factor
         lam = max(st.secondary_lambda, MIN_COUNT)
         c = sl["count"]
@@ -668,8 +690,9 @@ class TrainingSet:
         return int(self.X.shape[0])
 
     @classmethod
-    def from_runs(cls, runs: Iterable[RunStatistics]) -> TrainingSet:
-        """Encode runs (any iterable of :class:`RunStatistics`, e.g. a store query's result)."""
+    def from_runs(cls, runs: Iterable[RunStatistics], n_levels: int = N_LEVELS) -> TrainingSet:
+        """Encode runs (any iterable of :class:`RunStatistics`, e.g. a store query's result), with
+        ``n_levels`` quantiles per velocity distribution."""
         runs = tuple(runs)
         if not runs:
             raise MsmillInputError("runs", 0, "at least one RunStatistics")
@@ -686,7 +709,8 @@ class TrainingSet:
             with_regions=all(s.region_weights is not None and s.region_streams is not None
                              for r in runs for s in r.stages),
             with_destinations=all(r.inlet_destinations is not None and all(s.destinations is not None
-                                                                             for s in r.stages) for r in runs))
+                                                                             for s in r.stages) for r in runs),
+            n_levels=n_levels)
         rows = [encode_run(r, layout) for r in runs]
         X = design_inputs(r.design for r in runs)
         ids = tuple(str(r.provenance.get("run_id") or _design_label(r)) for r in runs)
