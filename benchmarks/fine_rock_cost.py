@@ -107,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"({planner.predict_s(x)[0] / cpu:.2f}x)")
     # a partial run's wall time is not given (a whole run was not made); its CPU time is the estimate above
     # and measured=0 says so
+    # on the last line an estimate stands in only for a size without a measured run (protocol or campaign)
+    estimates = [e for e in estimates if not any(abs(r["size_mm"] / e[0] - 1.0) <= 0.05 for r in rows)]
     print("sizes_mm=" + ",".join([f"{r['size_mm']:g}" for r in rows] + [f"{e[0]:g}" for e in estimates])
           + " wall_h=" + ",".join([f"{r['wall_s'] / 3600:.3f}" for r in rows] + ["nan"] * len(estimates))
           + " cpu_h=" + ",".join([f"{r['cpu_s'] / 3600:.3f}" for r in rows] + [f"{e[1] / 3600:.2f}" for e in estimates])
