@@ -49,9 +49,10 @@ def test_predictions_warn_and_report_the_thin_share():
         warnings.simplefilter("always")
         near = mill.run(feed, OperatingPoint(feed_tph=30, speed_rpm=1500, gate_deg=40), timeseries=False)
     # near the runs the feed has no thin data; since the 2.2 mm run (issue 38) the product's 2.2-3.5 mm
-    # classes are inside the trained sizes but far from every run (one run below 3.5 mm): a few % thin
+    # classes are inside the trained sizes but far from every run (one run below 3.5 mm): a few % thin;
+    # since the 2.0 mm run (10 t/h, gate 80) the 2.05 mm class too: 10.5 % of this product
     assert near.thin_data_feed_pct == 0.0
-    assert near.thin_data_product_pct < 10.0 < far.thin_data_product_pct
+    assert near.thin_data_product_pct < 15.0 < far.thin_data_product_pct
 
 
 def test_loo_coverage_counts_targets_inside_their_interval(shipped, monkeypatch):
