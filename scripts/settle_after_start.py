@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     for d in a.runs:
         tab, st = settle_table(d, a.slot_s)
         ds = st.design
-        start, end = st.steady_state_time_s or 0.0, (st.steady_state_time_s or 0.0) + (st.measurement_window_s or 0.0)
+        start = st.steady_state_time_s or 0.0
         print(f"# {d.name}: {ds.size_mm:.3g} mm, {ds.feed_tph:.3g} t/h, {ds.speed_rpm:.0f} rpm, gate {ds.gate_deg:.3g} "
               f"deg; onset {start:.2f} s, window {st.measurement_window_s or 0.0:.2f} s long; window streams (kickback / pass-through) "
               + ", ".join(f"s{s.stage} {s.kickback:.2f}/{s.pass_through:.2f}" for s in st.stages))
