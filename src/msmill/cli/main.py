@@ -36,9 +36,6 @@ def _help_width() -> None:
     else:
         os.environ["TERMINAL_WIDTH"] = str(HELP_WIDTH_NOT_A_TERMINAL)
 
-
-_help_width()
-
 app = typer.Typer(
     name="msmill",
     help="Predict what a multi-shaft vertical impact mill does to rock.",
@@ -182,7 +179,9 @@ def run(argv: list[str] | None = None) -> int:
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point (the help width is set here, in msmill's own process only: a program
+    that imports the CLI keeps its environment)."""
+    _help_width()
     sys.exit(run())
 
 
