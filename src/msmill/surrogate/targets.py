@@ -56,8 +56,15 @@ from msmill.stageparams import N_REGIONS, GaussianMixture, RunStatistics, design
 
 #: Number of quantile levels per velocity distribution.
 N_LEVELS = 28
+
+
+def quantile_levels(n_levels: int = N_LEVELS) -> np.ndarray:
+    """The probability levels ``(j - 1/2) / M`` of ``M`` velocity quantiles."""
+    return (np.arange(int(n_levels)) + 0.5) / int(n_levels)
+
+
 #: Probability levels of the velocity quantiles, ``(j - 1/2) / M``.
-LEVELS = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
+LEVELS = quantile_levels(N_LEVELS)
 #: Floor of fractions and probabilities before log-ratio / logit transforms.
 ZERO_FRACTION = 1e-4
 #: Floor of the mean secondary count before the log.
@@ -137,11 +144,6 @@ SIGMA_FACTOR = 0.9756139131749254
 #: :data:`SIGMA_FACTOR` for other numbers of levels a surrogate may be built with (``TargetLayout.n_levels``),
 #: the same stored floats (``tests/surrogate/test_targets.py`` recomputes each)
 SIGMA_FACTORS = {N_LEVELS: SIGMA_FACTOR, 36: 0.9875837017566196}
-
-
-def quantile_levels(n_levels: int = N_LEVELS) -> np.ndarray:
-    """The probability levels ``(j - 1/2) / M`` of ``M`` velocity quantiles."""
-    return (np.arange(int(n_levels)) + 0.5) / int(n_levels)
 
 
 def least_kl_sigma_factor(n_levels: int = N_LEVELS) -> float:
